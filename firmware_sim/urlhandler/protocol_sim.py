@@ -1,0 +1,181 @@
+"""pyserial handler for ``sim://``: a simulated board behind a serial port.
+
+URL: ``sim://[?scene=NAME][&rate=HZ][&noise=fF][&seed=N][&sensors=grid,quad]``
+(defaults: demo, 1000, 1.0, 0, one 8x8 grid and one quad). Sensors get ids in
+the order listed; a grid may give its shape as ``grid8x8``.
+
+The board runs on the wall clock: a read generates the scans due since the
+last one. Bytes the reader leaves unread pile up to ``BUFFER_BYTES`` (a USB
+device's buffer); beyond that the board drops scans and flags OVERRUN.
+"""
+from __future__ import annotations
+
+import threading
+import time
+import urllib.parse
+
+from serial.serialutil import PortNotOpenError, SerialBase, SerialException
+
+from ..board import Board, BoardConfig
+from ..sensors import SimGrid, SimQuad
+
+BUFFER_BYTES = 1 << 16
+
+
+def parse_sensors(spec: str) -> list:
+    sensors = []
+    for sensor_id, item in enumerate(s.strip() for s in spec.split(",") if s.strip()):
+        if item == "quad":
+            sensors.append(SimQuad(sensor_id))
+        elif item.startswith("grid"):
+            shape = item[4:] or "8x8"
+            try:
+                rows, cols = (int(v) for v in shape.split("x"))
+            except ValueError:
+                raise ValueError(f"bad grid shape {shape!r} in sensors={spec!r} (expected e.g. grid8x8)") from None
+            sensors.append(SimGrid(sensor_id, rows, cols))
+        else:
+            raise ValueError(f"unknown sensor kind {item!r} in sensors={spec!r} (expected grid or quad)")
+    if not sensors:
+        raise ValueError(f"sensors={spec!r} names no sensor")
+    return sensors
+
+
+def config_from_url(url: str) -> BoardConfig:
+    """BoardConfig from a ``sim://`` URL; ValueError names a bad option."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme != "sim":
+        raise ValueError(f"expected a sim:// URL, got {url!r}")
+    kwargs: dict = {}
+    for key, values in urllib.parse.parse_qs(parts.query, keep_blank_values=True).items():
+        value = values[-1]
+        try:
+            if key == "scene":
+                kwargs["scene"] = value
+            elif key == "rate":
+                kwargs["rate_hz"] = float(value)
+            elif key == "noise":
+                kwargs["noise_fF"] = float(value)
+            elif key == "seed":
+                kwargs["seed"] = int(value)
+            elif key == "sensors":
+                kwargs["sensors"] = parse_sensors(value)
+            else:
+                raise ValueError(f"unknown option {key!r} (known: scene, rate, noise, seed, sensors)")
+        except ValueError as exc:
+            raise ValueError(f"sim:// option {key}={value!r}: {exc}") from None
+    return BoardConfig(**kwargs)
+
+
+class Serial(SerialBase):
+    """A simulated board as a pyserial port."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.board: Board | None = None
+        self.clock = time.monotonic
+        self._rx = bytearray()
+        self._lock = threading.Lock()
+        self._t_open = 0.0
+        super().__init__(*args, **kwargs)
+
+    def open(self) -> None:
+        if self.is_open:
+            raise SerialException("Port is already open.")
+        if self._port is None:
+            raise SerialException("Port must be configured before it can be used.")
+        try:
+            self.board = Board(config_from_url(self.portstr))
+        except ValueError as exc:
+            raise SerialException(str(exc)) from None
+        self._t_open = self.clock()
+        self._rx = bytearray(self.board.power_up())
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+        super().close()
+
+    def _reconfigure_port(self) -> None:
+        """Nothing to configure: baud rate and framing mean nothing here."""
+
+    def _board_time(self) -> float:
+        return self.clock() - self._t_open
+
+    def _pump(self) -> None:
+        room = max(BUFFER_BYTES - len(self._rx), 0)
+        self._rx += self.board.advance(self._board_time(), room=room)
+
+    @property
+    def in_waiting(self) -> int:
+        if not self.is_open:
+            raise PortNotOpenError()
+        with self._lock:
+            self._pump()
+            return len(self._rx)
+
+    def read(self, size: int = 1) -> bytes:
+        if not self.is_open:
+            raise PortNotOpenError()
+        deadline = None if self._timeout is None else self.clock() + self._timeout
+        while True:
+            with self._lock:
+                self._pump()
+                if len(self._rx) >= size or self._timeout == 0:
+                    break
+                wait = self.board.next_scan_time - self._board_time()
+            if deadline is not None:
+                remaining = deadline - self.clock()
+                if remaining <= 0:
+                    break
+                wait = min(wait, remaining)
+            if not self.is_open:
+                break
+            time.sleep(max(wait, 0.0))
+        with self._lock:
+            data = bytes(self._rx[:size])
+            del self._rx[:size]
+        return data
+
+    def write(self, data: bytes) -> int:
+        if not self.is_open:
+            raise PortNotOpenError()
+        with self._lock:
+            self._pump()
+            self._rx += self.board.receive(bytes(data))
+        return len(data)
+
+    def reset_input_buffer(self) -> None:
+        with self._lock:
+            self._rx.clear()
+
+    def reset_output_buffer(self) -> None:
+        """Commands are taken at once; there is no output buffer to clear."""
+
+    @property
+    def out_waiting(self) -> int:
+        return 0
+
+    def _update_break_state(self) -> None:
+        """No break line on a simulated port."""
+
+    def _update_rts_state(self) -> None:
+        """No modem lines on a simulated port."""
+
+    def _update_dtr_state(self) -> None:
+        """No modem lines on a simulated port."""
+
+    @property
+    def cts(self) -> bool:
+        return True
+
+    @property
+    def dsr(self) -> bool:
+        return True
+
+    @property
+    def ri(self) -> bool:
+        return False
+
+    @property
+    def cd(self) -> bool:
+        return True

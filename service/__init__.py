@@ -1,0 +1,1 @@
+"""tactile: capacitive tactile sensors → calibrated forces, served live."""

@@ -1,0 +1,65 @@
+"""Calibration data the service carries with it.
+
+Table 1 of the 8x8 array paper (Liang et al. 2015): per-taxel initial
+capacitance C0 and measured sensitivity (%/N over 0–10 N), copied into
+``service/data`` so the service never reads anything outside its package.
+
+Quad sensor (Carbon black/PDMS paper, 2022): the small-force slopes of the
+paper's least-squares fits, eq (34) normal ΔC/C0 = −0.0009 F² + 0.0343 F +
+0.0032 and eq (35) tangential ΔC/C0 = −0.0004 F² + 0.0077 F + 0.0011. The
+constant terms are fit offsets (a tared sensor reads ΔC = 0 at zero force),
+so the level-0 slopes are the linear coefficients, 0.0343 /N and 0.0077 /N.
+"""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+
+import numpy as np
+
+TABLE1_ROWS = 8
+TABLE1_COLS = 8
+MEAN_SENSITIVITY_PER_N = 0.01247  # table 1 mean, used for grids of other shapes
+
+QUAD_NORMAL_SLOPE_PER_N = 0.0343
+QUAD_NORMAL_CURVATURE_PER_N2 = -0.0009
+QUAD_SHEAR_SLOPE_PER_N = 0.0077
+QUAD_SHEAR_CURVATURE_PER_N2 = -0.0004
+
+
+@dataclass(frozen=True)
+class GridCalibration:
+    """Per-taxel data of one grid, arrays of shape (rows*cols,), row-major."""
+
+    rows: int
+    cols: int
+    c0_pF: np.ndarray
+    sensitivity_per_N: np.ndarray  # fractional ΔC/C0 per newton
+
+
+@lru_cache(maxsize=1)
+def table1() -> GridCalibration:
+    """Table 1 of the 8x8 array paper as arrays of shape (64,), row-major."""
+    text = resources.files("service").joinpath("data/array8x8_table1.csv").read_text()
+    c0 = np.full(TABLE1_ROWS * TABLE1_COLS, np.nan)
+    sens = np.full(TABLE1_ROWS * TABLE1_COLS, np.nan)
+    for row in csv.DictReader(text.splitlines()):
+        index = (int(row["row"]) - 1) * TABLE1_COLS + int(row["col"]) - 1
+        c0[index] = float(row["c0_pF"])
+        sens[index] = float(row["sensitivity_pct_per_N"]) / 100.0
+    if np.isnan(c0).any() or np.isnan(sens).any():
+        raise ValueError("table 1 data is incomplete: every one of the 64 taxels needs C0 and sensitivity")
+    c0.flags.writeable = False
+    sens.flags.writeable = False
+    return GridCalibration(TABLE1_ROWS, TABLE1_COLS, c0, sens)
+
+
+def grid_calibration(rows: int, cols: int) -> GridCalibration:
+    """Calibration for a grid without its own: table 1 for an 8x8 grid, the
+    table's mean sensitivity (and C0) for any other shape."""
+    if (rows, cols) == (TABLE1_ROWS, TABLE1_COLS):
+        return table1()
+    n = rows * cols
+    return GridCalibration(rows, cols, np.full(n, float(table1().c0_pF.mean())), np.full(n, MEAN_SENSITIVITY_PER_N))

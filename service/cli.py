@@ -1,0 +1,136 @@
+"""`tactile` command line: serve | sim | replay | bench."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+
+from .sources import DEFAULT_SOURCE
+
+
+def _sim_config(args):
+    from firmware_sim.board import BoardConfig
+    from firmware_sim.urlhandler.protocol_sim import parse_sensors
+
+    return BoardConfig(
+        sensors=parse_sensors(args.sensors), rate_hz=args.rate, scene=args.scene, noise_fF=args.noise, seed=args.seed
+    )
+
+
+def cmd_serve(args) -> int:
+    import uvicorn
+
+    from .api.app import create_app
+    from .runtime import TactileService
+
+    app = create_app(TactileService(args.source))
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        logging.warning("binding to %s exposes the API beyond this machine", args.host)
+    print(f"tactile: reading {args.source}; dashboard at http://{args.host}:{args.port}/", flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    return 0
+
+
+def cmd_sim(args) -> int:
+    from firmware_sim import frontends
+    from firmware_sim.board import capture
+
+    config = _sim_config(args)
+    if args.capture:
+        data, board = capture(config, args.seconds)
+        with open(args.capture, "wb") as out:
+            out.write(data)
+        print(f"wrote {len(data)} bytes ({args.seconds} s of scene {config.scene!r}) to {args.capture}")
+        return 0
+    stop = threading.Event()
+    try:
+        if args.pty:
+            master, slave, path = frontends.open_pty()
+            print(f"simulated board on {path} (scene {config.scene!r}); Ctrl-C to stop", flush=True)
+            frontends.serve_pty(config, master, stop)
+        else:
+            server = frontends.tcp_server(args.host, args.tcp)
+            host, port = server.getsockname()[:2]
+            print(f"simulated board on socket://{host}:{port} (scene {config.scene!r}); Ctrl-C to stop", flush=True)
+            frontends.serve_tcp(config, server, stop)
+    except KeyboardInterrupt:
+        stop.set()
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from .replay import replay_raw
+
+    out = open(args.export, "wb") if args.export else None
+    try:
+        pipeline = replay_raw(args.raw, out)
+    finally:
+        if out is not None:
+            out.close()
+    counters = pipeline.decoder.counters.as_dict()
+    summary = {"stream": {k: v for k, v in counters.items() if k != "sensors"}, "sensors": counters["sensors"],
+               "rejected": pipeline.interpreter.rejected}
+    print(json.dumps(summary, indent=1), file=sys.stderr)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run
+
+    report = run(seconds=args.seconds)
+    print(json.dumps(report, indent=1) if args.json else report["text"])
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tactile", description="Capacitive tactile sensor service")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    serve = sub.add_parser("serve", help="read a board and serve the API and dashboard")
+    serve.add_argument("--source", default=DEFAULT_SOURCE,
+                       help="pyserial URL or device path (default: %(default)s, the built-in simulator)")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--log-level", default="warning")
+    serve.set_defaults(func=cmd_serve)
+
+    sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")
+    where = sim.add_mutually_exclusive_group(required=True)
+    where.add_argument("--pty", action="store_true", help="serve on a new pseudo-terminal and print its path")
+    where.add_argument("--tcp", type=int, metavar="PORT", help="serve on TCP (0 picks a free port)")
+    where.add_argument("--capture", metavar="FILE", help="write the simulator's exact bytes to FILE")
+    sim.add_argument("--host", default="127.0.0.1", help="TCP bind address")
+    sim.add_argument("--seconds", type=float, default=10.0, help="capture length")
+    sim.add_argument("--scene", default="demo", help="idle | press | slide | shear | demo")
+    sim.add_argument("--rate", type=float, default=1000.0, help="scans per second per sensor")
+    sim.add_argument("--noise", type=float, default=1.0, help="white capacitance noise, fF rms")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--sensors", default="grid,quad", help="e.g. grid,quad or grid8x8,grid4x4,quad")
+    sim.set_defaults(func=cmd_sim)
+
+    replay = sub.add_parser("replay", help="replay a raw capture through the pipeline")
+    replay.add_argument("--raw", required=True, metavar="FILE", help="file of raw serial bytes")
+    replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
+    replay.set_defaults(func=cmd_replay)
+
+    bench = sub.add_parser("bench", help="measure decoder throughput and reconstruction cost")
+    bench.add_argument("--seconds", type=float, default=10.0, help="simulated seconds of data to process")
+    bench.add_argument("--json", action="store_true")
+    bench.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as exc:
+        print(f"tactile {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""The data path in one line: bytes → frames → readings → forces → listeners."""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+from .protocol import Decoder
+from .readings import Interpreter
+from .reconstruct import ForceFrame, Reconstructor
+
+Listener = Callable[[list[ForceFrame]], None]
+
+RATE_WINDOW_S = 1.0
+
+
+class RateMeter:
+    """Frames per second over the last completed window of ~1 s."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._window_start: float | None = None
+        self._window_count = 0
+        self.rate_hz = 0.0
+
+    def tick(self, now: float, n: int = 1) -> None:
+        self.count += n
+        if self._window_start is None:
+            self._window_start, self._window_count = now, self.count
+        elif now - self._window_start >= RATE_WINDOW_S:
+            self.rate_hz = (self.count - self._window_count) / (now - self._window_start)
+            self._window_start, self._window_count = now, self.count
+
+
+class Pipeline:
+    """Decodes and reconstructs everything fed to it and hands each batch of
+    ForceFrames to the listeners. ``feed`` is called from one thread (the
+    readout or a replay); ``tare`` may come from any other."""
+
+    def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time) -> None:
+        self.decoder = Decoder()
+        self.interpreter = Interpreter(clock)
+        self.reconstructor = reconstructor or Reconstructor()
+        self.latest: dict[int, ForceFrame] = {}
+        self.rates: dict[int, RateMeter] = {}
+        self.listeners: list[Listener] = []
+        self._lock = threading.Lock()
+
+    def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
+        with self._lock:
+            frames = self._reconstruct(self.decoder.feed(data), t_host)
+        self._publish(frames, t_host)
+        return frames
+
+    def finish(self, t_host: float) -> list[ForceFrame]:
+        """End of a finite stream: decode what is left, release held frames."""
+        with self._lock:
+            frames = self._reconstruct(self.decoder.finish(), t_host) + self.reconstructor.flush()
+        self._publish(frames, t_host)
+        return frames
+
+    def link_lost(self) -> None:
+        with self._lock:
+            self.decoder.reset()
+
+    def tare(self, sensor_id: int | None = None) -> list[int]:
+        with self._lock:
+            return self.reconstructor.tare(sensor_id)
+
+    def _reconstruct(self, frames, t_host: float) -> list[ForceFrame]:
+        out: list[ForceFrame] = []
+        for frame in frames:
+            reading = self.interpreter.interpret(frame, t_host)
+            if reading is not None:
+                out.extend(self.reconstructor.process(reading))
+        return out
+
+    def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
+        if not frames:
+            return
+        for frame in frames:
+            self.latest[frame.sensor.id] = frame
+            meter = self.rates.get(frame.sensor.id)
+            if meter is None:
+                meter = self.rates[frame.sensor.id] = RateMeter()
+            meter.tick(t_host)
+        for listener in self.listeners:
+            listener(frames)

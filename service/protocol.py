@@ -1,0 +1,226 @@
+"""Board serial protocol v1: bytes in, frames out; frames in, bytes out. No I/O.
+
+The decoder is incremental: feed it chunks of any size (one byte, a whole file)
+and it returns the frames completed so far, keeping partial frames across
+calls. A frame whose version, type, length or CRC is wrong is discarded and
+the search for the next sync pattern restarts one byte after the bad frame's
+first sync byte, as the protocol requires, so a sync pattern inside a payload
+or a corrupted length cannot hide the following frames for long.
+
+Every byte that does not end up inside a good frame is counted in
+``bytes_discarded``; CRC errors are attributed to the sensor id the bad header
+claims (it may itself be corrupt, so the per-sensor figure is indicative and
+the stream total is exact).
+"""
+from __future__ import annotations
+
+import struct
+from binascii import crc_hqx
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+SYNC = b"\xa5\x5a"
+VERSION = 1
+HEADER_SIZE = 14
+CRC_SIZE = 2
+MAX_PAYLOAD = 1024
+BOARD_SENSOR_ID = 255
+SEQ_MODULUS = 1 << 16
+T_US_MODULUS = 1 << 32
+
+FLAG_SATURATED = 0x01
+FLAG_OVERRUN = 0x02
+
+_HEADER = struct.Struct("<BBBBHIH")  # version, type, sensor, flags, seq, t_us, len
+_CRC = struct.Struct("<H")
+
+
+class FrameType(IntEnum):
+    INFO = 0x01
+    GRID = 0x10
+    QUAD = 0x11
+    ERROR = 0x7F
+
+
+DATA_TYPES = frozenset({FrameType.GRID, FrameType.QUAD})
+_KNOWN_TYPES = frozenset(int(t) for t in FrameType)
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One frame that passed every check of the protocol.
+
+    ``gap`` is the number of scans of this sensor missing just before this
+    frame according to ``seq`` (0 when the sequence is continuous or this is
+    the sensor's first frame).
+    """
+
+    type: FrameType
+    sensor: int
+    flags: int
+    seq: int
+    t_us: int
+    payload: bytes
+    gap: int = 0
+
+
+@dataclass(slots=True)
+class SensorCounters:
+    frames: int = 0
+    crc_errors: int = 0
+    seq_gaps: int = 0
+    missed_frames: int = 0
+
+
+@dataclass(slots=True)
+class StreamCounters:
+    bytes_in: int = 0
+    frames: int = 0
+    crc_errors: int = 0
+    header_errors: int = 0
+    truncated: int = 0
+    bytes_discarded: int = 0
+    sensors: dict[int, SensorCounters] = field(default_factory=dict)
+
+    def sensor(self, sensor_id: int) -> SensorCounters:
+        counters = self.sensors.get(sensor_id)
+        if counters is None:
+            counters = self.sensors[sensor_id] = SensorCounters()
+        return counters
+
+    def as_dict(self) -> dict:
+        return {
+            "bytes_in": self.bytes_in,
+            "frames": self.frames,
+            "crc_errors": self.crc_errors,
+            "header_errors": self.header_errors,
+            "truncated": self.truncated,
+            "bytes_discarded": self.bytes_discarded,
+            "sensors": {
+                str(sid): {
+                    "frames": c.frames,
+                    "crc_errors": c.crc_errors,
+                    "seq_gaps": c.seq_gaps,
+                    "missed_frames": c.missed_frames,
+                }
+                for sid, c in sorted(self.sensors.items())
+            },
+        }
+
+
+def _length_is_valid(frame_type: int, length: int) -> bool:
+    if length > MAX_PAYLOAD:
+        return False
+    if frame_type == FrameType.QUAD:
+        return length == 16
+    if frame_type == FrameType.GRID:
+        return length > 0 and length % 4 == 0
+    return True
+
+
+class Decoder:
+    """Incremental protocol decoder with per-stream and per-sensor counters."""
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+        self._last_seq: dict[int, int] = {}
+        self.counters = StreamCounters()
+
+    def feed(self, data: bytes) -> list[Frame]:
+        """Add received bytes; return the frames they complete, in order."""
+        self.counters.bytes_in += len(data)
+        self._buffer += data
+        return self._parse(final=False)
+
+    def finish(self) -> list[Frame]:
+        """End of stream: resolve what is left, recovering frames trapped
+        behind a corrupt length, and count the remainder as discarded."""
+        frames = self._parse(final=True)
+        self.counters.bytes_discarded += len(self._buffer)
+        self._buffer.clear()
+        return frames
+
+    def reset(self) -> None:
+        """Forget a partial frame (the link dropped); keep counters and the
+        sequence state, so the scans lost across a reconnect count as a gap."""
+        self.counters.bytes_discarded += len(self._buffer)
+        self._buffer.clear()
+
+    def _parse(self, final: bool) -> list[Frame]:
+        buf = self._buffer
+        counters = self.counters
+        n = len(buf)
+        pos = 0
+        frames: list[Frame] = []
+        while True:
+            start = buf.find(SYNC, pos)
+            if start < 0:
+                # A trailing 0xA5 may be the first half of the next sync.
+                keep = 1 if (not final and n > pos and buf[-1] == SYNC[0]) else 0
+                counters.bytes_discarded += n - keep - pos
+                pos = n - keep
+                break
+            counters.bytes_discarded += start - pos
+            pos = start
+            if n - pos < HEADER_SIZE:
+                if final:
+                    counters.truncated += 1
+                    counters.bytes_discarded += 1
+                    pos += 1
+                    continue
+                break
+            version, ftype, sensor, flags, seq, t_us, length = _HEADER.unpack_from(buf, pos + 2)
+            if version != VERSION or ftype not in _KNOWN_TYPES or not _length_is_valid(ftype, length):
+                counters.header_errors += 1
+                counters.bytes_discarded += 1
+                pos += 1
+                continue
+            end = pos + HEADER_SIZE + length + CRC_SIZE
+            if end > n:
+                if final:
+                    counters.truncated += 1
+                    counters.bytes_discarded += 1
+                    pos += 1
+                    continue
+                break
+            (crc,) = _CRC.unpack_from(buf, end - CRC_SIZE)
+            if crc_hqx(buf[pos + 2 : end - CRC_SIZE], 0xFFFF) != crc:
+                counters.crc_errors += 1
+                counters.sensor(sensor).crc_errors += 1
+                counters.bytes_discarded += 1
+                pos += 1
+                continue
+            frames.append(self._accept(ftype, sensor, flags, seq, t_us, bytes(buf[pos + HEADER_SIZE : end - CRC_SIZE])))
+            pos = end
+        del buf[:pos]
+        return frames
+
+    def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, payload: bytes) -> Frame:
+        self.counters.frames += 1
+        frame_type = FrameType(ftype)
+        gap = 0
+        if frame_type in DATA_TYPES:
+            sensor_counters = self.counters.sensor(sensor)
+            sensor_counters.frames += 1
+            last = self._last_seq.get(sensor)
+            if last is not None:
+                gap = (seq - last - 1) % SEQ_MODULUS
+                if gap:
+                    sensor_counters.seq_gaps += 1
+                    sensor_counters.missed_frames += gap
+            self._last_seq[sensor] = seq
+        return Frame(frame_type, sensor, flags, seq, t_us, payload, gap)
+
+
+def encode_frame(
+    frame_type: int, sensor: int, seq: int, t_us: int, payload: bytes, flags: int = 0
+) -> bytes:
+    """Serialise one frame exactly as a board sends it."""
+    if len(payload) > MAX_PAYLOAD:
+        raise ValueError(f"payload of {len(payload)} bytes exceeds the protocol maximum {MAX_PAYLOAD}")
+    if not 0 <= sensor <= 255:
+        raise ValueError(f"sensor id {sensor} is outside 0..255")
+    body = _HEADER.pack(
+        VERSION, frame_type, sensor, flags, seq % SEQ_MODULUS, t_us % T_US_MODULUS, len(payload)
+    ) + payload
+    return SYNC + body + _CRC.pack(crc_hqx(body, 0xFFFF))

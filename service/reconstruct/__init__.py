@@ -1,0 +1,95 @@
+"""Reconstruction: readings (capacitance) → ForceFrames (forces + flags)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..calibration import GridCalibration, grid_calibration
+from ..readings import Reading, SensorInfo
+from . import level0
+from .baseline import DEFAULT_TARE_FRAMES, Baseline
+from .frame import ForceFrame
+
+__all__ = ["ForceFrame", "Reconstructor"]
+
+LEVELS = ("level0",)
+
+
+@dataclass
+class _SensorState:
+    info: SensorInfo
+    baseline: Baseline
+    calibration: GridCalibration | None
+    held: list[Reading]
+
+
+class Reconstructor:
+    """Per-sensor tare and force reconstruction at a fidelity level.
+
+    Live use returns each frame at once; until a sensor's baseline is ready
+    its forces are null and flagged ``taring``. With ``hold_until_tared``
+    (offline replay) readings are held until the baseline is ready and then
+    released with forces, so no frame of a log lacks a value.
+    """
+
+    def __init__(self, tare_frames: int = DEFAULT_TARE_FRAMES, hold_until_tared: bool = False, level: str = "level0") -> None:
+        if level not in LEVELS:
+            raise ValueError(f"unknown fidelity level {level!r}; known: {', '.join(LEVELS)}")
+        self.level = level
+        self.tare_frames = tare_frames
+        self.hold_until_tared = hold_until_tared
+        self._sensors: dict[int, _SensorState] = {}
+
+    def _state(self, info: SensorInfo) -> _SensorState:
+        state = self._sensors.get(info.id)
+        if state is None or state.info != info:
+            calibration = grid_calibration(info.rows, info.cols) if info.kind == "grid" else None
+            state = _SensorState(info, Baseline(info.channels, self.tare_frames), calibration, [])
+            self._sensors[info.id] = state
+        return state
+
+    def tare(self, sensor_id: int | None = None) -> list[int]:
+        """Restart the baseline of one sensor (or all); return the ids tared."""
+        ids = list(self._sensors) if sensor_id is None else [sensor_id]
+        for sid in ids:
+            if sid not in self._sensors:
+                raise KeyError(sid)
+            self._sensors[sid].baseline.tare()
+        return ids
+
+    def baseline(self, sensor_id: int) -> np.ndarray | None:
+        state = self._sensors.get(sensor_id)
+        return None if state is None or not state.baseline.ready else state.baseline.value
+
+    def process(self, reading: Reading) -> list[ForceFrame]:
+        state = self._state(reading.sensor)
+        ready = state.baseline.update(reading.capacitance_pF)
+        if self.hold_until_tared and not ready:
+            state.held.append(reading)
+            return []
+        if state.held:
+            held, state.held = state.held, []
+            return [self._reconstruct(state, r) for r in held] + [self._reconstruct(state, reading)]
+        return [self._reconstruct(state, reading)]
+
+    def flush(self) -> list[ForceFrame]:
+        """Release held readings of sensors that never completed a tare (a log
+        shorter than the tare window): they come out null and flagged."""
+        frames = []
+        for state in self._sensors.values():
+            held, state.held = state.held, []
+            frames.extend(self._reconstruct(state, r) for r in held)
+        return frames
+
+    def _reconstruct(self, state: _SensorState, reading: Reading) -> ForceFrame:
+        flags = reading.frame_flags()
+        if not state.baseline.ready:
+            flags.append("taring")
+            n = 3 if state.info.kind == "quad" else state.info.channels
+            forces = np.full(n, np.nan)
+        elif state.info.kind == "grid":
+            forces = level0.grid_forces(reading.capacitance_pF, state.baseline.value, state.calibration)
+        else:
+            forces = level0.quad_forces(reading.capacitance_pF, state.baseline.value)
+        return ForceFrame(reading.sensor, reading.seq, reading.t_us, reading.t_host, forces, reading.capacitance_pF, flags, self.level)

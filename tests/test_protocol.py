@@ -1,0 +1,169 @@
+import struct
+from binascii import crc_hqx
+
+import pytest
+
+from service.protocol import (
+    FLAG_OVERRUN,
+    Decoder,
+    FrameType,
+    encode_frame,
+)
+
+
+def quad_payload(*af):
+    return struct.pack("<4I", *af)
+
+
+def hand_frame(ftype=0x11, sensor=1, flags=0, seq=5, t_us=1000, payload=None, version=1, crc=None, length=None):
+    """Build a frame byte by byte from the protocol table, independently of encode_frame."""
+    payload = quad_payload(10, 20, 30, 40) if payload is None else payload
+    length = len(payload) if length is None else length
+    body = bytes([version, ftype, sensor, flags]) + seq.to_bytes(2, "little") + t_us.to_bytes(4, "little")
+    body += length.to_bytes(2, "little") + payload
+    if crc is None:
+        crc = crc_hqx(body, 0xFFFF)
+    return b"\xa5\x5a" + body + crc.to_bytes(2, "little")
+
+
+def test_crc_is_ccitt_false():
+    # The standard check value of CRC-16/CCITT-FALSE.
+    assert crc_hqx(b"123456789", 0xFFFF) == 0x29B1
+
+
+def test_encoder_matches_hand_built_frame():
+    assert encode_frame(FrameType.QUAD, 1, 5, 1000, quad_payload(10, 20, 30, 40)) == hand_frame()
+    grid = encode_frame(FrameType.GRID, 0, 0, 0, bytes(256))
+    assert len(grid) == 272  # the protocol's link budget figure
+    assert len(hand_frame()) == 32
+
+
+def test_decodes_hand_built_frame_fields():
+    (frame,) = Decoder().feed(hand_frame(flags=FLAG_OVERRUN, seq=65535, t_us=0xFFFFFFFF))
+    assert frame.type == FrameType.QUAD
+    assert (frame.sensor, frame.flags, frame.seq, frame.t_us) == (1, FLAG_OVERRUN, 65535, 0xFFFFFFFF)
+    assert struct.unpack("<4I", frame.payload) == (10, 20, 30, 40)
+
+
+def test_bad_crc_is_dropped_and_counted():
+    good = hand_frame(seq=1)
+    bad = hand_frame(seq=2, crc=0x1234)
+    decoder = Decoder()
+    frames = decoder.feed(bad + good)
+    assert [f.seq for f in frames] == [1]
+    assert decoder.counters.crc_errors == 1
+    assert decoder.counters.sensor(1).crc_errors == 1
+    assert decoder.counters.bytes_discarded == len(bad)
+
+
+def test_truncated_frame_then_good_frame():
+    truncated = hand_frame(seq=1)[:20]
+    frames = Decoder().feed(truncated + hand_frame(seq=2) + hand_frame(seq=3))
+    assert [f.seq for f in frames] == [2, 3]
+
+
+def test_garbage_between_frames():
+    garbage = b"\x00\xff\xa5\x13\x37\xa5"
+    decoder = Decoder()
+    frames = decoder.feed(hand_frame(seq=1) + garbage + hand_frame(seq=2))
+    assert [f.seq for f in frames] == [1, 2]
+    assert decoder.counters.bytes_discarded == len(garbage)
+
+
+def test_sync_inside_payload_is_not_a_frame_start():
+    payload = quad_payload(0x5AA55AA5, 0xA55A0000, 0x5AA5, 7)
+    assert b"\xa5\x5a" in payload
+    frames = Decoder().feed(hand_frame(payload=payload, seq=1) + hand_frame(seq=2))
+    assert [f.seq for f in frames] == [1, 2]
+    assert frames[0].payload == payload
+
+
+def test_resync_starts_one_byte_after_the_bad_frames_sync():
+    # A corrupted grid frame whose payload holds a complete quad frame: the
+    # search restarts one byte after the bad frame's sync, so it finds the
+    # embedded frame (the protocol's rule) and then the next real frame.
+    inner = hand_frame(seq=7)
+    payload = b"\x01" * 8 + inner + b"\x02" * (256 - 8 - len(inner))
+    bad = hand_frame(ftype=0x10, sensor=0, payload=payload, seq=1, crc=0)
+    decoder = Decoder()
+    frames = decoder.feed(bad + hand_frame(seq=8))
+    assert [(f.sensor, f.seq) for f in frames] == [(1, 7), (1, 8)]
+    assert decoder.counters.crc_errors == 1
+
+
+def test_len_over_1024_is_rejected_without_waiting():
+    bad = hand_frame(ftype=0x10, payload=b"", length=1025)
+    decoder = Decoder()
+    frames = decoder.feed(bad + hand_frame(seq=2))
+    assert [f.seq for f in frames] == [2]
+    assert decoder.counters.header_errors == 1
+
+
+def test_quad_with_wrong_length_is_rejected():
+    frames = Decoder().feed(hand_frame(payload=b"\x01" * 12, seq=1) + hand_frame(seq=2))
+    assert [f.seq for f in frames] == [2]
+
+
+@pytest.mark.parametrize("version, ftype", [(2, 0x11), (0, 0x11), (1, 0x12), (1, 0x00)])
+def test_wrong_version_or_type_is_rejected(version, ftype):
+    decoder = Decoder()
+    frames = decoder.feed(hand_frame(version=version, ftype=ftype, seq=1) + hand_frame(seq=2))
+    assert [f.seq for f in frames] == [2]
+    assert decoder.counters.header_errors == 1
+
+
+def test_stream_split_at_every_byte_boundary():
+    stream = b"\x13" + hand_frame(seq=1) + b"\xa5" + hand_frame(ftype=0x10, sensor=0, payload=bytes(range(256)), seq=2)
+    stream += hand_frame(seq=3, crc=1) + hand_frame(seq=4)
+    expected = [1, 2, 4]
+    for cut in range(len(stream) + 1):
+        decoder = Decoder()
+        frames = decoder.feed(stream[:cut]) + decoder.feed(stream[cut:])
+        assert [f.seq for f in frames] == expected, cut
+    decoder = Decoder()
+    frames = [f for b in stream for f in decoder.feed(bytes([b]))]
+    assert [f.seq for f in frames] == expected
+
+
+def test_finish_recovers_frames_behind_a_corrupt_length():
+    # A header claiming 1000 bytes holds back the frames behind it until the
+    # stream ends; finish() must resync and recover them.
+    lying = hand_frame(ftype=0x10, sensor=0, payload=b"", length=1000)[:14]
+    decoder = Decoder()
+    assert decoder.feed(lying + hand_frame(seq=1) + hand_frame(seq=2)) == []
+    frames = decoder.finish()
+    assert [f.seq for f in frames] == [1, 2]
+    assert decoder.counters.truncated == 1
+
+
+def test_sequence_gaps_and_wrap():
+    decoder = Decoder()
+    seqs = [65533, 65534, 65535, 0, 1, 5, 6]
+    frames = decoder.feed(b"".join(hand_frame(seq=s) for s in seqs))
+    assert [f.gap for f in frames] == [0, 0, 0, 0, 0, 3, 0]
+    counters = decoder.counters.sensor(1)
+    assert (counters.frames, counters.seq_gaps, counters.missed_frames) == (7, 1, 3)
+
+
+def test_info_and_error_frames_do_not_count_in_sequence():
+    decoder = Decoder()
+    info = hand_frame(ftype=0x01, sensor=255, payload=b'{"board": "x"}', seq=0)
+    error = hand_frame(ftype=0x7F, sensor=255, payload=b"unknown command", seq=1)
+    frames = decoder.feed(info + error + hand_frame(seq=0))
+    assert [f.type for f in frames] == [FrameType.INFO, FrameType.ERROR, FrameType.QUAD]
+    assert decoder.counters.sensor(1).frames == 1
+    assert 255 not in decoder.counters.sensors
+
+
+def test_reset_keeps_sequence_state_so_reconnect_gaps_count():
+    decoder = Decoder()
+    decoder.feed(hand_frame(seq=10) + hand_frame(seq=11)[:9])
+    decoder.reset()
+    (frame,) = decoder.feed(hand_frame(seq=20))
+    assert frame.gap == 9  # seq 11..19 never arrived whole
+    assert decoder.counters.bytes_discarded == 9
+
+
+def test_encode_rejects_oversize_payload():
+    with pytest.raises(ValueError, match="1025 bytes"):
+        encode_frame(FrameType.GRID, 0, 0, 0, bytes(1025))
