@@ -84,14 +84,16 @@ def serve_pty(config: BoardConfig, master: int, stop: threading.Event) -> None:
     _run(board, link, time.monotonic(), stop)
 
 
-def serve_tcp(config: BoardConfig, server: socket.socket, stop: threading.Event) -> None:
+def serve_tcp(board: Board, server: socket.socket, stop: threading.Event, t0: float | None = None) -> None:
     """Serve one client at a time on a listening socket until ``stop``.
 
     The board keeps running between clients (its scans are dropped), so a
     client that reconnects sees the sequence gap of the scans it missed.
+    ``t0`` is the monotonic time of the board's power-up (default: now); a
+    board handed to a new server with its old ``t0`` carries on as if it had
+    been scanning all along.
     """
-    board = Board(config)
-    t0 = time.monotonic()
+    t0 = time.monotonic() if t0 is None else t0
     server.settimeout(0.05)
     while not stop.is_set():
         board.advance(time.monotonic() - t0, room=0)

@@ -35,7 +35,7 @@ def cmd_serve(args) -> int:
 
 def cmd_sim(args) -> int:
     from firmware_sim import frontends
-    from firmware_sim.board import capture
+    from firmware_sim.board import Board, capture
 
     config = _sim_config(args)
     if args.capture:
@@ -54,7 +54,7 @@ def cmd_sim(args) -> int:
             server = frontends.tcp_server(args.host, args.tcp)
             host, port = server.getsockname()[:2]
             print(f"simulated board on socket://{host}:{port} (scene {config.scene!r}); Ctrl-C to stop", flush=True)
-            frontends.serve_tcp(config, server, stop)
+            frontends.serve_tcp(Board(config), server, stop)
     except KeyboardInterrupt:
         stop.set()
     return 0

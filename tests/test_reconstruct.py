@@ -104,3 +104,12 @@ def test_flush_releases_untared_frames_as_null():
 def test_unknown_level_is_named():
     with pytest.raises(ValueError, match="'level9'"):
         Reconstructor(level="level9")
+
+
+def test_hold_keeps_arrival_order_across_sensors():
+    rec = Reconstructor(tare_frames=2, hold_until_tared=True)
+    out = []
+    for seq in range(3):
+        out += rec.process(reading(GRID, table1().c0_pF, seq))
+        out += rec.process(reading(QUAD, np.full(4, 2.0), seq))
+    assert [(f.sensor.id, f.seq) for f in out] == [(0, 0), (1, 0), (0, 1), (1, 1), (0, 2), (1, 2)]

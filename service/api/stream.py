@@ -41,7 +41,9 @@ class Subscriber:
         due = self._next_due.get(sid, 0.0)
         if frame.t_host < due:
             return False
-        self._next_due[sid] = max(due + 1.0 / self.max_rate_hz, frame.t_host)
+        period = 1.0 / self.max_rate_hz
+        # Keep the phase while on time; restart it after a pause.
+        self._next_due[sid] = due + period if frame.t_host < due + period else frame.t_host + period
         return True
 
     def offer(self, message: bytes, frame_count: int) -> None:

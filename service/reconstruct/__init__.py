@@ -1,6 +1,7 @@
 """Reconstruction: readings (capacitance) → ForceFrames (forces + flags)."""
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +22,6 @@ class _SensorState:
     info: SensorInfo
     baseline: Baseline
     calibration: GridCalibration | None
-    held: list[Reading]
 
 
 class Reconstructor:
@@ -29,8 +29,9 @@ class Reconstructor:
 
     Live use returns each frame at once; until a sensor's baseline is ready
     its forces are null and flagged ``taring``. With ``hold_until_tared``
-    (offline replay) readings are held until the baseline is ready and then
-    released with forces, so no frame of a log lacks a value.
+    (offline replay) readings are held until their sensor's baseline is ready
+    and then released with forces, in arrival order, so no frame of a log
+    lacks a value and the export keeps the order of the stream.
     """
 
     def __init__(self, tare_frames: int = DEFAULT_TARE_FRAMES, hold_until_tared: bool = False, level: str = "level0") -> None:
@@ -40,12 +41,13 @@ class Reconstructor:
         self.tare_frames = tare_frames
         self.hold_until_tared = hold_until_tared
         self._sensors: dict[int, _SensorState] = {}
+        self._held: deque[tuple[_SensorState, Reading]] = deque()
 
     def _state(self, info: SensorInfo) -> _SensorState:
         state = self._sensors.get(info.id)
         if state is None or state.info != info:
             calibration = grid_calibration(info.rows, info.cols) if info.kind == "grid" else None
-            state = _SensorState(info, Baseline(info.channels, self.tare_frames), calibration, [])
+            state = _SensorState(info, Baseline(info.channels, self.tare_frames), calibration)
             self._sensors[info.id] = state
         return state
 
@@ -64,22 +66,20 @@ class Reconstructor:
 
     def process(self, reading: Reading) -> list[ForceFrame]:
         state = self._state(reading.sensor)
-        ready = state.baseline.update(reading.capacitance_pF)
-        if self.hold_until_tared and not ready:
-            state.held.append(reading)
-            return []
-        if state.held:
-            held, state.held = state.held, []
-            return [self._reconstruct(state, r) for r in held] + [self._reconstruct(state, reading)]
-        return [self._reconstruct(state, reading)]
+        state.baseline.update(reading.capacitance_pF)
+        if not self.hold_until_tared:
+            return [self._reconstruct(state, reading)]
+        self._held.append((state, reading))
+        frames = []
+        while self._held and self._held[0][0].baseline.ready:
+            frames.append(self._reconstruct(*self._held.popleft()))
+        return frames
 
     def flush(self) -> list[ForceFrame]:
-        """Release held readings of sensors that never completed a tare (a log
-        shorter than the tare window): they come out null and flagged."""
-        frames = []
-        for state in self._sensors.values():
-            held, state.held = state.held, []
-            frames.extend(self._reconstruct(state, r) for r in held)
+        """Release every held reading; those of sensors that never completed a
+        tare (a log shorter than the tare window) come out null and flagged."""
+        frames = [self._reconstruct(state, reading) for state, reading in self._held]
+        self._held.clear()
         return frames
 
     def _reconstruct(self, state: _SensorState, reading: Reading) -> ForceFrame:

@@ -1,0 +1,79 @@
+"""The readout thread over TCP: reading, and surviving the device going away."""
+import threading
+import time
+
+from firmware_sim import frontends
+from firmware_sim.board import Board, BoardConfig
+from service.pipeline import Pipeline
+from service.readout import Readout
+
+
+def wait_for(predicate, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+class TcpBoard:
+    """A simulated board behind TCP that can be unplugged and plugged back."""
+
+    def __init__(self):
+        self.board = Board(BoardConfig(scene="idle"))
+        self.t0 = time.monotonic()
+        self.port = None
+        self.plug()
+
+    def plug(self):
+        server = frontends.tcp_server("127.0.0.1", self.port or 0)
+        self.port = server.getsockname()[1]
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, args=(server,), daemon=True)
+        self.thread.start()
+
+    def _serve(self, server):
+        with server:
+            frontends.serve_tcp(self.board, server, self.stop, self.t0)
+
+    def unplug(self):
+        self.stop.set()
+        self.thread.join()
+
+
+def test_reads_and_reconnects_after_the_device_goes_away():
+    device = TcpBoard()
+    pipeline = Pipeline()
+    readout = Readout(f"socket://127.0.0.1:{device.port}", pipeline.feed, pipeline.link_lost, backoff_s=(0.02, 0.1))
+    readout.start()
+    try:
+        assert wait_for(lambda: pipeline.decoder.counters.sensor(0).frames > 200)
+        assert readout.link.up and readout.link.connects == 1
+        device.unplug()
+        assert wait_for(lambda: not readout.link.up)
+        time.sleep(0.3)  # the board keeps scanning while unplugged
+        frames_before = pipeline.decoder.counters.sensor(0).frames
+        device.plug()
+        assert wait_for(lambda: pipeline.decoder.counters.sensor(0).frames > frames_before + 200)
+        assert readout.link.connects == 2 and readout.link.up
+        counters = pipeline.decoder.counters.sensor(0)
+        assert counters.seq_gaps >= 1
+        assert counters.missed_frames >= 250  # at least ~0.3 s of 1 kHz scans
+        assert pipeline.decoder.counters.crc_errors == 0
+        assert readout.is_alive()
+    finally:
+        readout.stop()
+        device.unplug()
+
+
+def test_unreachable_source_keeps_retrying_and_reports_why():
+    pipeline = Pipeline()
+    readout = Readout("socket://127.0.0.1:1", pipeline.feed, pipeline.link_lost, backoff_s=(0.01, 0.02))
+    readout.start()
+    try:
+        assert wait_for(lambda: readout.link.last_error is not None)
+        assert "127.0.0.1:1" in readout.link.last_error
+        assert not readout.link.up and readout.is_alive()
+    finally:
+        readout.stop()

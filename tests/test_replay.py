@@ -1,0 +1,95 @@
+"""Raw-capture replay: corrupt frames dropped, good frames exported."""
+import io
+
+import numpy as np
+import orjson
+import pytest
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.faults import inject
+from service.cli import main
+from service.protocol import FrameType
+from service.replay import replay_raw
+
+DATA_TYPES = (FrameType.GRID, FrameType.QUAD)
+
+
+def export(path):
+    out = io.BytesIO()
+    pipeline = replay_raw(path, out)
+    return [orjson.loads(line) for line in out.getvalue().splitlines()], pipeline
+
+
+@pytest.fixture(scope="module")
+def press_capture(tmp_path_factory):
+    data, board = capture(BoardConfig(scene="press", seed=11), 3.0, keep_truth=True)
+    path = tmp_path_factory.mktemp("cap") / "press.bin"
+    path.write_bytes(data)
+    return path, data, board
+
+
+def test_clean_capture_exports_every_frame_with_forces_near_truth(press_capture):
+    path, _, board = press_capture
+    lines, pipeline = export(path)
+    assert len(lines) == 6000
+    truth = {(t.sensor, t.seq): t.values for t in board.truth}
+    errors = np.array([np.subtract(l["taxels_N"], truth[(0, l["seq"])]) for l in lines if l["kind"] == "grid"])
+    # 1 fF noise on ~10 pF at ~1.25 %/N is ~0.008 N rms per taxel.
+    assert np.sqrt((errors**2).mean()) == pytest.approx(0.008, rel=0.25)
+    assert np.abs(errors).max() < 0.06
+    assert all(l["flags"] == [] for l in lines)
+    quad = [l for l in lines if l["kind"] == "quad"]
+    assert set(quad[0]) == {"sensor", "seq", "t_us", "kind", "fxyz_N", "flags"}
+
+
+def test_corrupt_capture_drops_every_bad_frame_and_exports_every_good_one(press_capture, tmp_path):
+    _, data, _ = press_capture
+    damaged = inject(data, rate=0.05, seed=5)
+    assert min(damaged.counts.values()) > 30
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(damaged.data)
+    lines, pipeline = export(path)
+    expected = [(sensor, seq) for ftype, sensor, seq in damaged.intact if ftype in DATA_TYPES]
+    assert [(l["sensor"], l["seq"]) for l in lines] == expected
+    counters = pipeline.decoder.counters
+    assert counters.crc_errors + counters.header_errors >= damaged.counts["flip"]
+    assert counters.sensor(0).missed_frames + counters.sensor(1).missed_frames == 6000 - len(expected)
+    gap_lines = [l for l in lines if "seq_gap" in l["flags"]]
+    assert len(gap_lines) == counters.sensor(0).seq_gaps + counters.sensor(1).seq_gaps
+
+
+def test_sentinel_channels_export_as_null(tmp_path):
+    data, _ = capture(BoardConfig(scene="idle"), 0.2)
+    frames = bytearray(data)
+    # Rewrite one grid frame with an open channel, through the encoder.
+    from service.protocol import Decoder, encode_frame
+
+    out = bytearray()
+    for frame in Decoder().feed(bytes(frames)):
+        payload = frame.payload
+        if frame.type == FrameType.GRID and frame.seq == 150:
+            counts = np.frombuffer(payload, "<u4").copy()
+            counts[9] = 0xFFFFFFFF
+            payload = counts.tobytes()
+        out += encode_frame(frame.type, frame.sensor, frame.seq, frame.t_us, payload, frame.flags)
+    path = tmp_path / "open.bin"
+    path.write_bytes(bytes(out))
+    lines, _ = export(path)
+    (line,) = [l for l in lines if l["kind"] == "grid" and l["seq"] == 150]
+    assert line["taxels_N"][9] is None and line["flags"] == ["open_channel"]
+    assert all(v is not None for i, v in enumerate(line["taxels_N"]) if i != 9)
+
+
+def test_cli_capture_then_replay_export(tmp_path, capsys):
+    raw, jsonl = tmp_path / "c.bin", tmp_path / "c.jsonl"
+    assert main(["sim", "--capture", str(raw), "--seconds", "0.5", "--scene", "shear"]) == 0
+    assert main(["replay", "--raw", str(raw), "--export", str(jsonl)]) == 0
+    lines = [orjson.loads(l) for l in jsonl.read_bytes().splitlines()]
+    assert len(lines) == 1000
+    summary = orjson.loads(capsys.readouterr().err)
+    assert summary["stream"]["frames"] == 1001
+
+
+def test_cli_replay_of_missing_file_is_a_clear_error(tmp_path, capsys):
+    assert main(["replay", "--raw", str(tmp_path / "nope.bin")]) == 2
+    assert "nope.bin" in capsys.readouterr().err
