@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from .calibration import table1
+from .pipeline import Pipeline
 from .protocol import Decoder
 from .readings import Interpreter
 from .reconstruct import Reconstructor, level0
@@ -59,6 +60,13 @@ def run(seconds: float = 10.0) -> dict:
     calibration = table1()
     batch_grid_s = _best(lambda: level0.grid_forces(grid, baseline, calibration))
 
+    def end_to_end():
+        pipeline = Pipeline(Reconstructor(hold_until_tared=True), clock=lambda: 0.0)
+        pipeline.feed(data, 0.0)
+        pipeline.finish(0.0)
+
+    end_to_end_s = _best(end_to_end)
+
     report = {
         "machine": f"{platform.machine()} {platform.processor() or ''} python {platform.python_version()}".strip(),
         "capture": {"seconds": seconds, "bytes": len(data), "frames": n},
@@ -66,6 +74,7 @@ def run(seconds: float = 10.0) -> dict:
         "decoder_stream_4k_chunks_frames_per_s": n / stream_s,
         "level0_per_frame_us": per_frame_s / len(readings) * 1e6,
         "level0_grid_batch_us_per_frame": batch_grid_s / len(grid) * 1e6,
+        "pipeline_end_to_end_frames_per_s": n / end_to_end_s,
     }
     report["text"] = "\n".join(
         [
@@ -75,6 +84,7 @@ def run(seconds: float = 10.0) -> dict:
             f"decoder, 4 KiB chunks:               {report['decoder_stream_4k_chunks_frames_per_s']:,.0f} frames/s",
             f"level-0 reconstruction, per frame:   {report['level0_per_frame_us']:.1f} µs (interpret excluded)",
             f"level-0 grid forces, batched:        {report['level0_grid_batch_us_per_frame']:.3f} µs/frame",
+            f"bytes → forces, whole pipeline:      {report['pipeline_end_to_end_frames_per_s']:,.0f} frames/s",
         ]
     )
     return report

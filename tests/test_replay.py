@@ -93,3 +93,11 @@ def test_cli_capture_then_replay_export(tmp_path, capsys):
 def test_cli_replay_of_missing_file_is_a_clear_error(tmp_path, capsys):
     assert main(["replay", "--raw", str(tmp_path / "nope.bin")]) == 2
     assert "nope.bin" in capsys.readouterr().err
+
+
+def test_bench_measures_the_capture_it_made():
+    from service.bench import run
+
+    report = run(seconds=0.2)
+    assert report["capture"]["frames"] == 2 * 200 + 1
+    assert report["decoder_batch_frames_per_s"] > 0 and report["level0_per_frame_us"] > 0
