@@ -84,6 +84,71 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_tables_build(args) -> int:
+    from pathlib import Path
+
+    from .physics import tables
+
+    directory = Path(args.out) if args.out else None
+    for shape in args.shape:
+        spec = tables.TableSpec(shape, pdms_nu=args.nu, p=args.p, pz=args.pz)
+        try:
+            tables.load(spec, directory)
+            print(f"{spec.filename}: up to date")
+            continue
+        except FileNotFoundError:
+            pass
+
+        last = [-1]
+
+        def bar(fraction, label=shape):
+            done = int(30 * fraction)
+            if done == last[0]:
+                return
+            last[0] = done
+            print(f"\r{label:8s} [{'#' * done}{'.' * (30 - done)}] {100 * fraction:3.0f}%", end="", file=sys.stderr, flush=True)
+
+        table = tables.build(spec, bar)
+        print(file=sys.stderr)
+        print(f"{tables.save(table, directory)}: {len(table.force_N)} points to {table.max_force_N:.2f} N")
+    return 0
+
+
+def cmd_tables_list(args) -> int:
+    from .physics import tables
+
+    for path in sorted(tables.shipped_dir().glob("*.json")):
+        table = tables.ForceTable.from_json(path.read_bytes())
+        print(f"{path.name}: shape {table.spec.shape}, ν {table.spec.pdms_nu}, p {table.spec.p}/{table.spec.pz}, "
+              f"0–{table.max_force_N:.2f} N")
+    return 0
+
+
+def cmd_model_check(args) -> int:
+    from .physics import check
+
+    checks = check.run()
+    if args.json:
+        print(json.dumps({"passed": all(c.passed for c in checks), "checks": [c.as_dict() for c in checks],
+                          "poisson": check.poisson_study()}, indent=1))
+    else:
+        print(check.report_text(checks))
+        for row in check.poisson_study():
+            print(f"info  ν = {row['nu']}: sensitivity {100 * row['sensitivity_per_N']:.4f} %/N, "
+                  f"ΔC/C0 at 100 kPa {100 * row['dC_C0_100kPa']:.4f} %, max deflection {row['max_deflection_um']:.4f} µm")
+    return 0 if all(c.passed for c in checks) else 1
+
+
+def cmd_model_convergence(args) -> int:
+    from pathlib import Path
+
+    from .physics import study
+
+    for path in study.write_docs(study.run(), Path(args.out)):
+        print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tactile", description="Capacitive tactile sensor service")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -114,6 +179,24 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--raw", required=True, metavar="FILE", help="file of raw serial bytes")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
     replay.set_defaults(func=cmd_replay)
+
+    tables_cmd = sub.add_parser("tables", help="force tables of the taxel model").add_subparsers(dest="action", required=True)
+    build = tables_cmd.add_parser("build", help="build the tables a configuration needs (skips up-to-date ones)")
+    build.add_argument("--shape", nargs="+", default=["uniform", "uneven", "shear"], choices=["uniform", "uneven", "shear"])
+    build.add_argument("--nu", type=float, default=0.49, help="PDMS Poisson ratio")
+    build.add_argument("--p", type=int, default=4, help="in-plane polynomial degree")
+    build.add_argument("--pz", type=int, default=3, help="polynomial degree across each layer")
+    build.add_argument("--out", help="directory (default: the service's shipped tables)")
+    build.set_defaults(func=cmd_tables_build)
+    tables_cmd.add_parser("list", help="list the shipped tables").set_defaults(func=cmd_tables_list)
+
+    model = sub.add_parser("model", help="validate the forward models").add_subparsers(dest="action", required=True)
+    check_cmd = model.add_parser("check", help="validation figures; exit 1 if any is out of tolerance")
+    check_cmd.add_argument("--json", action="store_true")
+    check_cmd.set_defaults(func=cmd_model_check)
+    conv = model.add_parser("convergence", help="error against order study (minutes); writes docs")
+    conv.add_argument("--out", default="docs")
+    conv.set_defaults(func=cmd_model_convergence)
 
     bench = sub.add_parser("bench", help="measure decoder throughput and reconstruction cost")
     bench.add_argument("--seconds", type=float, default=10.0, help="simulated seconds of data to process")

@@ -1,0 +1,1 @@
+"""Offline physics: forward models, calibration and the tables built from them."""
