@@ -21,7 +21,7 @@ from .capacitance import gap_field, sensitivity_per_N
 from .ritz import ConditioningError, RitzOptions, RitzSystem, Taxel, patch_load
 from .tables import Q0_MPA
 
-REFERENCE = RitzOptions(p=7, pz=5)
+REFERENCE = RitzOptions(p=6, pz=4)
 SPLIT_ONLY = (0.0, 1500.0, 2000.0)
 
 
@@ -48,7 +48,7 @@ def run(progress=print) -> dict:
     reference = _run(REFERENCE)
     progress(f"reference p={REFERENCE.p} pz={REFERENCE.pz}: {reference}")
     series: dict[str, list[dict]] = {"graded p": [], "split-only p": [], "pz": [], "monomial p": []}
-    for p in range(1, 7):
+    for p in range(1, 6):
         series["graded p"].append(_run(RitzOptions(p=p, pz=4)))
         series["split-only p"].append(_run(RitzOptions(p=p, pz=4, breaks=SPLIT_ONLY)))
         progress(f"p={p} done")
