@@ -113,7 +113,7 @@ class Board:
         out = bytearray()
         for sensor in self.config.sensors:
             truth = self._scene(sensor, t)
-            capacitance_pF = sensor.capacitance(truth)
+            capacitance_pF = sensor.capacitance(truth, t)
             noisy_aF = capacitance_pF * 1e6 + self._rng.normal(0.0, self.config.noise_fF * 1e3, sensor.channels)
             full_scale_aF = min(self.config.full_scale_pF * 1e6, FULL_SCALE_AF)
             saturated = bool((noisy_aF >= full_scale_aF).any() or (noisy_aF < 1).any())

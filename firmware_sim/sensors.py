@@ -1,47 +1,41 @@
 """Forward physics of the simulated sensors: force → capacitance (pF).
 
-The grid uses table 1 of the 8x8 array paper (per-taxel C0 and sensitivity)
-with the paper's linear response over its measured 0–10 N range. The quad
-uses the empirical fits of the carbon black/PDMS paper, eqs (34) and (35)
-without their constant offsets, each held flat past its turning point
-(19.06 N normal, 9.625 N tangential) where the fit stops being monotone.
+Grid: each taxel follows the layered model's ΔC/C0(F) table scaled to its
+table-1 sensitivity (service.reconstruct.taxel), its neighbours feel the
+mechanical crosstalk measured in paper 000, an optional common-mode drift
+(temperature) scales every channel, and the multiplexer may leak a fraction
+of each channel into the next one scanned. Quad: the calibrated curves of
+the carbon black/PDMS paper (fits 34 and 35) through the four electrodes.
 The quad's C0 is not given by the paper: ε0·εr·S/d with S = 10×10 mm²,
 d = 2 mm and an assumed εr = 5 gives about 2.2 pF per electrode.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.calibration import (
-    QUAD_NORMAL_CURVATURE_PER_N2,
-    QUAD_NORMAL_SLOPE_PER_N,
-    QUAD_SHEAR_CURVATURE_PER_N2,
-    QUAD_SHEAR_SLOPE_PER_N,
-    grid_calibration,
-)
+from service.calibration import grid_calibration
+from service.reconstruct import taxel_response
+from service.reconstruct.contact import PITCH_MM, taxel_centres_mm
+from service.reconstruct.crosstalk import PAPER_MECHANICAL_COUPLING, Crosstalk
+from service.reconstruct.quad import QuadModel
 
-GRID_PITCH_MM = 4.0
+GRID_PITCH_MM = PITCH_MM
 QUAD_C0_PF = (2.21, 2.18, 2.24, 2.20)
-QUAD_SIGN_X = np.array([-1.0, 1.0, -1.0, 1.0])  # C12, C22 on the +X side
-QUAD_SIGN_Y = np.array([-1.0, -1.0, 1.0, 1.0])  # C21, C22 on the +Y side
 
 
-def _turning_point(slope: float, curvature: float) -> float:
-    return -slope / (2.0 * curvature)
+@dataclass
+class Drift:
+    """Common-mode relative drift: a slow sinusoid of ``amplitude`` (ΔC/C0)
+    and ``period_s``, as a day's temperature swing compressed."""
 
+    amplitude: float = 0.0
+    period_s: float = 60.0
 
-def quad_normal_response(force_N: np.ndarray | float) -> np.ndarray:
-    """ΔC/C0 of every electrode under normal force, fit (34) minus offset."""
-    f = np.clip(force_N, 0.0, _turning_point(QUAD_NORMAL_SLOPE_PER_N, QUAD_NORMAL_CURVATURE_PER_N2))
-    return QUAD_NORMAL_SLOPE_PER_N * f + QUAD_NORMAL_CURVATURE_PER_N2 * f * f
-
-
-def quad_shear_response(force_N: np.ndarray | float) -> np.ndarray:
-    """Signed ΔC/C0 of the electrodes on the loaded side, fit (35) minus offset."""
-    magnitude = np.minimum(np.abs(force_N), _turning_point(QUAD_SHEAR_SLOPE_PER_N, QUAD_SHEAR_CURVATURE_PER_N2))
-    return np.sign(force_N) * (QUAD_SHEAR_SLOPE_PER_N * magnitude + QUAD_SHEAR_CURVATURE_PER_N2 * magnitude**2)
+    def __call__(self, t: float) -> float:
+        return self.amplitude * math.sin(2 * math.pi * t / self.period_s)
 
 
 @dataclass
@@ -49,26 +43,29 @@ class SimGrid:
     id: int
     rows: int = 8
     cols: int = 8
+    mounting: str = "flat"
+    mechanical_coupling: float = PAPER_MECHANICAL_COUPLING
+    electrical_leakage: float = 0.0
+    drift: Drift = field(default_factory=Drift)
     kind: str = field(default="grid", init=False)
 
     def __post_init__(self) -> None:
         calibration = grid_calibration(self.rows, self.cols)
         self.c0_pF = np.array(calibration.c0_pF)
-        self.sensitivity_per_N = np.array(calibration.sensitivity_per_N)
+        self.response = taxel_response(calibration, self.mounting)
+        self.crosstalk = Crosstalk(self.rows, self.cols, self.mechanical_coupling, self.electrical_leakage)
 
     @property
     def channels(self) -> int:
         return self.rows * self.cols
 
     def taxel_centres_mm(self) -> tuple[np.ndarray, np.ndarray]:
-        """(x, y) of every taxel centre, shape (rows*cols,) each, origin at the
-        array centre, x along columns, y along rows."""
-        r, c = np.divmod(np.arange(self.channels), self.cols)
-        return (c - (self.cols - 1) / 2) * GRID_PITCH_MM, (r - (self.rows - 1) / 2) * GRID_PITCH_MM
+        return taxel_centres_mm(self.rows, self.cols)
 
-    def capacitance(self, forces_N: np.ndarray) -> np.ndarray:
-        """(rows*cols,) normal forces → (rows*cols,) capacitances in pF."""
-        return self.c0_pF * (1.0 + self.sensitivity_per_N * forces_N)
+    def capacitance(self, forces_N: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """(rows*cols,) normal forces → (rows*cols,) capacitances in pF as read."""
+        relative = self.crosstalk.mix_mechanical(self.response.forward(forces_N))
+        return self.crosstalk.leak(self.c0_pF * (1.0 + relative) * (1.0 + self.drift(t)))
 
     def info(self) -> dict:
         return {"id": self.id, "kind": "grid", "rows": self.rows, "cols": self.cols}
@@ -78,14 +75,13 @@ class SimGrid:
 class SimQuad:
     id: int
     c0_pF: tuple[float, float, float, float] = QUAD_C0_PF
+    model: QuadModel = field(default_factory=QuadModel)
     kind: str = field(default="quad", init=False)
     channels: int = field(default=4, init=False)
 
-    def capacitance(self, fxyz_N: np.ndarray) -> np.ndarray:
+    def capacitance(self, fxyz_N: np.ndarray, t: float = 0.0) -> np.ndarray:
         """(Fx, Fy, Fz) → (4,) capacitances C11, C12, C21, C22 in pF."""
-        fx, fy, fz = fxyz_N
-        relative = quad_normal_response(fz) + QUAD_SIGN_X * quad_shear_response(fx) + QUAD_SIGN_Y * quad_shear_response(fy)
-        return np.asarray(self.c0_pF) * (1.0 + relative)
+        return np.asarray(self.c0_pF) * (1.0 + self.model.forward(np.asarray(fxyz_N, dtype=float)))
 
     def info(self) -> dict:
         return {"id": self.id, "kind": "quad"}

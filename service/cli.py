@@ -25,7 +25,7 @@ def cmd_serve(args) -> int:
     from .api.app import create_app
     from .runtime import TactileService
 
-    app = create_app(TactileService(args.source))
+    app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting))
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         logging.warning("binding to %s exposes the API beyond this machine", args.host)
     print(f"tactile: reading {args.source}; dashboard at http://{args.host}:{args.port}/", flush=True)
@@ -65,7 +65,7 @@ def cmd_replay(args) -> int:
 
     out = open(args.export, "wb") if args.export else None
     try:
-        pipeline = replay_raw(args.raw, out)
+        pipeline = replay_raw(args.raw, out, level=args.level, mounting=args.mounting)
     finally:
         if out is not None:
             out.close()
@@ -159,6 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--log-level", default="warning")
+    serve.add_argument("--level", default="full", choices=["level0", "table", "full"], help="fidelity level (default: %(default)s)")
+    serve.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
     serve.set_defaults(func=cmd_serve)
 
     sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")
@@ -178,6 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay = sub.add_parser("replay", help="replay a raw capture through the pipeline")
     replay.add_argument("--raw", required=True, metavar="FILE", help="file of raw serial bytes")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
+    replay.add_argument("--level", default="full", choices=["level0", "table", "full"], help="fidelity level (default: %(default)s)")
+    replay.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
     replay.set_defaults(func=cmd_replay)
 
     tables_cmd = sub.add_parser("tables", help="force tables of the taxel model").add_subparsers(dest="action", required=True)

@@ -13,7 +13,7 @@ from typing import BinaryIO
 import orjson
 
 from .pipeline import Pipeline
-from .reconstruct import ForceFrame, Reconstructor
+from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 
 CHUNK_BYTES = 1 << 16
 _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
@@ -23,13 +23,13 @@ def export_line(frame: ForceFrame) -> bytes:
     return orjson.dumps(frame.export_dict(), option=_JSON_OPTIONS) + b"\n"
 
 
-def replay_raw(path: str | Path, export: BinaryIO | None = None, level: str = "level0") -> Pipeline:
+def replay_raw(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat") -> Pipeline:
     """Replay a raw capture; write one JSON line per data frame to ``export``.
 
     Returns the pipeline, whose decoder and interpreter counters tell what
     was dropped. Raises FileNotFoundError / OSError for an unreadable file.
     """
-    pipeline = Pipeline(Reconstructor(hold_until_tared=True, level=level), clock=lambda: 0.0)
+    pipeline = Pipeline(Reconstructor(hold_until_tared=True, level=level, mounting=mounting), clock=lambda: 0.0)
     if export is not None:
         pipeline.listeners.append(lambda frames: export.writelines(export_line(f) for f in frames))
     with open(path, "rb") as source:

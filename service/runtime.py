@@ -7,7 +7,7 @@ import time
 from .api.stream import Hub
 from .pipeline import Pipeline
 from .readout import Readout
-from .reconstruct import ForceFrame, Reconstructor
+from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .sources import DEFAULT_SOURCE
 
 
@@ -15,8 +15,8 @@ class TactileService:
     """Owns the data path for one source. ``start`` must be called from the
     event loop that serves the API, since the hub lives on it."""
 
-    def __init__(self, source: str = DEFAULT_SOURCE, level: str = "level0") -> None:
-        self.pipeline = Pipeline(Reconstructor(level=level))
+    def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat") -> None:
+        self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
         self.hub = Hub()
         self.readout = Readout(source, self.pipeline.feed, self.pipeline.link_lost)
         self.started_at = time.time()

@@ -38,7 +38,8 @@ def test_sensors_lists_what_the_board_announced(client):
 def test_latest_grid_and_quad(client):
     grid = client.get("/sensors/0/latest").json()
     assert grid["kind"] == "grid" and len(grid["taxels_N"]) == 64 and (grid["rows"], grid["cols"]) == (8, 8)
-    assert len(grid["capacitance_pF"]) == 64 and grid["level"] == "level0"
+    assert len(grid["capacitance_pF"]) == 64 and grid["level"] == "full"
+    assert set(grid["contact"]) == {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"}
     quad = client.get("/sensors/1/latest").json()
     assert len(quad["fxyz_N"]) == 3 and "t_us" in quad and "seq" in quad
 

@@ -73,7 +73,7 @@ def test_baseline_mean_of_first_frames_ignoring_sentinels():
 
 
 def test_reconstructor_tares_then_reports_and_retares():
-    rec = Reconstructor(tare_frames=3)
+    rec = Reconstructor(tare_frames=3, level="level0")
     c0 = table1().c0_pF
     out = [rec.process(reading(GRID, c0, seq))[0] for seq in range(3)]
     assert out[0].flags == ["taring"] and np.isnan(out[0].forces_N).all()
@@ -85,7 +85,7 @@ def test_reconstructor_tares_then_reports_and_retares():
 
 
 def test_hold_until_tared_releases_every_frame_with_forces():
-    rec = Reconstructor(tare_frames=3, hold_until_tared=True)
+    rec = Reconstructor(tare_frames=3, hold_until_tared=True, level="level0")
     baseline = np.full(4, 2.0)
     assert rec.process(reading(QUAD, baseline, 0)) == []
     assert rec.process(reading(QUAD, baseline, 1)) == []

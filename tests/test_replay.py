@@ -33,11 +33,17 @@ def test_clean_capture_exports_every_frame_with_forces_near_truth(press_capture)
     lines, pipeline = export(path)
     assert len(lines) == 6000
     truth = {(t.sensor, t.seq): t.values for t in board.truth}
-    errors = np.array([np.subtract(l["taxels_N"], truth[(0, l["seq"])]) for l in lines if l["kind"] == "grid"])
-    # 1 fF noise on ~10 pF at ~1.25 %/N is ~0.008 N rms per taxel.
-    assert np.sqrt((errors**2).mean()) == pytest.approx(0.008, rel=0.25)
+    grid = [l for l in lines if l["kind"] == "grid"]
+    expected = np.array([truth[(0, l["seq"])] for l in grid])
+    errors = np.array([l["taxels_N"] for l in grid]) - expected
+    loaded = expected > 0.05
+    # 1 fF noise on ~10 pF at ~1.25 %/N is σ ≈ 0.008 N per taxel; unloaded
+    # taxels are clamped at zero force, which leaves σ/√2.
+    assert np.sqrt((errors[~loaded] ** 2).mean()) == pytest.approx(0.008 / np.sqrt(2), rel=0.25)
+    assert np.sqrt((errors[loaded] ** 2).mean()) < 2 * 0.008
     assert np.abs(errors).max() < 0.06
     assert all(l["flags"] == [] for l in lines)
+    assert grid[1500]["contact"]["contacts"] in (0, 1)
     quad = [l for l in lines if l["kind"] == "quad"]
     assert set(quad[0]) == {"sensor", "seq", "t_us", "kind", "fxyz_N", "flags"}
 

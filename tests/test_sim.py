@@ -10,7 +10,7 @@ import serial
 
 from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig, capture
-from firmware_sim.sensors import SimGrid, SimQuad, quad_normal_response
+from firmware_sim.sensors import Drift, SimGrid, SimQuad
 from service.calibration import table1
 from service.protocol import FLAG_OVERRUN, Decoder, FrameType
 from service.sources import open_source
@@ -51,16 +51,35 @@ def test_press_truth_matches_capacitance():
     sensor = SimGrid(0)
     for frame in decode(data):
         if frame.type == FrameType.GRID:
-            expected = np.rint(sensor.capacitance(grid_truth[frame.seq]) * 1e6)
+            expected = np.rint(sensor.capacitance(grid_truth[frame.seq], frame.t_us * 1e-6) * 1e6)
             np.testing.assert_array_equal(np.frombuffer(frame.payload, "<u4"), expected)
 
 
-def test_quad_follows_the_normal_fit():
+def test_quad_follows_the_paper_fits():
     quad = SimQuad(1)
     c = quad.capacitance(np.array([0.0, 0.0, 10.0]))
     np.testing.assert_allclose(c / np.array(quad.c0_pF) - 1, 0.0343 * 10 - 0.0009 * 100)
-    # Past the fit's turning point (19.06 N) the response is held, never decreasing.
-    assert quad_normal_response(25.0) == pytest.approx(quad_normal_response(0.0343 / 0.0018))
+    r = quad.capacitance(np.array([4.0, 0.0, 0.0])) / np.array(quad.c0_pF) - 1
+    shear = 0.0077 * 4 - 0.0004 * 16
+    np.testing.assert_allclose(r, [-shear, shear, -shear, shear])
+    # Past the usable range the response is held, never falling.
+    held = quad.capacitance(np.array([0.0, 0.0, 25.0]))
+    assert np.all(held == quad.capacitance(np.array([0.0, 0.0, 0.9 * 0.0343 / 0.0018])))
+
+
+def test_grid_effects_crosstalk_leakage_drift():
+    plain = SimGrid(0, mechanical_coupling=0.0)
+    forces = np.zeros(64)
+    forces[27] = 5.0
+    base = plain.capacitance(forces)
+    coupled = SimGrid(0).capacitance(forces)
+    r_peak = base[27] / plain.c0_pF[27] - 1
+    neighbours = [18, 19, 20, 26, 28, 34, 35, 36]
+    np.testing.assert_allclose(coupled[neighbours] / plain.c0_pF[neighbours] - 1, -0.0028 * r_peak, rtol=1e-9)
+    leaky = SimGrid(0, mechanical_coupling=0.0, electrical_leakage=0.01).capacitance(forces)
+    assert leaky[28] - base[28] == pytest.approx(0.01 * (base[27] - base[28]))
+    drifting = SimGrid(0, mechanical_coupling=0.0, drift=Drift(0.002, 40.0)).capacitance(np.zeros(64), t=10.0)
+    np.testing.assert_allclose(drifting / plain.c0_pF - 1, 0.002)
 
 
 def test_commands():

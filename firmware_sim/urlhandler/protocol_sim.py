@@ -2,7 +2,10 @@
 
 URL: ``sim://[?scene=NAME][&rate=HZ][&noise=fF][&seed=N][&sensors=grid,quad]``
 (defaults: demo, 1000, 1.0, 0, one 8x8 grid and one quad). Sensors get ids in
-the order listed; a grid may give its shape as ``grid8x8``.
+the order listed; a grid may give its shape as ``grid8x8``. Grid effects:
+``mounting=flat|curved``, ``xtalk=`` mechanical coupling (default the
+paper's −0.0028), ``leak=`` multiplexer leakage fraction (default 0),
+``drift=`` common-mode drift amplitude in ΔC/C0 (default 0, period 60 s).
 
 The board runs on the wall clock: a read generates the scans due since the
 last one. Bytes the reader leaves unread pile up to ``BUFFER_BYTES`` (a USB
@@ -17,12 +20,18 @@ import urllib.parse
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from ..board import Board, BoardConfig
-from ..sensors import SimGrid, SimQuad
+from ..sensors import Drift, SimGrid, SimQuad
 
 BUFFER_BYTES = 1 << 16
 
 
-def parse_sensors(spec: str) -> list:
+GRID_OPTIONS = {"mounting": ("mounting", str), "xtalk": ("mechanical_coupling", float),
+                "leak": ("electrical_leakage", float), "drift": ("drift", lambda v: Drift(float(v)))}
+
+
+def parse_sensors(spec: str, **grid_options) -> list:
+    """Sensors from e.g. "grid,quad" or "grid8x8,grid4x4,quad"; ``grid_options``
+    (SimGrid fields) apply to every grid."""
     sensors = []
     for sensor_id, item in enumerate(s.strip() for s in spec.split(",") if s.strip()):
         if item == "quad":
@@ -33,7 +42,7 @@ def parse_sensors(spec: str) -> list:
                 rows, cols = (int(v) for v in shape.split("x"))
             except ValueError:
                 raise ValueError(f"bad grid shape {shape!r} in sensors={spec!r} (expected e.g. grid8x8)") from None
-            sensors.append(SimGrid(sensor_id, rows, cols))
+            sensors.append(SimGrid(sensor_id, rows, cols, **grid_options))
         else:
             raise ValueError(f"unknown sensor kind {item!r} in sensors={spec!r} (expected grid or quad)")
     if not sensors:
@@ -47,10 +56,15 @@ def config_from_url(url: str) -> BoardConfig:
     if parts.scheme != "sim":
         raise ValueError(f"expected a sim:// URL, got {url!r}")
     kwargs: dict = {}
+    grid_options: dict = {}
+    sensors_spec = "grid,quad"
     for key, values in urllib.parse.parse_qs(parts.query, keep_blank_values=True).items():
         value = values[-1]
         try:
-            if key == "scene":
+            if key in GRID_OPTIONS:
+                field_name, convert = GRID_OPTIONS[key]
+                grid_options[field_name] = convert(value)
+            elif key == "scene":
                 kwargs["scene"] = value
             elif key == "rate":
                 kwargs["rate_hz"] = float(value)
@@ -59,11 +73,16 @@ def config_from_url(url: str) -> BoardConfig:
             elif key == "seed":
                 kwargs["seed"] = int(value)
             elif key == "sensors":
-                kwargs["sensors"] = parse_sensors(value)
+                sensors_spec = value
             else:
-                raise ValueError(f"unknown option {key!r} (known: scene, rate, noise, seed, sensors)")
+                known = ", ".join(["scene", "rate", "noise", "seed", "sensors", *GRID_OPTIONS])
+                raise ValueError(f"unknown option {key!r} (known: {known})")
         except ValueError as exc:
             raise ValueError(f"sim:// option {key}={value!r}: {exc}") from None
+    try:
+        kwargs["sensors"] = parse_sensors(sensors_spec, **grid_options)
+    except ValueError as exc:
+        raise ValueError(f"sim:// sensors={sensors_spec!r}: {exc}") from None
     return BoardConfig(**kwargs)
 
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..readings import SensorInfo
+from .grid import TAXEL_FLAG_NAMES
 
 
 @dataclass(slots=True)
@@ -25,11 +26,24 @@ class ForceFrame:
     capacitance_pF: np.ndarray
     flags: list[str]
     level: str
+    taxel_flags: np.ndarray | None = None  # grid: (rows*cols,) bit set, see grid.TAXEL_FLAG_NAMES
+    contact: dict | None = None  # grid: total_N, cop_x_mm, cop_y_mm, area_mm2, contacts
+
+    def taxel_flag_lists(self) -> dict[str, list[int]]:
+        """Per-taxel flags as {name: [row-major taxel indices]}, only flags set."""
+        if self.taxel_flags is None:
+            return {}
+        out = {}
+        for bit, name in TAXEL_FLAG_NAMES.items():
+            hits = np.flatnonzero(self.taxel_flags & bit)
+            if hits.size:
+                out[name] = hits.tolist()
+        return out
 
     def export_dict(self) -> dict:
         """The replay export / stream shape (one JSON object per frame)."""
         key = "taxels_N" if self.sensor.kind == "grid" else "fxyz_N"
-        return {
+        out = {
             "sensor": self.sensor.id,
             "seq": self.seq,
             "t_us": self.t_us,
@@ -37,6 +51,10 @@ class ForceFrame:
             key: self.forces_N,
             "flags": self.flags,
         }
+        if self.sensor.kind == "grid":
+            out["taxel_flags"] = self.taxel_flag_lists()
+            out["contact"] = self.contact
+        return out
 
     def stream_dict(self) -> dict:
         out = self.export_dict()

@@ -1,0 +1,108 @@
+"""Quad reconstruction: (Fx, Fy, Fz) from four electrodes, calibrated models.
+
+Forward model of electrode ij (sx, sy = ±1 on the +X/+Y side, r = ΔC/C0):
+
+    r_ij = n(Fz) + (sx t(Fx) + sy t(Fy)) · (1 − c · n(Fz))
+
+n is the calibrated normal curve (default: fit (34) without its offset; the
+Yeoh fit misses it by 0.37 N RMS, far above the noise, so the calibration
+data itself is inverted), t the calibrated shear curve r = aF − bF² (fit
+(35)), c the normal–shear interaction of paper 001 §5.3 (normal load
+hinders the tangential deformation; default 0, the paper gives no figure).
+The four electrodes span four orthogonal combinations: Z = mean, X and Y
+(eqs 30, 32) and the redundant R = (r11 + r22 − r12 − r21)/4, which the
+model says is 0. The joint least-squares solution is therefore exact in
+closed form: Fz from Z first, then Fx, Fy from X, Y divided by
+(1 − c·n(Fz)); |R| beyond its noise flags an electrode fault.
+
+Out of the calibrated range (past the usable force, or a ΔC/C0 the curve
+never reaches, or a negative normal change) the force is held at the range's
+end and flagged, never taken from the falling branch of a fit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..physics import calibrate, shear
+from .level0 import quad_axes, quad_forces, relative_change
+
+QUAD_LEVELS = ("level0", "table", "full")
+FAULT_SIGMAS = 8.0
+FAULT_RELATIVE = 0.05  # model mismatch allowed in R, as a share of |Z|
+NOISE_FLOOR_PF = 2e-4
+
+
+@dataclass
+class QuadModel:
+    normal_fit: tuple[float, float, float] = (calibrate.FIT34[0], calibrate.FIT34[1], 0.0)
+    shear_a: float = calibrate.FIT35[1]
+    shear_b: float = -calibrate.FIT35[0]
+    normal_usable_N: float = field(default_factory=lambda: calibrate.fit_usable_force(calibrate.FIT34))
+    shear_usable_N: float = field(default_factory=lambda: calibrate.fit_usable_force(calibrate.FIT35))
+    coupling: float = 0.0
+
+    def normal_response(self, force_N):
+        f = np.clip(force_N, 0.0, self.normal_usable_N)
+        return np.polyval(self.normal_fit, f)
+
+    def forward(self, fxyz_N: np.ndarray) -> np.ndarray:
+        """(..., 3) forces → (..., 4) electrode ΔC/C0 (C11, C12, C21, C22)."""
+        fxyz = np.asarray(fxyz_N, dtype=float)
+        n = self.normal_response(fxyz[..., 2])
+        tx = shear.shear_response(np.clip(fxyz[..., 0], -self.shear_usable_N, self.shear_usable_N), self.shear_a, self.shear_b)
+        ty = shear.shear_response(np.clip(fxyz[..., 1], -self.shear_usable_N, self.shear_usable_N), self.shear_a, self.shear_b)
+        scale = 1.0 - self.coupling * n
+        sx = np.array([-1.0, 1.0, -1.0, 1.0])
+        sy = np.array([-1.0, -1.0, 1.0, 1.0])
+        return n[..., None] + (tx[..., None] * sx + ty[..., None] * sy) * scale[..., None]
+
+    def inverse(self, relative: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """(..., 4) electrode ΔC/C0 → (..., 3) (Fx, Fy, Fz) and masks of
+        shape (...) for normal_out_of_range, shear_out_of_range; plus the
+        redundant combination R under "residual"."""
+        axes = quad_axes(relative)
+        r11, r12, r21, r22 = np.moveaxis(relative, -1, 0)
+        residual = (r11 + r22 - r12 - r21) / 4.0
+        fz, normal_out = calibrate.invert_fit(self.normal_fit, axes[..., 2])
+        beyond = fz > self.normal_usable_N
+        fz = np.minimum(fz, self.normal_usable_N)
+        scale = 1.0 - self.coupling * self.normal_response(fz)
+        fx, out_x = shear.shear_force(axes[..., 0] / scale, self.shear_a, self.shear_b)
+        fy, out_y = shear.shear_force(axes[..., 1] / scale, self.shear_a, self.shear_b)
+        shear_beyond = (np.abs(fx) > self.shear_usable_N) | (np.abs(fy) > self.shear_usable_N)
+        fx = np.clip(fx, -self.shear_usable_N, self.shear_usable_N)
+        fy = np.clip(fy, -self.shear_usable_N, self.shear_usable_N)
+        # A negative normal change below noise is just noise around zero force.
+        normal_out = (normal_out & (axes[..., 2] > 0)) | beyond
+        masks = {"normal_out_of_range": normal_out, "shear_out_of_range": out_x | out_y | shear_beyond, "residual": residual}
+        return np.stack([fx, fy, fz], axis=-1), masks
+
+
+@dataclass
+class QuadProcessor:
+    level: str
+    model: QuadModel = field(default_factory=QuadModel)
+
+    def __post_init__(self) -> None:
+        if self.level not in QUAD_LEVELS:
+            raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
+
+    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """Capacitances (..., 4) pF → forces (..., 3) and frame flags (for a
+        single frame; a batch gets the union)."""
+        if self.level == "level0":
+            return quad_forces(capacitance, baseline), []
+        relative = relative_change(capacitance, baseline)
+        forces, masks = self.model.inverse(relative)
+        flags = []
+        if np.any(masks["normal_out_of_range"]):
+            flags.append("normal_out_of_range")
+        if np.any(masks["shear_out_of_range"]):
+            flags.append("shear_out_of_range")
+        noise = np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0
+        fault = np.abs(masks["residual"]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(quad_axes(relative)[..., 2])
+        if np.any(fault):
+            flags.append("electrode_fault")
+        return forces, flags

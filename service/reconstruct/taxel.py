@@ -1,0 +1,99 @@
+"""Per-taxel force ↔ ΔC/C0 from a model table and the taxel's own calibration.
+
+What a per-taxel gain scales. Table 1 of the 8x8 paper shows C0 varying
+±10 % across the array while the sensitivity varies ±1 %. C0 = εr ε0 A/d0
+carries the electrode area A and the PDMS thickness d0; but the PDMS is
+confined, so its compression under a pressure q is q·d0/M (M the confined
+modulus) and ΔC/C0 ≈ compression/d0 = q/M: neither A nor d0 enters the
+relative change. Table 1 agrees (C0 and sensitivity are uncorrelated). So C0
+is only the normalisation, and we take it from the taxel's own tared
+baseline; what differs from taxel to taxel in ΔC/C0(F) is the mechanical
+compliance (PDMS modulus, bump bonding), which scales the *force*: a taxel
+with compliance gain κ responds as r(F) = R(κ F), R the model table. The
+gap nonlinearity 1/(d0 − w) stays where the physics puts it. κ is solved so
+that the least-squares slope of R(κ F) over 0–10 N equals the taxel's
+measured sensitivity, the way the paper measured it.
+
+The inverse F = R⁻¹(r)/κ is monotone interpolation (PCHIP resampled to a
+dense grid). Above the table's top (gap closure) the force is held at the
+top and flagged saturated; a compressive sensor cannot pull, so a negative
+ΔC/C0 gives zero force, flagged out of range when it exceeds 5× the noise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+DENSE_POINTS = 4096
+OUT_OF_RANGE_SIGMAS = 5.0  # 3σ would flag ~1 taxel-frame in 700 on noise alone
+SENSITIVITY_FORCES_N = np.arange(0.0, 11.0)
+
+
+def _ls_slope(forces: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Least-squares slope along the last axis of ``values`` against ``forces``."""
+    f = forces - forces.mean()
+    return ((values - values.mean(axis=-1, keepdims=True)) * f).sum(axis=-1) / (f * f).sum()
+
+
+@dataclass(frozen=True)
+class TaxelResponse:
+    """ΔC/C0 ↔ force for ``n`` taxels sharing one model curve.
+
+    ``gain`` has shape (n,); the curve is tabulated on ``force_N`` (m,)."""
+
+    force_N: np.ndarray
+    relative: np.ndarray
+    gain: np.ndarray
+
+    @classmethod
+    def from_table(cls, force_N: np.ndarray, relative: np.ndarray, sensitivity_per_N: np.ndarray) -> TaxelResponse:
+        force_N, relative = np.asarray(force_N, float), np.asarray(relative, float)
+        if np.any(np.diff(relative) <= 0) or np.any(np.diff(force_N) <= 0):
+            raise ValueError("a taxel table must be strictly increasing in force and ΔC/C0")
+        sensitivity = np.asarray(sensitivity_per_N, float)
+        if np.any(sensitivity <= 0):
+            raise ValueError(f"sensitivities must be positive, got min {sensitivity.min()}")
+        model_slope = _ls_slope(SENSITIVITY_FORCES_N, np.interp(SENSITIVITY_FORCES_N, force_N, relative))
+        gain = sensitivity / model_slope
+        for _ in range(20):  # fixed point: the curve is nearly linear, so this converges in a few steps
+            scaled = np.interp(np.outer(gain, SENSITIVITY_FORCES_N), force_N, relative)
+            gain = gain * sensitivity / _ls_slope(SENSITIVITY_FORCES_N, scaled)
+        return cls(force_N, relative, gain)
+
+    @property
+    def top(self) -> float:
+        return float(self.relative[-1])
+
+    @property
+    def max_force_N(self) -> np.ndarray:
+        """Largest force each taxel's table covers, shape (n,)."""
+        return self.force_N[-1] / self.gain
+
+    def forward(self, forces_N: np.ndarray) -> np.ndarray:
+        """ΔC/C0 for forces of shape (..., n); held at the top past the table."""
+        return np.interp(np.asarray(forces_N) * self.gain, self.force_N, self.relative)
+
+    def inverse(self, relative: np.ndarray, noise: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Forces (..., n) from ΔC/C0 (..., n).
+
+        Returns (force, saturated, out_of_range): saturated where ΔC/C0 is
+        above the table (force held at the table's top), out_of_range where
+        it is below −5·noise (force 0). NaN stays NaN.
+        """
+        dense_r, dense_f = self._dense
+        force = np.interp(relative, dense_r, dense_f) / self.gain
+        saturated = relative > self.top
+        out_of_range = relative < -OUT_OF_RANGE_SIGMAS * np.asarray(noise)
+        return force, saturated, out_of_range
+
+    @property
+    def _dense(self) -> tuple[np.ndarray, np.ndarray]:
+        cached = self.__dict__.get("_dense_cache")
+        if cached is None:
+            dense_r = np.linspace(0.0, self.top, DENSE_POINTS)
+            dense_f = PchipInterpolator(self.relative, self.force_N)(dense_r)
+            cached = (dense_r, dense_f)
+            object.__setattr__(self, "_dense_cache", cached)
+        return cached
