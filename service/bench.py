@@ -1,23 +1,46 @@
-"""`tactile bench`: decoder throughput and level-0 reconstruction cost.
+"""`tactile bench`: speed against error of every fidelity level.
 
-Data: a simulator capture (default board: one 8x8 grid + one quad, 1 kHz,
-scene demo) made on a virtual clock. Timings are wall-clock on this machine,
-best of a few repeats, one core.
+For each scenario the simulator (1 kHz, 1 fF noise, the paper's mechanical
+crosstalk) records a capture with its ground truth; each level then
+reconstructs it in batch (all grid frames at once, one core) and streaming
+(frame by frame through the Reconstructor, flags and contact summary
+included). Errors are against the truth: grid taxels split into loaded
+(truth > 0.05 N) and unloaded, quad per axis. The decoder's throughput is
+measured on the same bytes. ``--out DIR`` writes bench.md and bench.png.
 """
 from __future__ import annotations
 
 import platform
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from .calibration import table1
-from .pipeline import Pipeline
 from .protocol import Decoder
 from .readings import Interpreter
-from .reconstruct import Reconstructor, level0
+from .reconstruct import LEVELS, Reconstructor
+from .reconstruct.baseline import DEFAULT_TARE_FRAMES
 
 REPEATS = 3
+LOADED_N = 0.05
+TARGET_GRID_FRAMES_PER_S = 37_000
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    scene: str
+    grid_options: dict = field(default_factory=dict)
+
+
+SCENARIOS = (
+    Scenario("press", "press"),
+    Scenario("slide", "slide"),
+    Scenario("press + 1 % mux leakage", "press", {"electrical_leakage": 0.01}),
+    Scenario("slide + common-mode drift", "slide", {"drift": ("drift", 0.003, 20.0)}),
+    Scenario("shear (quad)", "shear"),
+)
 
 
 def _best(fn) -> float:
@@ -29,62 +52,174 @@ def _best(fn) -> float:
     return best
 
 
-def run(seconds: float = 10.0) -> dict:
+def _capture(scenario: Scenario, seconds: float):
     from firmware_sim.board import BoardConfig, capture
+    from firmware_sim.sensors import Drift, SimGrid, SimQuad
 
-    data, board = capture(BoardConfig(scene="demo"), seconds, keep_truth=True)
+    options = dict(scenario.grid_options)
+    if "drift" in options:
+        _, amplitude, period = options.pop("drift")
+        options["drift"] = Drift(amplitude, period)
+    config = BoardConfig(sensors=[SimGrid(0, **options), SimQuad(1)], scene=scenario.scene)
+    return capture(config, seconds, keep_truth=True)
+
+
+def _noise_floor_N(noise_fF: float = 1.0) -> float:
+    """RMS force of 1 fF of noise over the table-1 taxels (σ_C / (C0 · s))."""
+    from .calibration import table1
+
+    cal = table1()
+    return float(np.sqrt(np.mean((noise_fF * 1e-3 / (cal.c0_pF * cal.sensitivity_per_N)) ** 2)))
+
+
+def _errors(forces: np.ndarray, truth: np.ndarray) -> dict:
+    err = forces - truth
+    loaded = truth > LOADED_N
+    out = {}
+    for name, mask in (("loaded", loaded), ("unloaded", ~loaded)):
+        e = np.abs(err[mask])
+        out[f"rms_{name}_N"] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+        out[f"p99_{name}_N"] = float(np.percentile(e, 99)) if e.size else float("nan")
+    return out
+
+
+def run_scenario(scenario: Scenario, seconds: float) -> list[dict]:
+    data, board = _capture(scenario, seconds)
     frames = Decoder().feed(data)
-    n = len(frames)
+    interpreter = Interpreter(clock=lambda: 0.0)
+    readings = [r for r in (interpreter.interpret(f, 0.0) for f in frames) if r is not None]
+    truth = {(t.sensor, t.seq): t.values for t in board.truth}
+    grid = [r for r in readings if r.sensor.kind == "grid"]
+    quad = [r for r in readings if r.sensor.kind == "quad"]
+    grid_c = np.stack([r.capacitance_pF for r in grid])
+    grid_t = np.array([r.t_us * 1e-6 for r in grid])
+    grid_truth = np.stack([truth[(0, r.seq)] for r in grid])
+    quad_truth = np.stack([truth[(1, r.seq)] for r in quad])
+    tare = slice(0, DEFAULT_TARE_FRAMES)
+    baseline, baseline_std = grid_c[tare].mean(axis=0), grid_c[tare].std(axis=0)
+    rows = []
+    for level in LEVELS:
+        reconstructor = Reconstructor(level=level, hold_until_tared=True)
+        processor = reconstructor._processor(grid[0].sensor)
+        batch_s = _best(lambda: processor.process(grid_c, baseline, baseline_std, grid_t))
 
-    batch_s = _best(lambda: Decoder().feed(data))
+        def streaming():
+            rec = Reconstructor(level=level, hold_until_tared=True)
+            out = []
+            for reading in readings:
+                out.extend(rec.process(reading))
+            return out
+
+        def chunked():
+            # As the live path gets them: one read of the port is ~50 ms of frames.
+            rec = Reconstructor(level=level, hold_until_tared=True)
+            for i in range(0, len(readings), 100):
+                rec.process_many(readings[i : i + 100])
+
+        t0 = time.perf_counter()
+        streamed = streaming()
+        stream_s = time.perf_counter() - t0
+        chunk_s = _best(chunked)
+        by_sensor = {0: [], 1: []}
+        for frame in streamed:
+            by_sensor[frame.sensor.id].append(frame.forces_N)
+        row = {
+            "scenario": scenario.name,
+            "level": level,
+            "batch_us_per_grid_frame": batch_s / len(grid) * 1e6,
+            "batch_grid_frames_per_s": len(grid) / batch_s,
+            "stream_us_per_frame": stream_s / len(readings) * 1e6,
+            "chunked_us_per_frame": chunk_s / len(readings) * 1e6,
+            **_errors(np.stack(by_sensor[0]), grid_truth),
+        }
+        quad_err = np.stack(by_sensor[1]) - quad_truth
+        for axis, name in enumerate(("x", "y", "z")):
+            row[f"quad_rms_{name}_N"] = float(np.sqrt(np.mean(quad_err[:, axis] ** 2)))
+        rows.append(row)
+    return rows
+
+
+def decoder_figures(seconds: float) -> dict:
+    data, _ = _capture(SCENARIOS[1], seconds)
+    n = len(Decoder().feed(data))
 
     def streaming():
         decoder = Decoder()
         for i in range(0, len(data), 4096):
             decoder.feed(data[i : i + 4096])
 
-    stream_s = _best(streaming)
-
-    interpreter = Interpreter(clock=lambda: 0.0)
-    readings = [r for r in (interpreter.interpret(f, 0.0) for f in frames) if r is not None]
-
-    def per_frame():
-        reconstructor = Reconstructor(tare_frames=1)
-        for reading in readings:
-            reconstructor.process(reading)
-
-    per_frame_s = _best(per_frame)
-
-    grid = np.stack([r.capacitance_pF for r in readings if r.sensor.kind == "grid"])
-    baseline = grid[:100].mean(axis=0)
-    calibration = table1()
-    batch_grid_s = _best(lambda: level0.grid_forces(grid, baseline, calibration))
-
-    def end_to_end():
-        pipeline = Pipeline(Reconstructor(hold_until_tared=True), clock=lambda: 0.0)
-        pipeline.feed(data, 0.0)
-        pipeline.finish(0.0)
-
-    end_to_end_s = _best(end_to_end)
-
-    report = {
-        "machine": f"{platform.machine()} {platform.processor() or ''} python {platform.python_version()}".strip(),
-        "capture": {"seconds": seconds, "bytes": len(data), "frames": n},
-        "decoder_batch_frames_per_s": n / batch_s,
-        "decoder_stream_4k_chunks_frames_per_s": n / stream_s,
-        "level0_per_frame_us": per_frame_s / len(readings) * 1e6,
-        "level0_grid_batch_us_per_frame": batch_grid_s / len(grid) * 1e6,
-        "pipeline_end_to_end_frames_per_s": n / end_to_end_s,
+    return {
+        "frames": n,
+        "decoder_batch_frames_per_s": n / _best(lambda: Decoder().feed(data)),
+        "decoder_stream_4k_frames_per_s": n / _best(streaming),
     }
-    report["text"] = "\n".join(
-        [
-            f"machine: {report['machine']}",
-            f"capture: {seconds:g} s, {len(data)} bytes, {n} frames (8x8 grid + quad at 1 kHz)",
-            f"decoder, whole capture in one feed: {report['decoder_batch_frames_per_s']:,.0f} frames/s",
-            f"decoder, 4 KiB chunks:               {report['decoder_stream_4k_chunks_frames_per_s']:,.0f} frames/s",
-            f"level-0 reconstruction, per frame:   {report['level0_per_frame_us']:.1f} µs (interpret excluded)",
-            f"level-0 grid forces, batched:        {report['level0_grid_batch_us_per_frame']:.3f} µs/frame",
-            f"bytes → forces, whole pipeline:      {report['pipeline_end_to_end_frames_per_s']:,.0f} frames/s",
-        ]
-    )
+
+
+def run(seconds: float = 10.0) -> dict:
+    rows = [row for scenario in SCENARIOS for row in run_scenario(scenario, seconds)]
+    report = {
+        "machine": f"{platform.machine()} python {platform.python_version()}",
+        "seconds": seconds,
+        "noise_floor_N": _noise_floor_N(),
+        "decoder": decoder_figures(seconds),
+        "rows": rows,
+    }
+    report["text"] = render_text(report)
     return report
+
+
+def render_text(report: dict) -> str:
+    floor = report["noise_floor_N"]
+    dec = report["decoder"]
+    lines = [
+        f"machine: {report['machine']}; {report['seconds']:g} s per scenario at 1 kHz; noise floor σ = {floor:.4f} N per taxel",
+        f"decoder: {dec['decoder_batch_frames_per_s']:,.0f} frames/s in one feed, {dec['decoder_stream_4k_frames_per_s']:,.0f} frames/s in 4 KiB chunks",
+        "",
+        "| scenario | level | batch µs/grid frame | grid frames/s | stream µs/frame | live chunks µs/frame | RMS loaded N | p99 loaded N | RMS unloaded N | p99 unloaded N | quad RMS x/y/z N |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in report["rows"]:
+        lines.append(
+            f"| {r['scenario']} | {r['level']} | {r['batch_us_per_grid_frame']:.2f} | {r['batch_grid_frames_per_s']:,.0f} | "
+            f"{r['stream_us_per_frame']:.1f} | {r['chunked_us_per_frame']:.1f} | {r['rms_loaded_N']:.4f} | {r['p99_loaded_N']:.4f} | {r['rms_unloaded_N']:.4f} | "
+            f"{r['p99_unloaded_N']:.4f} | {r['quad_rms_x_N']:.3f}/{r['quad_rms_y_N']:.3f}/{r['quad_rms_z_N']:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def write_docs(report: dict, out_dir: Path) -> list[Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    md = out_dir / "bench.md"
+    md.write_text(
+        "# Speed against error\n\nProduced by `tactile bench --out docs` (see service/bench.py for what is measured).\n"
+        f"Target: full fidelity at ≥ {TARGET_GRID_FRAMES_PER_S:,} grid frames/s in batch on one core, "
+        "error within 2× the noise floor.\n\n" + report["text"] + "\n"
+    )
+    written = [md]
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return written
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    markers = {"level0": "o", "table": "s", "full": "^"}
+    for scenario in dict.fromkeys(r["scenario"] for r in report["rows"]):
+        rows = [r for r in report["rows"] if r["scenario"] == scenario]
+        ax.plot([r["batch_us_per_grid_frame"] for r in rows], [r["rms_loaded_N"] for r in rows], "-", alpha=0.4)
+        for r in rows:
+            ax.scatter(r["batch_us_per_grid_frame"], r["rms_loaded_N"], marker=markers[r["level"]], label=f"{scenario}: {r['level']}")
+    ax.axhline(2 * report["noise_floor_N"], color="k", ls="--", lw=1, label="2× noise floor")
+    ax.axvline(1e6 / TARGET_GRID_FRAMES_PER_S, color="r", ls=":", lw=1, label="37 000 frames/s")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("batch cost per grid frame (µs)")
+    ax.set_ylabel("RMS error on loaded taxels (N)")
+    ax.legend(fontsize=6, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    png = out_dir / "bench.png"
+    fig.savefig(png, dpi=110)
+    written.append(png)
+    return written

@@ -77,10 +77,15 @@ def cmd_replay(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run
+    from pathlib import Path
+
+    from .bench import run, write_docs
 
     report = run(seconds=args.seconds)
     print(json.dumps(report, indent=1) if args.json else report["text"])
+    if args.out:
+        for path in write_docs(report, Path(args.out)):
+            print(f"wrote {path}", file=sys.stderr)
     return 0
 
 
@@ -202,9 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     conv.add_argument("--out", default="docs")
     conv.set_defaults(func=cmd_model_convergence)
 
-    bench = sub.add_parser("bench", help="measure decoder throughput and reconstruction cost")
-    bench.add_argument("--seconds", type=float, default=10.0, help="simulated seconds of data to process")
+    bench = sub.add_parser("bench", help="speed against error of every fidelity level on the simulator's scenes")
+    bench.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per scenario")
     bench.add_argument("--json", action="store_true")
+    bench.add_argument("--out", help="also write bench.md and bench.png to this directory")
     bench.set_defaults(func=cmd_bench)
     return parser
 

@@ -68,12 +68,8 @@ class Pipeline:
             return self.reconstructor.tare(sensor_id)
 
     def _reconstruct(self, frames, t_host: float) -> list[ForceFrame]:
-        out: list[ForceFrame] = []
-        for frame in frames:
-            reading = self.interpreter.interpret(frame, t_host)
-            if reading is not None:
-                out.extend(self.reconstructor.process(reading))
-        return out
+        readings = [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
+        return self.reconstructor.process_many(readings) if readings else []
 
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:

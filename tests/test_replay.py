@@ -101,9 +101,12 @@ def test_cli_replay_of_missing_file_is_a_clear_error(tmp_path, capsys):
     assert "nope.bin" in capsys.readouterr().err
 
 
-def test_bench_measures_the_capture_it_made():
-    from service.bench import run
+def test_bench_scenario_reports_every_level_against_truth():
+    from service.bench import SCENARIOS, run_scenario
 
-    report = run(seconds=0.2)
-    assert report["capture"]["frames"] == 2 * 200 + 1
-    assert report["decoder_batch_frames_per_s"] > 0 and report["level0_per_frame_us"] > 0
+    rows = run_scenario(SCENARIOS[0], seconds=2.0)
+    assert [r["level"] for r in rows] == ["level0", "table", "full"]
+    by_level = {r["level"]: r for r in rows}
+    # The linear level misses the gap nonlinearity on the pressed taxel; the table does not.
+    assert by_level["level0"]["rms_loaded_N"] > 5 * by_level["table"]["rms_loaded_N"]
+    assert by_level["full"]["rms_loaded_N"] < 0.02

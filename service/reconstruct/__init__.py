@@ -12,7 +12,7 @@ from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES, Baseline
 from .contact import summarise
 from .frame import ForceFrame
-from .grid import GRID_LEVELS, GridProcessor, flag_names
+from .grid import GRID_LEVELS, NO_READING, GridProcessor, flag_names
 from .quad import QuadProcessor
 from .taxel import TaxelResponse
 
@@ -105,44 +105,74 @@ class Reconstructor:
         return {
             "mechanical_coupling_in_use": processor.crosstalk.mechanical,
             "electrical_leakage_in_use": processor.crosstalk.electrical,
+            "isolated_loads_adopted": processor.adopted_events,
+            "pending_estimates": processor.estimator.report(),
             "common_mode_drift": processor.drift.drift,
-            "detected": processor.estimator.report(),
         }
 
     def process(self, reading: Reading) -> list[ForceFrame]:
-        state = self._state(reading.sensor)
-        state.baseline.update(reading.capacitance_pF)
+        return self.process_many([reading])
+
+    def process_many(self, readings: list[Reading]) -> list[ForceFrame]:
+        """Reconstruct a batch of readings (e.g. one read from the port), each
+        sensor's frames together; returns ForceFrames in arrival order."""
+        pending = []
+        for reading in readings:
+            state = self._state(reading.sensor)
+            state.baseline.update(reading.capacitance_pF)
+            pending.append((state, reading))
         if not self.hold_until_tared:
-            return [self._reconstruct(state, reading)]
-        self._held.append((state, reading))
-        frames = []
+            return self._reconstruct(pending)
+        self._held.extend(pending)
+        release = []
         while self._held and self._held[0][0].baseline.ready:
-            frames.append(self._reconstruct(*self._held.popleft()))
-        return frames
+            release.append(self._held.popleft())
+        return self._reconstruct(release)
 
     def flush(self) -> list[ForceFrame]:
         """Release every held reading; those of sensors that never completed a
         tare (a log shorter than the tare window) come out null and flagged."""
-        frames = [self._reconstruct(state, reading) for state, reading in self._held]
+        frames = self._reconstruct(list(self._held))
         self._held.clear()
         return frames
 
-    def _reconstruct(self, state: _SensorState, reading: Reading) -> ForceFrame:
-        flags = reading.frame_flags()
+    def _reconstruct(self, items: list[tuple[_SensorState, Reading]]) -> list[ForceFrame]:
+        groups: dict[int, list[int]] = {}
+        for index, (state, _) in enumerate(items):
+            groups.setdefault(id(state), []).append(index)
+        out: list[ForceFrame | None] = [None] * len(items)
+        for indices in groups.values():
+            state = items[indices[0]][0]
+            readings = [items[i][1] for i in indices]
+            for i, frame in zip(indices, self._reconstruct_sensor(state, readings)):
+                out[i] = frame
+        return out
+
+    def _reconstruct_sensor(self, state: _SensorState, readings: list[Reading]) -> list[ForceFrame]:
         info = state.info
-        taxel_flags = contact = None
+        flags = [r.frame_flags() for r in readings]
+        taxel_flags = contacts = None
         if not state.baseline.ready:
-            flags.append("taring")
-            forces = np.full(3 if info.kind == "quad" else info.channels, np.nan)
-        elif info.kind == "grid":
-            result = state.processor.process(reading.capacitance_pF, state.baseline.value, state.baseline.std, reading.t_us * 1e-6)
-            forces, taxel_flags = result.forces_N, result.taxel_flags
-            flags.extend(result.frame_flags)
-            flags.extend(name for name in flag_names(int(np.bitwise_or.reduce(taxel_flags)))
-                         if name not in flags and name != "no_reading")
-            contact = {k: v.item() for k, v in summarise(forces, info.rows, info.cols).items()}
+            forces = np.full((len(readings), 3 if info.kind == "quad" else info.channels), np.nan)
+            for f in flags:
+                f.append("taring")
         else:
-            forces, quad_flags = state.processor.process(reading.capacitance_pF, state.baseline.value, state.baseline.std)
-            flags.extend(quad_flags)
-        return ForceFrame(info, reading.seq, reading.t_us, reading.t_host, forces, reading.capacitance_pF, flags,
-                          self.level, taxel_flags, contact)
+            capacitance = np.stack([r.capacitance_pF for r in readings])
+            if info.kind == "grid":
+                t_s = np.array([r.t_us * 1e-6 for r in readings])
+                result = state.processor.process(capacitance, state.baseline.value, state.baseline.std, t_s)
+                forces, taxel_flags = result.forces_N, result.taxel_flags
+                union = np.bitwise_or.reduce(taxel_flags & ~np.uint8(NO_READING), axis=1)
+                for f, bits in zip(flags, union.tolist()):
+                    f.extend(flag_names(bits))
+                summary = summarise(forces, info.rows, info.cols)
+                contacts = [dict(zip(summary, values)) for values in zip(*(v.tolist() for v in summary.values()))]
+            else:
+                forces, quad_flags = state.processor.process(capacitance, state.baseline.value, state.baseline.std)
+                for f, extra in zip(flags, quad_flags):
+                    f.extend(extra)
+        return [
+            ForceFrame(info, r.seq, r.t_us, r.t_host, forces[k], r.capacitance_pF, flags[k], self.level,
+                       None if taxel_flags is None else taxel_flags[k], None if contacts is None else contacts[k])
+            for k, r in enumerate(readings)
+        ]

@@ -97,35 +97,51 @@ class CrosstalkEstimator:
     cols: int
     min_snr: float = 40.0
     max_neighbour_share: float = 0.05
+    max_samples: int = 10_000
     mechanical_samples: list = field(default_factory=list)
     electrical_samples: list = field(default_factory=list)
 
+    def __post_init__(self) -> None:
+        self._near = neighbour_matrix(self.rows, self.cols).astype(bool)
+        n = self.rows * self.cols
+        col = np.arange(n) % self.cols
+        self._has_row_pair = (col > 0) & (col < self.cols - 1)
+        after = np.zeros((n, n), dtype=bool)
+        inner = np.flatnonzero(self._has_row_pair)
+        after[inner, inner + 1] = True
+        self._symmetric = self._near & ~after  # neighbours without the one scanned next
+
     def observe(self, relative: np.ndarray, noise: np.ndarray, baseline_pF: np.ndarray) -> None:
-        """Feed one frame of ΔC/C0 (n,) with its noise (n,) and baseline (n,)."""
-        if np.isnan(relative).any():
+        """Feed frames of ΔC/C0 (N, n) (or one frame (n,)) with the noise (n,)
+        and baseline (n,) they were computed with."""
+        relative = np.atleast_2d(relative)
+        if len(self.electrical_samples) >= self.max_samples:
             return
         snr = relative / noise
-        peak = int(np.argmax(snr))
-        if snr[peak] < self.min_snr:
+        peak = np.argmax(np.nan_to_num(snr, nan=-np.inf), axis=1)
+        rows = np.arange(len(relative))
+        peak_r = relative[rows, peak]
+        candidate = (snr[rows, peak] >= self.min_snr) & ~np.isnan(relative).any(axis=1) & self._has_row_pair[peak]
+        if not candidate.any():
             return
-        pr, pc = divmod(peak, self.cols)
-        r, c = np.divmod(np.arange(relative.size), self.cols)
-        near = (np.abs(r - pr) <= 1) & (np.abs(c - pc) <= 1)
-        if np.any(np.abs(snr[~near]) > 4.0):
+        relative, snr, peak, peak_r = relative[candidate], snr[candidate], peak[candidate], peak_r[candidate]
+        near = self._near[peak]
+        far = ~near
+        far[np.arange(len(peak)), peak] = False
+        isolated = ~np.any(far & (np.abs(snr) > 4.0), axis=1)
+        share = relative / peak_r[:, None]
+        isolated &= ~np.any(near & (np.abs(share) > self.max_neighbour_share), axis=1)
+        if not isolated.any():
             return
-        neighbours = near.copy()
-        neighbours[peak] = False
-        share = relative[neighbours] / relative[peak]
-        if np.any(np.abs(share) > self.max_neighbour_share):
-            return
-        if 0 < pc < self.cols - 1:  # both same-row neighbours exist
-            before, after = relative[peak - 1], relative[peak + 1]
-            # after: α ΔC_peak / C0_after on top of the mechanical share.
-            delta_c = relative[peak] * baseline_pF[peak]
-            self.electrical_samples.append((after - before) * baseline_pF[peak + 1] / delta_c)
-            symmetric = neighbours.copy()
-            symmetric[peak + 1] = False
-            self.mechanical_samples.append(float(np.mean(relative[symmetric]) / relative[peak]))
+        relative, peak, peak_r, share = relative[isolated], peak[isolated], peak_r[isolated], share[isolated]
+        idx = np.arange(len(peak))
+        before, after = relative[idx, peak - 1], relative[idx, peak + 1]
+        # The channel scanned next sees α ΔC_peak on top of the mechanical share.
+        electrical = (after - before) * baseline_pF[peak + 1] / (peak_r * baseline_pF[peak])
+        symmetric = self._symmetric[peak]
+        mechanical = (share * symmetric).sum(axis=1) / symmetric.sum(axis=1)
+        self.electrical_samples.extend(electrical.tolist())
+        self.mechanical_samples.extend(mechanical.tolist())
 
     def report(self) -> dict:
         def summary(samples):

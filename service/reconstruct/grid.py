@@ -39,6 +39,7 @@ GRID_LEVELS = ("level0", "table", "full")
 STUCK_FRAMES = 50
 NOISE_FLOOR_PF = 2e-4  # never trust a noise estimate below 0.2 fF
 CORRECTION_SIGMAS = 3.0
+ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior
 
 
 def flag_names(bits: int) -> list[str]:
@@ -47,9 +48,8 @@ def flag_names(bits: int) -> list[str]:
 
 @dataclass
 class GridResult:
-    forces_N: np.ndarray  # (..., n), NaN = no reading
-    taxel_flags: np.ndarray  # (..., n) uint8 bit set
-    frame_flags: list[str]
+    forces_N: np.ndarray  # (N, n), NaN = no reading
+    taxel_flags: np.ndarray  # (N, n) uint8 bit set, see TAXEL_FLAG_NAMES
 
 
 @dataclass
@@ -64,6 +64,8 @@ class GridProcessor:
     estimator: CrosstalkEstimator | None = None
     _last_raw: np.ndarray | None = None
     _same_count: np.ndarray | None = None
+    _noise_for: tuple | None = None
+    adopted_events: int = 0
 
     def __post_init__(self) -> None:
         if self.level not in GRID_LEVELS:
@@ -79,79 +81,74 @@ class GridProcessor:
         self.drift.reset()
 
     def noise(self, baseline_pF: np.ndarray, baseline_std_pF: np.ndarray) -> np.ndarray:
-        """Noise of ΔC/C0 per taxel, from the tare window's spread."""
-        return np.fmax(baseline_std_pF, NOISE_FLOOR_PF) / baseline_pF
+        """Noise of ΔC/C0 per taxel from the tare window's spread. The
+        converter's noise is one figure for all channels, and 100 frames give
+        each channel's spread only to ±7 %, so the median over channels is
+        used (in pF), divided by each taxel's baseline."""
+        if self._noise_for is None or self._noise_for[0] is not baseline_std_pF:
+            pooled = np.nanmedian(baseline_std_pF) if np.isfinite(baseline_std_pF).any() else 0.0
+            self._noise_for = (baseline_std_pF, max(pooled, NOISE_FLOOR_PF) / baseline_pF)
+        return self._noise_for[1]
 
     def _stuck(self, capacitance: np.ndarray) -> np.ndarray:
-        if self._last_raw is None or self._last_raw.shape != capacitance.shape:
-            self._same_count = np.zeros(capacitance.shape, dtype=np.int64)
-        else:
-            same = capacitance == self._last_raw
-            self._same_count = np.where(same, self._same_count + 1, 0)
-        self._last_raw = capacitance.copy()
-        return self._same_count >= STUCK_FRAMES
+        """(N, n) mask of channels that have repeated the same count for
+        STUCK_FRAMES frames in a row (a converter that stopped converting;
+        with real noise two equal counts in a row are already rare)."""
+        previous = self._last_raw if self._last_raw is not None and self._last_raw.shape == capacitance.shape[1:] else None
+        prior = self._same_count if previous is not None else np.zeros(capacitance.shape[1], dtype=np.int64)
+        shifted = np.vstack([previous[None] if previous is not None else np.full((1, capacitance.shape[1]), np.nan), capacitance[:-1]])
+        same = capacitance == shifted
+        # Run lengths of `same` along the frames, continuing the previous batch's runs.
+        runs = np.cumsum(same, axis=0)
+        resets = np.maximum.accumulate(np.where(same, 0, runs), axis=0)
+        counts = runs - resets + np.where(np.cumprod(same, axis=0).astype(bool), prior, 0)
+        self._last_raw, self._same_count = capacitance[-1].copy(), counts[-1]
+        return counts >= STUCK_FRAMES
 
-    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: float) -> GridResult:
-        """One frame: capacitance (n,) pF → forces (n,) N and flags."""
+    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
+        """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
+        per-taxel flags (N, n). A single frame is a batch of one."""
         flags = np.where(np.isnan(capacitance), NO_READING, 0).astype(np.uint8)
-        frame_flags: list[str] = []
-        if baseline_std.max() > NOISE_FLOOR_PF:
+        if np.nanmax(baseline_std, initial=0.0) > NOISE_FLOOR_PF:
             flags |= np.where(self._stuck(capacitance), STALE, 0).astype(np.uint8)
         if self.level == "level0":
-            return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags, frame_flags)
+            return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags)
         noise = self.noise(baseline, baseline_std)
         if self.level == "table":
             relative = level0.relative_change(capacitance, baseline)
         else:
             relative, corrected, suspect = self._compensate(capacitance, baseline, noise, t_s)
             flags |= np.where(corrected, CROSSTALK_CORRECTED, 0).astype(np.uint8)
-            if suspect:
-                flags |= DRIFT_SUSPECT
-                frame_flags.append("drift_suspect")
-        forces, saturated, out_of_range = self.response.inverse(relative, noise)
-        flags |= np.where(saturated, SATURATED, 0).astype(np.uint8)
-        flags |= np.where(out_of_range, OUT_OF_RANGE, 0).astype(np.uint8)
-        return GridResult(forces, flags, frame_flags)
-
-    def _compensate(self, capacitance, baseline, noise, t_s):
-        crosstalk = self.crosstalk
-        unleaked = crosstalk.unleak(capacitance, baseline)
-        unleaked_baseline = crosstalk.unleak(baseline, baseline)
-        raw_relative = capacitance / baseline - 1.0
-        relative = unleaked / unleaked_baseline - 1.0
-        suspect = self.drift.update(relative, noise, t_s)
-        relative = DriftTracker.correct(relative, self.drift.drift)
-        self.estimator.observe(relative, noise, baseline)
-        relative = crosstalk.unmix_mechanical(relative)
-        corrected = np.abs(relative - DriftTracker.correct(raw_relative, self.drift.drift)) > CORRECTION_SIGMAS * noise
-        return relative, corrected, suspect
-
-    def process_batch(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
-        """Frames (N, n) pF at times (N,) → forces (N, n). Same results as
-        ``process`` frame by frame, except that stuck-channel detection and
-        crosstalk detection are left to the streaming path."""
-        flags = np.where(np.isnan(capacitance), NO_READING, 0).astype(np.uint8)
-        if self.level == "level0":
-            return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags, [])
-        noise = self.noise(baseline, baseline_std)
-        frame_flags: list[str] = []
-        if self.level == "table":
-            relative = capacitance / baseline - 1.0
-        else:
-            crosstalk = self.crosstalk
-            unleaked = crosstalk.unleak(capacitance, baseline)
-            relative = unleaked / crosstalk.unleak(baseline, baseline) - 1.0
-            raw_relative = capacitance / baseline - 1.0
-            drift = np.empty(len(relative))
-            suspect = False
-            for i in range(len(relative)):
-                suspect |= self.drift.update(relative[i], noise, float(t_s[i]))
-                drift[i] = self.drift.drift
-            relative = crosstalk.unmix_mechanical(DriftTracker.correct(relative, drift[:, None]))
-            corrected = np.abs(relative - DriftTracker.correct(raw_relative, drift[:, None])) > CORRECTION_SIGMAS * noise
-            flags |= np.where(corrected, CROSSTALK_CORRECTED, 0).astype(np.uint8)
-            if suspect:
-                frame_flags.append("drift_suspect")
+            flags |= np.where(suspect[:, None] & (flags & NO_READING == 0), DRIFT_SUSPECT, 0).astype(np.uint8)
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
         flags |= np.where(saturated, SATURATED, 0).astype(np.uint8) | np.where(out_of_range, OUT_OF_RANGE, 0).astype(np.uint8)
-        return GridResult(forces, flags, frame_flags)
+        return GridResult(forces, flags)
+
+    def _compensate(self, capacitance, baseline, noise, t_s):
+        """Leakage → drift → mechanical unmixing, on (N, n) frames at (N,) times.
+        Returns compensated ΔC/C0, the crosstalk-corrected mask and the
+        drift-suspect mask (N,)."""
+        crosstalk = self.crosstalk
+        relative = crosstalk.unleak(capacitance, baseline) / crosstalk.unleak(baseline, baseline) - 1.0
+        drift, suspect = self.drift.update(relative, noise, t_s)
+        relative = DriftTracker.correct(relative, drift[:, None])
+        self.estimator.observe(relative, noise, baseline)
+        self._adopt_estimates()
+        compensated = crosstalk.unmix_mechanical(relative)
+        uncompensated = DriftTracker.correct(capacitance / baseline - 1.0, drift[:, None])
+        corrected = np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise
+        return compensated, corrected, suspect
+
+    def _adopt_estimates(self) -> None:
+        """Refine the coefficients from the data once enough isolated loads were
+        seen. The electrical estimate is measured after the leakage already
+        compensated, so it is a residual added to the fraction in use."""
+        estimator, crosstalk = self.estimator, self.crosstalk
+        if len(estimator.electrical_samples) < ADOPT_AFTER_EVENTS:
+            return
+        report = estimator.report()
+        crosstalk.electrical = float(np.clip(crosstalk.electrical + report["electrical"]["estimate"], 0.0, 0.3))
+        crosstalk.set_mechanical(float(np.clip(report["mechanical"]["estimate"], -0.02, 0.0)))
+        self.adopted_events += len(estimator.electrical_samples)
+        estimator.electrical_samples.clear()
+        estimator.mechanical_samples.clear()

@@ -89,20 +89,14 @@ class QuadProcessor:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
 
-    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        """Capacitances (..., 4) pF → forces (..., 3) and frame flags (for a
-        single frame; a batch gets the union)."""
+    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple[np.ndarray, list[list[str]]]:
+        """Capacitances (N, 4) pF → forces (N, 3) and each frame's flags."""
         if self.level == "level0":
-            return quad_forces(capacitance, baseline), []
+            return quad_forces(capacitance, baseline), [[] for _ in range(len(capacitance))]
         relative = relative_change(capacitance, baseline)
         forces, masks = self.model.inverse(relative)
-        flags = []
-        if np.any(masks["normal_out_of_range"]):
-            flags.append("normal_out_of_range")
-        if np.any(masks["shear_out_of_range"]):
-            flags.append("shear_out_of_range")
         noise = np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0
-        fault = np.abs(masks["residual"]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(quad_axes(relative)[..., 2])
-        if np.any(fault):
-            flags.append("electrode_fault")
-        return forces, flags
+        masks["electrode_fault"] = np.abs(masks.pop("residual")) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(quad_axes(relative)[..., 2])
+        names = list(masks)
+        table = np.stack([masks[name] for name in names], axis=-1)
+        return forces, [[name for name, hit in zip(names, row) if hit] for row in table.tolist()]
