@@ -64,6 +64,30 @@ def _press(sensor, t):
     return truth
 
 
+SLOW_PRESS_N = 3.0
+SLOW_PRESS_RAMP_S = 8.0
+
+
+def _slow_press(sensor, t):
+    """A press on one taxel that creeps up over 8 s and holds: what a drift
+    tracker must not mistake for drift."""
+    truth = _idle(sensor, t)
+    if sensor.kind == "grid":
+        row, col = PRESS_TAXEL
+        share = min(max((t - QUIET_S) / SLOW_PRESS_RAMP_S, 0.0), 1.0)
+        truth[(min(row, sensor.rows) - 1) * sensor.cols + min(col, sensor.cols) - 1] = SLOW_PRESS_N * share
+    return truth
+
+
+def _two_contacts(sensor, t):
+    """Two presses far apart at once (rows 2 and 7), for contact counting."""
+    if sensor.kind != "grid":
+        return _idle(sensor, t)
+    env = _envelope(t)
+    x, _ = sensor.taxel_centres_mm()
+    return (gaussian_contact(sensor, 3.0 * env, x[9], -10.0, 1.0) + gaussian_contact(sensor, 2.0 * env, x[14], 10.0, 1.0))
+
+
 def _slide(sensor, t):
     if sensor.kind != "grid":
         return _idle(sensor, t)
@@ -89,7 +113,15 @@ def _demo(sensor, t):
 
 Scene = Callable[[SimGrid | SimQuad, float], np.ndarray]
 
-SCENES: dict[str, Scene] = {"idle": _idle, "press": _press, "slide": _slide, "shear": _shear, "demo": _demo}
+SCENES: dict[str, Scene] = {
+    "idle": _idle,
+    "press": _press,
+    "slow_press": _slow_press,
+    "two_contacts": _two_contacts,
+    "slide": _slide,
+    "shear": _shear,
+    "demo": _demo,
+}
 
 
 def get_scene(name: str) -> Scene:

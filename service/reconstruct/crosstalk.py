@@ -90,16 +90,34 @@ class Crosstalk:
 
 
 @dataclass
+class _Slope:
+    """Least-squares slope through the origin, y ≈ k x, from running sums."""
+
+    xy: float = 0.0
+    xx: float = 0.0
+    events: int = 0
+
+    def add(self, x: np.ndarray, y: np.ndarray) -> None:
+        self.xy += float(x @ y)
+        self.xx += float(x @ x)
+        self.events += len(x)
+
+    def summary(self) -> dict:
+        return {"estimate": self.xy / self.xx if self.events else None, "events": self.events}
+
+
+@dataclass
 class CrosstalkEstimator:
-    """Estimates both coefficients from isolated single-taxel loads."""
+    """Estimates both coefficients from isolated single-taxel loads, as
+    least-squares slopes against the loaded taxel's ΔC/C0 (strong loads
+    weigh most, where the neighbours' share stands clear of the noise)."""
 
     rows: int
     cols: int
     min_snr: float = 40.0
     max_neighbour_share: float = 0.05
-    max_samples: int = 10_000
-    mechanical_samples: list = field(default_factory=list)
-    electrical_samples: list = field(default_factory=list)
+    mechanical: _Slope = field(default_factory=_Slope)
+    electrical: _Slope = field(default_factory=_Slope)
 
     def __post_init__(self) -> None:
         self._near = neighbour_matrix(self.rows, self.cols).astype(bool)
@@ -115,8 +133,6 @@ class CrosstalkEstimator:
         """Feed frames of ΔC/C0 (N, n) (or one frame (n,)) with the noise (n,)
         and baseline (n,) they were computed with."""
         relative = np.atleast_2d(relative)
-        if len(self.electrical_samples) >= self.max_samples:
-            return
         snr = relative / noise
         peak = np.argmax(np.nan_to_num(snr, nan=-np.inf), axis=1)
         rows = np.arange(len(relative))
@@ -129,25 +145,17 @@ class CrosstalkEstimator:
         far = ~near
         far[np.arange(len(peak)), peak] = False
         isolated = ~np.any(far & (np.abs(snr) > 4.0), axis=1)
-        share = relative / peak_r[:, None]
-        isolated &= ~np.any(near & (np.abs(share) > self.max_neighbour_share), axis=1)
+        isolated &= ~np.any(near & (np.abs(relative / peak_r[:, None]) > self.max_neighbour_share), axis=1)
         if not isolated.any():
             return
-        relative, peak, peak_r, share = relative[isolated], peak[isolated], peak_r[isolated], share[isolated]
+        relative, peak, peak_r = relative[isolated], peak[isolated], peak_r[isolated]
         idx = np.arange(len(peak))
         before, after = relative[idx, peak - 1], relative[idx, peak + 1]
-        # The channel scanned next sees α ΔC_peak on top of the mechanical share.
-        electrical = (after - before) * baseline_pF[peak + 1] / (peak_r * baseline_pF[peak])
+        # The channel scanned next sees α ΔC_peak on top of the mechanical share:
+        # (after − before) · C0_after / C0_peak = α · r_peak.
+        self.electrical.add(peak_r, (after - before) * baseline_pF[peak + 1] / baseline_pF[peak])
         symmetric = self._symmetric[peak]
-        mechanical = (share * symmetric).sum(axis=1) / symmetric.sum(axis=1)
-        self.electrical_samples.extend(electrical.tolist())
-        self.mechanical_samples.extend(mechanical.tolist())
+        self.mechanical.add(peak_r, (relative * symmetric).sum(axis=1) / symmetric.sum(axis=1))
 
     def report(self) -> dict:
-        def summary(samples):
-            if not samples:
-                return {"estimate": None, "events": 0}
-            return {"estimate": float(np.median(samples)), "events": len(samples),
-                    "spread": float(np.subtract(*np.percentile(samples, [75, 25])))}
-
-        return {"mechanical": summary(self.mechanical_samples), "electrical": summary(self.electrical_samples)}
+        return {"mechanical": self.mechanical.summary(), "electrical": self.electrical.summary()}

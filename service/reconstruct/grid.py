@@ -140,15 +140,16 @@ class GridProcessor:
         return compensated, corrected, suspect
 
     def _adopt_estimates(self) -> None:
-        """Refine the coefficients from the data once enough isolated loads were
-        seen. The electrical estimate is measured after the leakage already
-        compensated, so it is a residual added to the fraction in use."""
+        """Refine the coefficients from the data once enough isolated loads
+        were seen. The mechanical slope is measured before unmixing, so it is
+        the coupling itself and keeps accumulating; the electrical one is
+        measured after the leakage already compensated, so it is a residual:
+        added to the fraction in use, then measured afresh."""
         estimator, crosstalk = self.estimator, self.crosstalk
-        if len(estimator.electrical_samples) < ADOPT_AFTER_EVENTS:
+        if estimator.electrical.events < ADOPT_AFTER_EVENTS:
             return
         report = estimator.report()
         crosstalk.electrical = float(np.clip(crosstalk.electrical + report["electrical"]["estimate"], 0.0, 0.3))
         crosstalk.set_mechanical(float(np.clip(report["mechanical"]["estimate"], -0.02, 0.0)))
-        self.adopted_events += len(estimator.electrical_samples)
-        estimator.electrical_samples.clear()
-        estimator.mechanical_samples.clear()
+        self.adopted_events += estimator.electrical.events
+        estimator.electrical = type(estimator.electrical)()

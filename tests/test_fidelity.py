@@ -1,0 +1,149 @@
+"""Full-fidelity reconstruction on simulated data: crosstalk detection and
+compensation, drift, flags, contact summary, errors against ground truth."""
+import numpy as np
+import pytest
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.sensors import Drift, SimGrid, SimQuad
+from service.bench import _noise_floor_N
+from service.pipeline import Pipeline
+from service.protocol import FLAG_SATURATED, Decoder, FrameType, encode_frame
+from service.reconstruct import Reconstructor
+
+NOISE_FLOOR = _noise_floor_N()
+PRESSED = 27  # row 4, col 4
+
+
+def run(scene, seconds, level="full", **grid_options):
+    config = BoardConfig(sensors=[SimGrid(0, **grid_options), SimQuad(1)], scene=scene, seed=3)
+    data, board = capture(config, seconds, keep_truth=True)
+    pipeline = Pipeline(Reconstructor(hold_until_tared=True, level=level), clock=lambda: 0.0)
+    frames = []
+    for i in range(0, len(data), 16384):  # as replay and the live port deliver it
+        frames += pipeline.feed(data[i : i + 16384], 0.0)
+    frames += pipeline.finish(0.0)
+    truth = {(t.sensor, t.seq): t.values for t in board.truth}
+    grid = [f for f in frames if f.sensor.kind == "grid"]
+    forces = np.stack([f.forces_N for f in grid])
+    expected = np.stack([truth[(0, f.seq)] for f in grid])
+    return pipeline, grid, forces, expected
+
+
+def rms(values):
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+def test_mechanical_crosstalk_never_leaves_a_negative_or_phantom_neighbour():
+    pipeline, grid, forces, expected = run("press", 3.0)
+    neighbours = [18, 19, 20, 26, 28, 34, 35, 36]
+    assert forces.min() >= 0.0
+    pressed = expected[:, PRESSED] > 4.0
+    assert rms(forces[pressed][:, neighbours]) < 1.5 * NOISE_FLOOR
+    report = pipeline.reconstructor.crosstalk_report(0)
+    assert report["mechanical_coupling_in_use"] == pytest.approx(-0.0028, abs=0.0008)
+
+
+def test_mux_leakage_is_detected_estimated_and_compensated():
+    pipeline, grid, forces, expected = run("press", 4.0, electrical_leakage=0.01)
+    report = pipeline.reconstructor.crosstalk_report(0)
+    assert report["isolated_loads_adopted"] >= 50
+    assert report["electrical_leakage_in_use"] == pytest.approx(0.01, abs=0.0015)
+    late = np.arange(len(grid)) > len(grid) // 2  # after the estimate was adopted
+    loaded = expected > 0.05
+    assert rms((forces - expected)[late][loaded[late]]) < 2 * NOISE_FLOOR
+    assert any("crosstalk_corrected" in f.flags for f in grid)
+    _, _, table_forces, _ = run("press", 4.0, level="table", electrical_leakage=0.01)
+    assert rms((table_forces - expected)[loaded]) > 3 * NOISE_FLOOR  # uncompensated, for contrast
+
+
+def test_drift_is_followed_without_eating_a_slow_press():
+    drift = Drift(amplitude=0.002, period_s=40.0)
+    _, grid, forces, expected = run("slow_press", 10.0, drift=drift)
+    unloaded = np.ones(64, bool)
+    unloaded[PRESSED] = False
+    assert rms(forces[:, unloaded]) < 1.5 * NOISE_FLOOR
+    # The press creeps from 0 to 3 N over 8 s: the tracker must leave it whole.
+    held = expected[:, PRESSED] > 2.5
+    assert np.abs(forces[held, PRESSED] - expected[held, PRESSED]).mean() < 2 * NOISE_FLOOR
+    _, _, level0_forces, _ = run("slow_press", 10.0, level="level0", drift=drift)
+    assert rms(level0_forces[:, unloaded]) > 5 * NOISE_FLOOR  # what an untracked drift costs
+
+
+def test_contact_summary_counts_and_locates_contacts():
+    _, grid, forces, expected = run("two_contacts", 2.0)
+    contact = grid[-1].contact
+    assert contact["contacts"] == 2
+    assert contact["total_N"] == pytest.approx(5.0, rel=0.05)
+    _, _, _, _ = run("press", 2.0)
+    _, press_grid, press_forces, press_expected = run("press", 2.0)
+    peak = int(np.argmax(press_expected[:, PRESSED]))
+    summary = press_grid[peak].contact
+    assert summary["contacts"] == 1
+    assert (summary["cop_x_mm"], summary["cop_y_mm"]) == pytest.approx((-2.0, -2.0), abs=0.05)
+    assert summary["area_mm2"] == 16.0
+
+
+def reconstruct(frames, level="full", tare_frames=10):
+    pipeline = Pipeline(Reconstructor(tare_frames=tare_frames, hold_until_tared=True, level=level), clock=lambda: 0.0)
+    return pipeline.feed(b"".join(frames), 0.0) + pipeline.finish(0.0)
+
+
+def grid_frame(seq, counts, flags=0):
+    return encode_frame(FrameType.GRID, 0, seq, seq * 1000, np.asarray(counts, "<u4").tobytes(), flags)
+
+
+def quad_frame(seq, counts):
+    return encode_frame(FrameType.QUAD, 1, seq, seq * 1000, np.asarray(counts, "<u4").tobytes())
+
+
+def test_every_out_of_range_case_is_flagged():
+    rng = np.random.default_rng(0)
+    base = np.full(64, 10_000_000.0)
+    frames = [grid_frame(i, base + rng.normal(0, 1000, 64)) for i in range(10)]
+    extreme = base + rng.normal(0, 1000, 64)
+    extreme[0] *= 2.0  # ΔC/C0 = 1, past the table's top (0.78, where the gap would close by half)
+    extreme[1] *= 0.99  # a 1 % drop: no compressive force explains it
+    extreme[2] = 0xFFFFFFFF  # open channel
+    frames.append(grid_frame(10, extreme, FLAG_SATURATED))
+    out = reconstruct(frames)
+    last = out[-1]
+    assert last.taxel_flag_lists()["saturated"] == [0]
+    assert last.taxel_flag_lists()["out_of_range"] == [1]
+    assert last.taxel_flag_lists()["no_reading"] == [2]
+    assert last.forces_N[1] == 0 and np.isnan(last.forces_N[2])
+    assert last.forces_N[0] == pytest.approx(37.7 / 1.05, rel=0.1)  # held at the table's top
+    assert {"saturated", "out_of_range", "open_channel"} <= set(last.flags)
+
+
+def test_stuck_channel_is_flagged_stale():
+    rng = np.random.default_rng(1)
+    frames = []
+    for i in range(80):
+        counts = 10_000_000 + rng.normal(0, 1000, 64)
+        counts[5] = 10_000_123
+        frames.append(grid_frame(i, counts))
+    out = reconstruct(frames)
+    assert "stale" in out[-1].flags and out[-1].taxel_flag_lists()["stale"] == [5]
+    assert "stale" not in out[20].flags
+
+
+def test_quad_out_of_range_and_electrode_fault_are_flagged():
+    c0 = np.array([2_200_000.0] * 4)
+    rng = np.random.default_rng(2)
+    frames = [quad_frame(i, c0 + rng.normal(0, 1000, 4)) for i in range(10)]
+    frames.append(quad_frame(10, c0 * 1.40))  # ΔC/C0 = 0.40: past fit (34)'s maximum
+    frames.append(quad_frame(11, c0 * (1 + np.array([-1, 1, -1, 1]) * 0.05)))  # past the shear domain
+    frames.append(quad_frame(12, c0 * (1 + np.array([0.0, 0.0, 0.0, 0.08]))))  # one electrode alone
+    out = reconstruct(frames)
+    assert "normal_out_of_range" in out[10].flags
+    assert out[10].forces_N[2] == pytest.approx(0.9 * 0.0343 / 0.0018)
+    assert "shear_out_of_range" in out[11].flags and abs(out[11].forces_N[0]) == pytest.approx(0.9 * 0.0077 / 0.0008)
+    assert "electrode_fault" in out[12].flags
+    assert not any(out[i].flags for i in range(10))
+
+
+def test_full_level_meets_the_error_target_on_the_slide_scene():
+    _, grid, forces, expected = run("slide", 4.0)
+    loaded = expected > 0.05
+    assert rms((forces - expected)[loaded]) < 2 * NOISE_FLOOR
+    assert rms((forces - expected)[~loaded]) < NOISE_FLOOR
