@@ -19,7 +19,8 @@ import numpy as np
 
 from .protocol import Decoder
 from .readings import Interpreter
-from .reconstruct import LEVELS, Reconstructor
+from .reconstruct import Reconstructor
+from .reconstruct.grid import GRID_LEVELS
 from .reconstruct.baseline import DEFAULT_TARE_FRAMES
 
 REPEATS = 3
@@ -98,7 +99,7 @@ def run_scenario(scenario: Scenario, seconds: float) -> list[dict]:
     tare = slice(0, DEFAULT_TARE_FRAMES)
     baseline, baseline_std = grid_c[tare].mean(axis=0), grid_c[tare].std(axis=0)
     rows = []
-    for level in LEVELS:
+    for level in GRID_LEVELS:
         reconstructor = Reconstructor(level=level, hold_until_tared=True)
         processor = reconstructor._processor(grid[0].sensor)
         batch_s = _best(lambda: processor.process(grid_c, baseline, baseline_std, grid_t))

@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--log-level", default="warning")
-    serve.add_argument("--level", default="full", choices=["level0", "table", "full"], help="fidelity level (default: %(default)s)")
+    serve.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
     serve.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
     serve.set_defaults(func=cmd_serve)
 
@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay = sub.add_parser("replay", help="replay a raw capture through the pipeline")
     replay.add_argument("--raw", required=True, metavar="FILE", help="file of raw serial bytes")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
-    replay.add_argument("--level", default="full", choices=["level0", "table", "full"], help="fidelity level (default: %(default)s)")
+    replay.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
     replay.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
     replay.set_defaults(func=cmd_replay)
 

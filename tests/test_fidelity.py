@@ -9,6 +9,7 @@ from service.bench import _noise_floor_N
 from service.pipeline import Pipeline
 from service.protocol import FLAG_SATURATED, Decoder, FrameType, encode_frame
 from service.reconstruct import Reconstructor
+from service.reconstruct.select import SceneConfig
 
 NOISE_FLOOR = _noise_floor_N()
 PRESSED = 27  # row 4, col 4
@@ -147,3 +148,11 @@ def test_full_level_meets_the_error_target_on_the_slide_scene():
     loaded = expected > 0.05
     assert rms((forces - expected)[loaded]) < 2 * NOISE_FLOOR
     assert rms((forces - expected)[~loaded]) < NOISE_FLOOR
+
+
+def test_auto_level_follows_the_scene():
+    assert Reconstructor(level="auto").level == "full"
+    clean = Reconstructor(level="auto", scene=SceneConfig(contacts="single", clean_board=True, mounting="curved"))
+    assert clean.level == "table" and clean.mounting == "curved"
+    with pytest.raises(ValueError, match="contacts must be"):
+        SceneConfig(contacts="many")

@@ -14,11 +14,12 @@ from .contact import summarise
 from .frame import ForceFrame
 from .grid import GRID_LEVELS, NO_READING, GridProcessor, flag_names
 from .quad import QuadProcessor
+from .select import SceneConfig, choose_level
 from .taxel import TaxelResponse
 
 __all__ = ["DEFAULT_LEVEL", "ForceFrame", "LEVELS", "MOUNTINGS", "Reconstructor", "taxel_response"]
 
-LEVELS = GRID_LEVELS
+LEVELS = GRID_LEVELS + ("auto",)
 MOUNTINGS = {"flat": "uniform", "curved": "uneven"}
 DEFAULT_LEVEL = "full"
 
@@ -56,11 +57,18 @@ class Reconstructor:
     """
 
     def __init__(self, tare_frames: int = DEFAULT_TARE_FRAMES, hold_until_tared: bool = False,
-                 level: str = DEFAULT_LEVEL, mounting: str = "flat") -> None:
+                 level: str = DEFAULT_LEVEL, mounting: str = "flat", scene: SceneConfig | None = None) -> None:
+        """``level="auto"`` takes the cheapest level that meets ``scene``'s
+        error budget (see select.py)."""
         if level not in LEVELS:
             raise ValueError(f"unknown fidelity level {level!r}; known: {', '.join(LEVELS)}")
         if mounting not in MOUNTINGS:
             raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
+        self.level_reason = "as configured"
+        if level == "auto":
+            scene = scene or SceneConfig(mounting=mounting)
+            level, self.level_reason = choose_level(scene)
+            mounting = scene.mounting
         self.level = level
         self.mounting = mounting
         self.tare_frames = tare_frames
