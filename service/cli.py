@@ -60,12 +60,64 @@ def cmd_sim(args) -> int:
     return 0
 
 
-def cmd_replay(args) -> int:
-    from .replay import replay_raw
+def _speed(text: str) -> float:
+    import math
 
+    if text == "max":
+        return math.inf
+    try:
+        speed = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"speed {text!r} must be a number or 'max'") from None
+    if not speed > 0:
+        raise argparse.ArgumentTypeError(f"speed {text!r} must be > 0")
+    return speed
+
+
+def cmd_record(args) -> int:
+    import time
+
+    from .pipeline import Pipeline
+    from .readout import Readout
+    from .reconstruct import Reconstructor
+    from .record.recorder import Recorder
+
+    pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting))
+    recorder = Recorder(args.out, args.raw, diagnostics=pipeline.decoder.counters.as_dict)
+    pipeline.byte_listeners.append(recorder.on_bytes)
+    pipeline.listeners.append(recorder.on_frames)
+    readout = Readout(args.source, pipeline.feed, pipeline.link_lost)
+    readout.start()
+    print(f"recording {args.source} to {args.out}" + (f" and {args.raw}" if args.raw else "") + "; Ctrl-C to stop", flush=True)
+    try:
+        deadline = time.monotonic() + args.seconds if args.seconds else None
+        while recorder.active and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        readout.stop()
+        status = recorder.stop()
+    print(json.dumps(status, indent=1))
+    return 1 if status["error"] else 0
+
+
+def cmd_replay(args) -> int:
+    from .replay import Pacer, replay
+
+    path = args.file or args.raw
+    if path is None:
+        raise ValueError("name a recording: tactile replay FILE (or --raw FILE)")
+    if args.serve:
+        import urllib.parse
+
+        speed = 1.0 if args.speed is None else args.speed
+        args.source = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if speed == float('inf') else speed}"
+        return cmd_serve(args)
+    speed = args.speed if args.speed is not None else float("inf")
     out = open(args.export, "wb") if args.export else None
     try:
-        pipeline = replay_raw(args.raw, out, level=args.level, mounting=args.mounting)
+        pipeline = replay(path, out, level=args.level, mounting=args.mounting, pacer=Pacer(speed))
     finally:
         if out is not None:
             out.close()
@@ -182,8 +234,24 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--sensors", default="grid,quad", help="e.g. grid,quad or grid8x8,grid4x4,quad")
     sim.set_defaults(func=cmd_sim)
 
-    replay = sub.add_parser("replay", help="replay a raw capture through the pipeline")
-    replay.add_argument("--raw", required=True, metavar="FILE", help="file of raw serial bytes")
+    record = sub.add_parser("record", help="record a source to MCAP (raw bytes, frames, forces, diagnostics)")
+    record.add_argument("--source", default=DEFAULT_SOURCE, help="pyserial URL or device path (default: %(default)s)")
+    record.add_argument("--out", required=True, metavar="RUN.mcap")
+    record.add_argument("--raw", metavar="RUN.bin", help="also write the raw bytes, exactly as received")
+    record.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    record.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"])
+    record.add_argument("--mounting", default="flat", choices=["flat", "curved"])
+    record.set_defaults(func=cmd_record)
+
+    replay = sub.add_parser("replay", help="replay a recording (.mcap) or raw capture through the pipeline")
+    replay.add_argument("file", nargs="?", help="recording (.mcap) or raw capture (any other suffix)")
+    replay.add_argument("--raw", metavar="FILE", help="a raw capture (same as giving FILE)")
+    replay.add_argument("--speed", type=_speed, default=None,
+                        help="1 (real time), 2, … or max (default: max for --export, 1 for --serve)")
+    replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
+    replay.add_argument("--host", default="127.0.0.1")
+    replay.add_argument("--port", type=int, default=8000)
+    replay.add_argument("--log-level", default="warning")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
     replay.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
     replay.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")

@@ -1,4 +1,8 @@
-"""The data path in one line: bytes → frames → readings → forces → listeners."""
+"""The data path in one line: bytes → frames → readings → forces → listeners.
+
+Byte listeners (the recorder's raw channel) see every chunk as received,
+before decoding; frame listeners (API hub, recorder) see each batch of
+ForceFrames."""
 from __future__ import annotations
 
 import threading
@@ -10,6 +14,7 @@ from .readings import Interpreter
 from .reconstruct import ForceFrame, Reconstructor
 
 Listener = Callable[[list[ForceFrame]], None]
+ByteListener = Callable[[bytes, float], None]
 
 RATE_WINDOW_S = 1.0
 
@@ -44,9 +49,12 @@ class Pipeline:
         self.latest: dict[int, ForceFrame] = {}
         self.rates: dict[int, RateMeter] = {}
         self.listeners: list[Listener] = []
+        self.byte_listeners: list[ByteListener] = []
         self._lock = threading.Lock()
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
+        for listener in self.byte_listeners:
+            listener(data, t_host)
         with self._lock:
             frames = self._reconstruct(self.decoder.feed(data), t_host)
         self._publish(frames, t_host)

@@ -69,7 +69,10 @@ class Crosstalk:
     def unmix_mechanical(self, relative: np.ndarray) -> np.ndarray:
         """(..., n) measured → compensated ΔC/C0 (NaN channels count as 0)."""
         missing = np.isnan(relative)
-        out = np.where(missing, 0.0, relative) @ self._unmix
+        # einsum's own loop gives every row the same summation order whatever
+        # the batch size (BLAS does not), so forces do not depend on how the
+        # stream was cut into batches.
+        out = np.einsum("...j,jk->...k", np.where(missing, 0.0, relative), self._unmix)
         return np.where(missing, np.nan, out)
 
     def leak(self, capacitance: np.ndarray) -> np.ndarray:

@@ -40,6 +40,7 @@ STUCK_FRAMES = 50
 NOISE_FLOOR_PF = 2e-4  # never trust a noise estimate below 0.2 fF
 CORRECTION_SIGMAS = 3.0
 ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior
+ADOPT_PERIOD_FRAMES = 256  # estimates are adopted only at multiples of this frame count
 
 
 def flag_names(bits: int) -> list[str]:
@@ -66,6 +67,7 @@ class GridProcessor:
     _same_count: np.ndarray | None = None
     _noise_for: tuple | None = None
     adopted_events: int = 0
+    _frames_seen: int = 0
 
     def __post_init__(self) -> None:
         if self.level not in GRID_LEVELS:
@@ -127,13 +129,28 @@ class GridProcessor:
     def _compensate(self, capacitance, baseline, noise, t_s):
         """Leakage → drift → mechanical unmixing, on (N, n) frames at (N,) times.
         Returns compensated ΔC/C0, the crosstalk-corrected mask and the
-        drift-suspect mask (N,)."""
+        drift-suspect mask (N,).
+
+        Refined coefficients take effect only at multiples of
+        ADOPT_PERIOD_FRAMES frames, so the result does not depend on how the
+        stream was cut into batches (a replay equals the live run)."""
+        parts = []
+        start = 0
+        while start < len(capacitance):
+            end = min(len(capacitance), start + ADOPT_PERIOD_FRAMES - self._frames_seen % ADOPT_PERIOD_FRAMES)
+            parts.append(self._compensate_segment(capacitance[start:end], baseline, noise, t_s[start:end]))
+            self._frames_seen += end - start
+            if self._frames_seen % ADOPT_PERIOD_FRAMES == 0:
+                self._adopt_estimates()
+            start = end
+        return tuple(np.concatenate(arrays) for arrays in zip(*parts))
+
+    def _compensate_segment(self, capacitance, baseline, noise, t_s):
         crosstalk = self.crosstalk
         relative = crosstalk.unleak(capacitance, baseline) / crosstalk.unleak(baseline, baseline) - 1.0
         drift, suspect = self.drift.update(relative, noise, t_s)
         relative = DriftTracker.correct(relative, drift[:, None])
         self.estimator.observe(relative, noise, baseline)
-        self._adopt_estimates()
         compensated = crosstalk.unmix_mechanical(relative)
         uncompensated = DriftTracker.correct(capacitance / baseline - 1.0, drift[:, None])
         corrected = np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise

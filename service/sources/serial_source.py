@@ -5,9 +5,9 @@ import serial
 
 from . import Source
 
-_SIM_HANDLERS = "firmware_sim.urlhandler"
-if _SIM_HANDLERS not in serial.protocol_handler_packages:
-    serial.protocol_handler_packages.append(_SIM_HANDLERS)
+for _handlers in ("firmware_sim.urlhandler", "service.sources"):  # sim://, replay://
+    if _handlers not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append(_handlers)
 
 
 class SerialSource(Source):

@@ -1,0 +1,1 @@
+"""Recording (MCAP, raw) and replay (paced, through the live pipeline)."""

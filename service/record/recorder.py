@@ -1,0 +1,138 @@
+"""The recorder: a listener of the pipeline that writes off the hot path.
+
+The pipeline's thread only puts references on a queue (bytes, frame
+batches, a diagnostics snapshot per second); a writer thread serialises and
+writes them. Nothing is dropped: the queue is unbounded and its depth is
+reported. A write error (disk full, permission, a vanished directory) stops
+the recording, is kept in ``error`` and logged, never swallowed.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+from ..reconstruct import ForceFrame
+from .mcap_log import McapLog
+
+log = logging.getLogger(__name__)
+
+DIAGNOSTICS_PERIOD_S = 1.0
+FLUSH_PERIOD_S = 0.5
+_STOP = object()
+
+
+class Recorder:
+    """Records to ``out`` (.mcap) and optionally the raw bytes to ``raw_out``.
+
+    Files are opened at construction so that a bad path fails at once, in
+    the caller's thread."""
+
+    def __init__(self, out: str | Path, raw_out: str | Path | None = None,
+                 diagnostics: Callable[[], dict] | None = None) -> None:
+        self.path = Path(out)
+        if self.path.suffix != ".mcap":
+            raise ValueError(f"recording file {str(out)!r} must end in .mcap")
+        self.raw_path = Path(raw_out) if raw_out else None
+        self._stream = open(self.path, "wb")
+        try:
+            self._raw = open(self.raw_path, "wb") if self.raw_path else None
+        except OSError:
+            self._stream.close()
+            raise
+        self._log = McapLog(self._stream)
+        self._diagnostics = diagnostics
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._last_diag = 0.0
+        self.error: str | None = None
+        self.messages = 0
+        self.bytes_in = 0
+        self.started_at = time.time()
+        self.stopped_at: float | None = None
+        self._thread = threading.Thread(target=self._run, name="tactile-recorder", daemon=True)
+        self._thread.start()
+
+    @property
+    def active(self) -> bool:
+        return self.stopped_at is None and self.error is None
+
+    def on_bytes(self, data: bytes, t_host: float) -> None:
+        if self.active:
+            self._queue.put(("raw", data, t_host))
+
+    def on_frames(self, frames: list[ForceFrame]) -> None:
+        if not self.active:
+            return
+        self._queue.put(("frames", frames, None))
+        t_host = frames[-1].t_host
+        if self._diagnostics and t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
+            self._last_diag = t_host
+            self._queue.put(("diag", self._diagnostics(), t_host))
+
+    def stop(self, timeout: float = 10.0) -> dict:
+        """Write what is queued, finish the file, return the status."""
+        if self.stopped_at is None:
+            self.stopped_at = time.time()
+            self._queue.put((_STOP, None, None))
+            self._thread.join(timeout)
+        return self.status()
+
+    def status(self) -> dict:
+        return {
+            "path": str(self.path),
+            "raw_path": str(self.raw_path) if self.raw_path else None,
+            "active": self.active,
+            "messages": self.messages,
+            "bytes_in": self.bytes_in,
+            "queued": self._queue.qsize(),
+            "started_at": self.started_at,
+            "stopped_at": self.stopped_at,
+            "error": self.error,
+        }
+
+    def _run(self) -> None:
+        last_flush = time.monotonic()
+        try:
+            while True:
+                kind, payload, t_host = self._queue.get()
+                if kind is _STOP:
+                    break
+                self._write(kind, payload, t_host)
+                if time.monotonic() - last_flush >= FLUSH_PERIOD_S:
+                    self._flush()
+                    last_flush = time.monotonic()
+            self._log.close()
+            self._flush()
+        except OSError as exc:
+            self.error = f"recording to {self.path} failed: {exc}"
+            log.error(self.error)
+        finally:
+            for stream in (self._stream, self._raw):
+                if stream is not None:
+                    try:
+                        stream.close()
+                    except OSError as exc:
+                        self.error = self.error or f"closing {stream.name} failed: {exc}"
+
+    def _write(self, kind: str, payload, t_host: float | None) -> None:
+        if kind == "raw":
+            self._log.raw(payload, t_host)
+            if self._raw is not None:
+                self._raw.write(payload)
+            self.bytes_in += len(payload)
+            self.messages += 1
+        elif kind == "frames":
+            for frame in payload:
+                self._log.frame(frame)
+            self.messages += 3 * len(payload)
+        else:
+            self._log.diagnostics(t_host, payload)
+            self.messages += 1
+
+    def _flush(self) -> None:
+        self._stream.flush()
+        if self._raw is not None:
+            self._raw.flush()

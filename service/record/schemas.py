@@ -1,0 +1,89 @@
+"""JSON schemas of the recorded MCAP channels.
+
+Bytes travel base64-encoded (the JSON convention Foxglove reads). The 8x8
+forces are also written as ``foxglove.Grid`` (one FLOAT32 cell per taxel,
+4 mm cells) so a recording opens as a heat map in Foxglove.
+"""
+from __future__ import annotations
+
+import orjson
+
+RAW_BYTES = {
+    "title": "tactile.RawBytes",
+    "description": "Bytes exactly as the port delivered them, with the host receive time",
+    "type": "object",
+    "properties": {
+        "t_host": {"type": "number", "description": "host receive time, s since the epoch"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+}
+
+RAW_FRAME = {
+    "title": "tactile.RawFrame",
+    "description": "One data frame's channels in picofarads (null for a sentinel)",
+    "type": "object",
+    "properties": {
+        "sensor": {"type": "integer"},
+        "seq": {"type": "integer"},
+        "t_us": {"type": "integer", "description": "board clock, µs, wraps at 2^32"},
+        "capacitance_pF": {"type": "array", "items": {"type": ["number", "null"]}},
+    },
+}
+
+FORCES = {
+    "title": "tactile.Forces",
+    "description": "Reconstructed forces of one frame (the replay export shape)",
+    "type": "object",
+    "properties": {
+        "sensor": {"type": "integer"},
+        "seq": {"type": "integer"},
+        "t_us": {"type": "integer"},
+        "kind": {"type": "string", "enum": ["grid", "quad"]},
+        "taxels_N": {"type": "array", "items": {"type": ["number", "null"]}},
+        "fxyz_N": {"type": "array", "items": {"type": ["number", "null"]}},
+        "flags": {"type": "array", "items": {"type": "string"}},
+        "taxel_flags": {"type": "object"},
+        "contact": {"type": ["object", "null"]},
+    },
+}
+
+DIAGNOSTICS = {
+    "title": "tactile.Diagnostics",
+    "description": "Link and decoder counters, once per second",
+    "type": "object",
+    "properties": {"counters": {"type": "object"}, "rejected": {"type": "object"}},
+}
+
+FOXGLOVE_GRID = {
+    "title": "foxglove.Grid",
+    "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+        "frame_id": {"type": "string"},
+        "pose": {
+            "type": "object",
+            "properties": {
+                "position": {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}},
+                "orientation": {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}},
+            },
+        },
+        "column_count": {"type": "integer"},
+        "cell_size": {"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}}},
+        "row_stride": {"type": "integer"},
+        "cell_stride": {"type": "integer"},
+        "fields": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {"name": {"type": "string"}, "offset": {"type": "integer"}, "type": {"type": "integer"}},
+            },
+        },
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+}
+
+FOXGLOVE_FLOAT32 = 7  # foxglove NumericType
+
+
+def encoded(schema: dict) -> bytes:
+    return orjson.dumps(schema)

@@ -1,0 +1,106 @@
+"""pyserial handler for ``replay://PATH[?speed=1|2|max]``: a recording as a port.
+
+``tactile replay FILE --serve`` serves the API and dashboard from a
+recording through exactly the live code path: the readout thread opens
+this URL like a device. Reads release the recording's bytes paced by their
+recorded times; at the end the port stays open and silent (like a board
+that stopped), and ``/health`` shows the replay:// source.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+import urllib.parse
+
+from serial.serialutil import PortNotOpenError, SerialBase, SerialException
+
+from ..replay import Pacer, timed_chunks
+
+
+def parse_replay_url(url: str) -> tuple[str, float]:
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme != "replay":
+        raise ValueError(f"expected a replay:// URL, got {url!r}")
+    path = urllib.parse.unquote(parts.netloc + parts.path)
+    options = urllib.parse.parse_qs(parts.query)
+    unknown = set(options) - {"speed"}
+    if unknown:
+        raise ValueError(f"replay:// takes only 'speed', not {sorted(unknown)}")
+    speed_text = options.get("speed", ["1"])[-1]
+    try:
+        speed = math.inf if speed_text == "max" else float(speed_text)
+    except ValueError:
+        raise ValueError(f"replay:// speed={speed_text!r} must be a number or 'max'") from None
+    if not speed > 0:
+        raise ValueError(f"replay:// speed={speed_text!r} must be > 0")
+    return path, speed
+
+
+class Serial(SerialBase):
+    """A recording behind a pyserial port; commands written to it are ignored."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self._chunks = None
+        self._pending = bytearray()
+        self._lock = threading.Lock()
+        self.finished = False
+        super().__init__(*args, **kwargs)
+
+    def open(self) -> None:
+        if self._port is None:
+            raise SerialException("Port must be configured before it can be used.")
+        try:
+            path, speed = parse_replay_url(self.portstr)
+            self._chunks = iter(timed_chunks(path))
+        except (ValueError, OSError) as exc:
+            raise SerialException(str(exc)) from None
+        self._pacer = Pacer(speed)
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+        super().close()
+
+    def _reconfigure_port(self) -> None:
+        """Nothing to configure on a recording."""
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._pending)
+
+    def read(self, size: int = 1) -> bytes:
+        if not self.is_open:
+            raise PortNotOpenError()
+        with self._lock:
+            if not self._pending and not self.finished:
+                try:
+                    t_recorded, chunk = next(self._chunks)
+                except StopIteration:
+                    self.finished = True
+                else:
+                    self._pacer.wait(t_recorded)
+                    self._pending += chunk
+            if not self._pending and self.finished and self._timeout:
+                time.sleep(self._timeout)
+            data = bytes(self._pending[:size])
+            del self._pending[:size]
+        return data
+
+    def write(self, data: bytes) -> int:
+        return len(data)
+
+    def reset_input_buffer(self) -> None:
+        self._pending.clear()
+
+    def reset_output_buffer(self) -> None:
+        """Nothing is ever sent to a recording."""
+
+    def _update_break_state(self) -> None:
+        """No lines on a recording."""
+
+    def _update_rts_state(self) -> None:
+        """No lines on a recording."""
+
+    def _update_dtr_state(self) -> None:
+        """No lines on a recording."""
