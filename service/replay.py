@@ -6,8 +6,10 @@ channel carries each read of the port with its receive time; a raw capture
 its 4 KiB chunks is timed by the board clock of the frames it completes.
 The chunks go through the same decoder and reconstruction as live data,
 paced by a ``Pacer`` (injectable clock, any speed, or as fast as possible).
-Offline, readings are held until each sensor's auto-tare is complete, so
-every exported frame has forces.
+A raw capture's readings are held until each sensor's auto-tare is
+complete, so every exported frame has forces. A recording is replayed as it
+ran live (the tare window null and flagged), so its forces come out bit for
+bit as recorded.
 """
 from __future__ import annotations
 
@@ -86,12 +88,13 @@ def timed_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
 
 
 def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat",
-           pacer: Pacer | None = None, pipeline: Pipeline | None = None) -> Pipeline:
+           pacer: Pacer | None = None) -> Pipeline:
     """Replay a recording (.mcap) or raw capture (any other suffix); write
     one JSON line per data frame to ``export``. Returns the pipeline, whose
     counters tell what was dropped."""
     pacer = pacer or Pacer(math.inf)
-    pipeline = pipeline or Pipeline(Reconstructor(hold_until_tared=True, level=level, mounting=mounting), clock=lambda: 0.0)
+    hold = Path(path).suffix != ".mcap"
+    pipeline = Pipeline(Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0)
     if export is not None:
         pipeline.listeners.append(lambda frames: export.writelines(export_line(f) for f in frames))
     t_last = 0.0

@@ -7,6 +7,7 @@ import time
 from .api.stream import Hub
 from .pipeline import Pipeline
 from .readout import Readout
+from .record.recorder import Recorder
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .sources import DEFAULT_SOURCE
 
@@ -20,6 +21,7 @@ class TactileService:
         self.hub = Hub()
         self.readout = Readout(source, self.pipeline.feed, self.pipeline.link_lost)
         self.started_at = time.time()
+        self.recorder: Recorder | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
 
     def start(self) -> None:
@@ -27,7 +29,27 @@ class TactileService:
         self.pipeline.listeners.append(self._to_loop)
         self.readout.start()
 
+    def start_recording(self, path: str, raw_path: str | None = None) -> dict:
+        """Start recording the live stream; OSError/ValueError name the bad path."""
+        if self.recorder is not None and self.recorder.active:
+            raise RuntimeError(f"already recording to {self.recorder.path}")
+        self.recorder = Recorder(path, raw_path, diagnostics=self.pipeline.decoder.counters.as_dict)
+        self.pipeline.byte_listeners.append(self.recorder.on_bytes)
+        self.pipeline.listeners.append(self.recorder.on_frames)
+        return self.recorder.status()
+
+    def stop_recording(self) -> dict | None:
+        recorder = self.recorder
+        if recorder is None:
+            return None
+        if recorder.on_bytes in self.pipeline.byte_listeners:
+            self.pipeline.byte_listeners.remove(recorder.on_bytes)
+        if recorder.on_frames in self.pipeline.listeners:
+            self.pipeline.listeners.remove(recorder.on_frames)
+        return recorder.stop()
+
     def stop(self) -> None:
+        self.stop_recording()
         self.readout.stop()
         if self._to_loop in self.pipeline.listeners:
             self.pipeline.listeners.remove(self._to_loop)
@@ -62,4 +84,13 @@ class TactileService:
             "board_errors": [{"t_host": t, "text": text} for t, text in pipeline.interpreter.board_errors],
             "sensors": sensors,
             "websocket_clients": len(self.hub.subscribers),
+            "replay": self.readout.link.url.startswith("replay://"),
+            "recording": None if self.recorder is None else self.recorder.status(),
+            "reconstruction": {
+                "level": pipeline.reconstructor.level,
+                "level_reason": pipeline.reconstructor.level_reason,
+                "mounting": pipeline.reconstructor.mounting,
+                "crosstalk": {str(sid): pipeline.reconstructor.crosstalk_report(sid)
+                              for sid, info in pipeline.interpreter.sensors.items() if info.kind == "grid"},
+            },
         }

@@ -8,12 +8,18 @@ import orjson
 from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel, Field
 
 from ..runtime import TactileService
 from .stream import Subscriber
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"
 MAX_WS_RATE_HZ = 5000.0
+
+
+class RecordRequest(BaseModel):
+    path: str = Field(description="the MCAP file to write (must end in .mcap)")
+    raw_path: str | None = Field(default=None, description="also write the raw bytes here")
 
 
 class JSONResponse(Response):
@@ -105,6 +111,26 @@ def create_app(service: TactileService) -> FastAPI:
     @app.post("/tare")
     def tare_all() -> JSONResponse:
         return JSONResponse({"tared": service.pipeline.tare(), "frames": service.pipeline.reconstructor.tare_frames})
+
+    @app.post("/record/start")
+    def record_start(request: RecordRequest) -> JSONResponse:
+        try:
+            return JSONResponse(service.start_recording(request.path, request.raw_path))
+        except RuntimeError as exc:
+            raise HTTPException(409, str(exc)) from None
+        except (OSError, ValueError) as exc:
+            raise HTTPException(400, f"path: {exc}") from None
+
+    @app.post("/record/stop")
+    def record_stop() -> JSONResponse:
+        status = service.stop_recording()
+        if status is None:
+            raise HTTPException(409, "not recording")
+        return JSONResponse(status)
+
+    @app.get("/record")
+    def record_status() -> JSONResponse:
+        return JSONResponse(None if service.recorder is None else service.recorder.status())
 
     @app.websocket("/ws")
     async def stream(websocket: WebSocket) -> None:
