@@ -114,13 +114,30 @@ async function pollHealth() {
     link.className = "badge " + (health.link.up ? "up" : "down");
     const rates = Object.entries(health.sensors).map(([id, s]) => `#${id} ${s.rate_hz} Hz`).join(" · ");
     document.getElementById("stats").textContent =
-      `${rates} · CRC errors ${health.stream.crc_errors} · discarded ${health.stream.bytes_discarded} B`;
+      `${rates} · CRC errors ${health.stream.crc_errors} · discarded ${health.stream.bytes_discarded} B` +
+      (health.replay ? " · REPLAY" : "");
+    const rec = health.recording;
+    recordButton.textContent = rec && rec.active ? `Stop recording (${rec.messages} msgs)` : "Record";
+    recordButton.title = rec && rec.error ? rec.error : "";
   } catch (err) {
     document.getElementById("link").textContent = "service unreachable";
   }
 }
 
 document.getElementById("tare").addEventListener("click", () => fetch("/tare", { method: "POST" }));
+
+const recordButton = document.getElementById("record");
+recordButton.addEventListener("click", async () => {
+  const status = await (await fetch("/record")).json();
+  if (status && status.active) {
+    await fetch("/record/stop", { method: "POST" });
+  } else {
+    const stamp = new Date().toISOString().replace(/[:.]/g, "-");
+    await fetch("/record/start", { method: "POST", headers: { "Content-Type": "application/json" },
+                                   body: JSON.stringify({ path: `tactile-${stamp}.mcap` }) });
+  }
+  pollHealth();
+});
 connect();
 pollHealth();
 setInterval(pollHealth, 1000);
