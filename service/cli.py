@@ -25,10 +25,17 @@ def cmd_serve(args) -> int:
     from .api.app import create_app
     from .runtime import TactileService
 
-    app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting))
-    if args.host not in ("127.0.0.1", "localhost", "::1"):
-        logging.warning("binding to %s exposes the API beyond this machine", args.host)
-    print(f"tactile: reading {args.source}; dashboard at http://{args.host}:{args.port}/", flush=True)
+    import os
+    import secrets
+
+    token = getattr(args, "token", None) or os.environ.get("TACTILE_TOKEN")
+    if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
+        token = secrets.token_urlsafe(16)
+    app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting), token=token)
+    url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
+    print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
+    if token:
+        print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
     uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
     return 0
 
@@ -216,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--log-level", default="warning")
+    serve.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
+                                       "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
     serve.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
     serve.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
     serve.set_defaults(func=cmd_serve)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import Callable
 
 from .protocol import Decoder
@@ -17,6 +18,7 @@ Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
 
 RATE_WINDOW_S = 1.0
+HISTORY_FRAMES = 20_000  # per sensor: 20 s at 1 kHz
 
 
 class RateMeter:
@@ -47,6 +49,7 @@ class Pipeline:
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
         self.latest: dict[int, ForceFrame] = {}
+        self.history: dict[int, deque[ForceFrame]] = {}
         self.rates: dict[int, RateMeter] = {}
         self.listeners: list[Listener] = []
         self.byte_listeners: list[ByteListener] = []
@@ -75,6 +78,10 @@ class Pipeline:
         with self._lock:
             return self.reconstructor.tare(sensor_id)
 
+    def set_calibration(self, info, upload: dict) -> dict:
+        with self._lock:
+            return self.reconstructor.set_calibration(info, upload)
+
     def _reconstruct(self, frames, t_host: float) -> list[ForceFrame]:
         readings = [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
         return self.reconstructor.process_many(readings) if readings else []
@@ -84,6 +91,10 @@ class Pipeline:
             return
         for frame in frames:
             self.latest[frame.sensor.id] = frame
+            history = self.history.get(frame.sensor.id)
+            if history is None:
+                history = self.history[frame.sensor.id] = deque(maxlen=HISTORY_FRAMES)
+            history.append(frame)
             meter = self.rates.get(frame.sensor.id)
             if meter is None:
                 meter = self.rates[frame.sensor.id] = RateMeter()

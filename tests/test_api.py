@@ -1,47 +1,74 @@
 """The API in-process with TestClient, reading the built-in simulator."""
+import asyncio
 import time
 
+import numpy as np
 import orjson
 import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.api.messages import decode_binary
+from service.api.stream import QUEUE_MESSAGES, Hub, Subscriber
 from service.runtime import TactileService
+
+
+def wait_for_frames(service, sensors=2, seconds=5.0):
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and (len(service.pipeline.latest) < sensors or
+                                           any("taring" in f.flags for f in service.pipeline.latest.values())):
+        time.sleep(0.01)
 
 
 @pytest.fixture(scope="module")
 def client():
     service = TactileService("sim://?scene=press&rate=1000")
     with TestClient(create_app(service)) as client:
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and len(service.pipeline.latest) < 2:
-            time.sleep(0.01)
+        wait_for_frames(service)
         yield client
 
 
-def test_health_reports_link_rates_and_counters(client):
+def test_health_reports_link_rates_counters_and_reconstruction(client):
     time.sleep(1.1)  # one full rate window
     body = client.get("/health").json()
     assert body["link"]["up"] is True and body["link"]["source"].startswith("sim://")
-    assert body["stream"]["crc_errors"] == 0
+    assert body["stream"]["crc_errors"] == 0 and body["replay"] is False
     for sid in ("0", "1"):
         assert 800 <= body["sensors"][sid]["rate_hz"] <= 1200
         assert body["sensors"][sid]["frames"] > 500
+    assert body["reconstruction"]["level"] == "full"
+    assert body["reconstruction"]["crosstalk"]["0"]["mechanical_coupling_in_use"] < 0
 
 
 def test_sensors_lists_what_the_board_announced(client):
     body = client.get("/sensors").json()
     assert body["board"]["board"] == "tactile-sim-8x8-quad"
-    assert [(s["id"], s["kind"]) for s in body["sensors"]] == [(0, "grid"), (1, "quad")]
+    assert [(s["id"], s["kind"], s["name"]) for s in body["sensors"]] == [(0, "grid", "grid0"), (1, "quad", "quad1")]
 
 
-def test_latest_grid_and_quad(client):
+def test_latest_message_shape(client):
     grid = client.get("/sensors/0/latest").json()
-    assert grid["kind"] == "grid" and len(grid["taxels_N"]) == 64 and (grid["rows"], grid["cols"]) == (8, 8)
-    assert len(grid["capacitance_pF"]) == 64 and grid["level"] == "full"
+    header = grid["header"]
+    assert (header["sensor_id"], header["sensor_name"], header["kind"]) == (0, "grid0", "grid")
+    assert isinstance(header["seq"], int) and isinstance(header["board_time_us"], int) and isinstance(header["stamp"], float)
+    assert (grid["rows"], grid["cols"]) == (8, 8) and len(grid["force_N"]) == 64
+    assert len(grid["raw"]["capacitance_pF"]) == 64
     assert set(grid["contact"]) == {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"}
+    assert isinstance(grid["flags"], list) and isinstance(grid["taxel_flags"], dict)
     quad = client.get("/sensors/1/latest").json()
-    assert len(quad["fxyz_N"]) == 3 and "t_us" in quad and "seq" in quad
+    assert set(quad["wrench"]["force"]) == {"x", "y", "z"} and "force_N" not in quad
+
+
+def test_contact_and_history(client):
+    assert set(client.get("/sensors/0/contact").json()) == {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"}
+    assert client.get("/sensors/1/contact").status_code == 400
+    history = client.get("/sensors/0/history?seconds=0.5&max_points=50").json()
+    assert 2 <= len(history) <= 50
+    stamps = [m["header"]["stamp"] for m in history]
+    assert stamps == sorted(stamps) and stamps[-1] - stamps[0] <= 0.5
+    bad = client.get("/sensors/0/history?seconds=50")
+    assert bad.status_code == 422 and "seconds" in str(bad.json()["detail"])
+    assert client.get("/sensors/0/history?fields=force,nope").status_code == 422
 
 
 def test_unknown_sensor_is_404_naming_known_ids(client):
@@ -57,24 +84,51 @@ def test_tare_restarts_the_baseline(client):
     assert client.post("/tare").json()["tared"] == [0, 1]
 
 
-def test_websocket_streams_frames_as_json(client):
-    with client.websocket_connect("/ws?sensors=1") as ws:
+def test_calibration_upload_is_validated_and_applied(client):
+    ok = client.put("/sensors/0/calibration", json={"sensitivity_pct_per_N": [1.25] * 64})
+    assert ok.status_code == 200
+    short = client.put("/sensors/0/calibration", json={"sensitivity_pct_per_N": [1.25] * 10})
+    assert short.status_code == 422 and "expected 64 values" in short.json()["detail"]
+    negative = client.put("/sensors/0/calibration", json={"sensitivity_pct_per_N": [1.25] * 63 + [-1.0]})
+    assert negative.status_code == 422 and "sensitivity_pct_per_N[63]" in negative.json()["detail"]
+    quad = client.put("/sensors/1/calibration", json={"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]})
+    assert quad.status_code == 200 and quad.json()["normal_usable_N"] == pytest.approx(17.15)
+    wrong = client.put("/sensors/1/calibration", json={"normal_fit": [0.001, 0.0343], "shear_fit": [0.0077, 0.0004]})
+    assert wrong.status_code == 422 and "normal_fit" in wrong.json()["detail"]
+    assert client.put("/sensors/1/calibration", json={"normal_fit": "x"}).status_code == 422
+
+
+def test_websocket_json_stream_with_fields(client):
+    with client.websocket_connect("/ws?sensors=1&fields=force,raw") as ws:
         message = orjson.loads(ws.receive_text())
     assert message["type"] == "frames"
-    assert {f["sensor"] for f in message["frames"]} == {1}
-    assert all(len(f["fxyz_N"]) == 3 for f in message["frames"])
+    frame = message["frames"][0]
+    assert frame["header"]["sensor_id"] == 1 and "wrench" in frame and "raw" in frame and "flags" not in frame
 
 
-def test_websocket_decimates_on_request(client):
+def test_websocket_binary_stream(client):
+    with client.websocket_connect("/ws?sensors=0&encoding=binary&fields=force,raw") as ws:
+        records = decode_binary(ws.receive_bytes())
+    assert records[0]["kind"] == "grid" and records[0]["force_N"].shape == (64,)
+    assert records[0]["capacitance_pF"].shape == (64,) and np.all(records[0]["capacitance_pF"] > 5)
+
+
+def test_websocket_decimates_and_batches_on_request(client):
     with client.websocket_connect("/ws?sensors=0&max_rate=20") as ws:
         t = []
         while len(t) < 6:
-            t += [f["t_host"] for f in orjson.loads(ws.receive_text())["frames"]]
-    gaps = [b - a for a, b in zip(t, t[1:])]
-    assert min(gaps) >= 0.045  # 20 Hz, minus scheduling slack
+            t += [f["header"]["stamp"] for f in orjson.loads(ws.receive_text())["frames"]]
+    assert min(b - a for a, b in zip(t, t[1:])) >= 0.045  # 20 Hz, minus scheduling slack
+    with client.websocket_connect("/ws?sensors=0&batch_ms=100") as ws:
+        frames = orjson.loads(ws.receive_text())["frames"]
+    assert len(frames) >= 50  # ~100 frames of 1 kHz in one message
 
 
-@pytest.mark.parametrize("query, message", [("max_rate=-1", "max_rate='-1'"), ("sensors=a,b", "sensors='a,b'")])
+@pytest.mark.parametrize(
+    "query, message",
+    [("max_rate=-1", "max_rate='-1'"), ("sensors=a,b", "sensors='a,b'"), ("fields=x", "fields='x'"),
+     ("encoding=xml", "encoding='xml'"), ("batch_ms=0", "batch_ms='0'")],
+)
 def test_websocket_rejects_bad_parameters(client, query, message):
     with client.websocket_connect(f"/ws?{query}") as ws:
         reply = orjson.loads(ws.receive_text())
@@ -85,3 +139,38 @@ def test_dashboard_is_served(client):
     page = client.get("/")
     assert page.status_code == 200 and "/static/app.js" in page.text
     assert client.get("/static/app.js").status_code == 200
+
+
+def test_a_stalled_client_loses_only_its_own_oldest_frames():
+    from service.reconstruct import ForceFrame
+    from service.readings import SensorInfo
+
+    async def scenario():
+        hub = Hub()
+        stalled, healthy = Subscriber(), Subscriber()
+        hub.subscribers |= {stalled, healthy}
+        info = SensorInfo(1, "quad", 2, 2)
+        received = []
+        for seq in range(QUEUE_MESSAGES + 10):
+            frame = ForceFrame(info, seq, seq, float(seq), np.zeros(3), np.ones(4), [], "full")
+            hub.publish([frame])
+            message, _ = await healthy.next_message()
+            received.append(orjson.loads(message)["frames"][0]["header"]["seq"])
+        first, notice = await stalled.next_message()
+        return received, orjson.loads(first), orjson.loads(notice)
+
+    received, first, notice = asyncio.run(scenario())
+    assert received == list(range(QUEUE_MESSAGES + 10))
+    assert notice == {"type": "dropped", "frames": 10}
+    assert first["frames"][0]["header"]["seq"] == 10
+
+
+def test_mutating_endpoints_need_the_token_when_one_is_set():
+    service = TactileService("sim://?scene=idle")
+    with TestClient(create_app(service, token="s3cret")) as client:
+        wait_for_frames(service)
+        denied = client.post("/tare")
+        assert denied.status_code == 401 and "Bearer" in denied.json()["detail"]
+        assert client.post("/tare", headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert client.post("/tare", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+        assert client.get("/health").status_code == 200

@@ -1,25 +1,29 @@
-"""REST endpoints, the WebSocket stream and the dashboard's static files."""
+"""REST endpoints, the WebSocket stream and the dashboard's static files.
+
+Mutating endpoints (tare, calibration, recording) require
+``Authorization: Bearer <token>`` whenever the app is given a token, which
+``tactile serve`` does as soon as it binds beyond localhost.
+"""
 from __future__ import annotations
 
+import hmac
 from contextlib import asynccontextmanager
 from pathlib import Path
 
+import numpy as np
 import orjson
-from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
+from fastapi import Depends, FastAPI, Header, HTTPException, Query, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
 from ..runtime import TactileService
+from .messages import DEFAULT_FIELDS, FIELDS, Contact, FrameMessage, to_json_dict
 from .stream import Subscriber
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"
 MAX_WS_RATE_HZ = 5000.0
-
-
-class RecordRequest(BaseModel):
-    path: str = Field(description="the MCAP file to write (must end in .mcap)")
-    raw_path: str | None = Field(default=None, description="also write the raw bytes here")
+ALL_FIELDS = frozenset(FIELDS)
 
 
 class JSONResponse(Response):
@@ -31,6 +35,20 @@ class JSONResponse(Response):
         return orjson.dumps(content, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
+class RecordRequest(BaseModel):
+    path: str = Field(description="the MCAP file to write (must end in .mcap)")
+    raw_path: str | None = Field(default=None, description="also write the raw bytes here")
+
+
+class GridCalibrationUpload(BaseModel):
+    sensitivity_pct_per_N: list[float] = Field(description="per taxel, row-major, measured 0–10 N slope in %/N")
+
+
+class QuadCalibrationUpload(BaseModel):
+    normal_fit: tuple[float, float] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1], c2 < 0 < c1")
+    shear_fit: tuple[float, float] = Field(description="ΔC/C0 = a F − b F²: [a, b], a > 0, b ≥ 0")
+
+
 def _parse_sensors(text: str | None) -> frozenset[int] | None:
     if text is None or text == "":
         return None
@@ -40,19 +58,29 @@ def _parse_sensors(text: str | None) -> frozenset[int] | None:
         raise ValueError(f"sensors={text!r} must be a comma-separated list of integer ids") from None
 
 
-def _parse_rate(text: str | None) -> float | None:
+def _parse_fields(text: str | None) -> frozenset[str]:
+    if text is None or text == "":
+        return DEFAULT_FIELDS
+    fields = frozenset(part.strip() for part in text.split(","))
+    unknown = fields - ALL_FIELDS
+    if unknown:
+        raise ValueError(f"fields={text!r}: unknown {sorted(unknown)}; known: {', '.join(FIELDS)}")
+    return fields
+
+
+def _parse_positive(name: str, text: str | None, upper: float) -> float | None:
     if text is None or text == "":
         return None
     try:
-        rate = float(text)
+        value = float(text)
     except ValueError:
-        raise ValueError(f"max_rate={text!r} is not a number") from None
-    if not 0 < rate <= MAX_WS_RATE_HZ:
-        raise ValueError(f"max_rate={text!r} must be in (0, {MAX_WS_RATE_HZ:g}] Hz")
-    return rate
+        raise ValueError(f"{name}={text!r} is not a number") from None
+    if not 0 < value <= upper:
+        raise ValueError(f"{name}={text!r} must be in (0, {upper:g}]")
+    return value
 
 
-def create_app(service: TactileService) -> FastAPI:
+def create_app(service: TactileService, token: str | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         service.start()
@@ -61,8 +89,16 @@ def create_app(service: TactileService) -> FastAPI:
         finally:
             service.stop()
 
-    app = FastAPI(title="tactile", version="0.1.0", lifespan=lifespan, default_response_class=JSONResponse)
+    app = FastAPI(title="tactile", version="0.1.0", lifespan=lifespan, default_response_class=JSONResponse,
+                  description="Calibrated forces from capacitive tactile sensors. See docs/api.md.")
     app.state.service = service
+
+    def authorised(authorization: str | None = Header(default=None, description="Bearer token, when the service requires one")):
+        if token is None:
+            return
+        expected = f"Bearer {token}"
+        if authorization is None or not hmac.compare_digest(authorization, expected):
+            raise HTTPException(401, "this endpoint needs 'Authorization: Bearer <token>' (printed by tactile serve)")
 
     def known_sensor(sensor_id: int):
         sensors = service.pipeline.interpreter.sensors
@@ -70,6 +106,13 @@ def create_app(service: TactileService) -> FastAPI:
             known = ", ".join(str(s) for s in sorted(sensors)) or "none yet"
             raise HTTPException(404, f"unknown sensor id {sensor_id}; known: {known}")
         return sensors[sensor_id]
+
+    def latest_frame(sensor_id: int):
+        known_sensor(sensor_id)
+        frame = service.pipeline.latest.get(sensor_id)
+        if frame is None:
+            raise HTTPException(404, f"sensor {sensor_id} has not delivered a frame yet")
+        return frame
 
     @app.get("/health")
     def health() -> JSONResponse:
@@ -82,24 +125,45 @@ def create_app(service: TactileService) -> FastAPI:
             {
                 "board": interpreter.board,
                 "sensors": [
-                    {**info.as_dict(), "tared": service.pipeline.reconstructor.baseline(sid) is not None}
+                    {**info.as_dict(), "name": f"{info.kind}{sid}", "tared": service.pipeline.reconstructor.baseline(sid) is not None}
                     for sid, info in sorted(interpreter.sensors.items())
                 ],
             }
         )
 
-    @app.get("/sensors/{sensor_id}/latest")
+    @app.get("/sensors/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
     def latest(sensor_id: int) -> JSONResponse:
-        known_sensor(sensor_id)
-        frame = service.pipeline.latest.get(sensor_id)
-        if frame is None:
-            raise HTTPException(404, f"sensor {sensor_id} has not delivered a frame yet")
-        body = frame.stream_dict()
-        body["capacitance_pF"] = frame.capacitance_pF
-        body["level"] = frame.level
-        return JSONResponse(body)
+        return JSONResponse(to_json_dict(latest_frame(sensor_id), ALL_FIELDS))
 
-    @app.post("/sensors/{sensor_id}/tare")
+    @app.get("/sensors/{sensor_id}/contact", responses={200: {"model": Contact}})
+    def contact(sensor_id: int) -> JSONResponse:
+        frame = latest_frame(sensor_id)
+        if frame.sensor.kind != "grid":
+            raise HTTPException(400, f"sensor {sensor_id} is a {frame.sensor.kind}; contact summaries are for grids")
+        if frame.contact is None:
+            raise HTTPException(404, f"sensor {sensor_id} is still taring")
+        return JSONResponse(frame.contact)
+
+    @app.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}})
+    def history(
+        sensor_id: int,
+        seconds: float = Query(2.0, gt=0, le=20, description="window length back from the latest frame"),
+        max_points: int = Query(200, ge=1, le=5000, description="decimate to at most this many frames"),
+        fields: str = Query("force,contact,flags", description=f"comma-separated: {', '.join(FIELDS)}"),
+    ) -> JSONResponse:
+        known_sensor(sensor_id)
+        try:
+            wanted = _parse_fields(fields)
+        except ValueError as exc:
+            raise HTTPException(422, str(exc)) from None
+        frames = list(service.pipeline.history.get(sensor_id, ()))
+        if frames:
+            start = frames[-1].t_host - seconds
+            frames = [f for f in frames if f.t_host >= start]
+        picks = np.unique(np.linspace(0, len(frames) - 1, min(max_points, len(frames))).round().astype(int)) if frames else []
+        return JSONResponse([to_json_dict(frames[i], wanted) for i in picks])
+
+    @app.post("/sensors/{sensor_id}/tare", dependencies=[Depends(authorised)])
     def tare_sensor(sensor_id: int) -> JSONResponse:
         known_sensor(sensor_id)
         try:
@@ -108,11 +172,20 @@ def create_app(service: TactileService) -> FastAPI:
             raise HTTPException(409, f"sensor {sensor_id} has no frames yet to tare") from None
         return JSONResponse({"tared": tared, "frames": service.pipeline.reconstructor.tare_frames})
 
-    @app.post("/tare")
+    @app.post("/tare", dependencies=[Depends(authorised)])
     def tare_all() -> JSONResponse:
         return JSONResponse({"tared": service.pipeline.tare(), "frames": service.pipeline.reconstructor.tare_frames})
 
-    @app.post("/record/start")
+    @app.put("/sensors/{sensor_id}/calibration", dependencies=[Depends(authorised)])
+    def upload_calibration(sensor_id: int, body: GridCalibrationUpload | QuadCalibrationUpload) -> JSONResponse:
+        info = known_sensor(sensor_id)
+        try:
+            applied = service.pipeline.set_calibration(info, body.model_dump())
+        except ValueError as exc:
+            raise HTTPException(422, str(exc)) from None
+        return JSONResponse(applied)
+
+    @app.post("/record/start", dependencies=[Depends(authorised)])
     def record_start(request: RecordRequest) -> JSONResponse:
         try:
             return JSONResponse(service.start_recording(request.path, request.raw_path))
@@ -121,7 +194,7 @@ def create_app(service: TactileService) -> FastAPI:
         except (OSError, ValueError) as exc:
             raise HTTPException(400, f"path: {exc}") from None
 
-    @app.post("/record/stop")
+    @app.post("/record/stop", dependencies=[Depends(authorised)])
     def record_stop() -> JSONResponse:
         status = service.stop_recording()
         if status is None:
@@ -134,11 +207,20 @@ def create_app(service: TactileService) -> FastAPI:
 
     @app.websocket("/ws")
     async def stream(websocket: WebSocket) -> None:
+        """Query: sensors=0,1 · fields=force,raw,contact,flags · max_rate=Hz ·
+        batch_ms=ms · encoding=json|binary."""
         await websocket.accept()
+        params = websocket.query_params
         try:
+            encoding = params.get("encoding", "json")
+            if encoding not in ("json", "binary"):
+                raise ValueError(f"encoding={encoding!r} must be 'json' or 'binary'")
             subscriber = Subscriber(
-                sensors=_parse_sensors(websocket.query_params.get("sensors")),
-                max_rate_hz=_parse_rate(websocket.query_params.get("max_rate")),
+                sensors=_parse_sensors(params.get("sensors")),
+                fields=_parse_fields(params.get("fields")),
+                binary=encoding == "binary",
+                max_rate_hz=_parse_positive("max_rate", params.get("max_rate"), MAX_WS_RATE_HZ),
+                batch_ms=_parse_positive("batch_ms", params.get("batch_ms"), 1000.0),
             )
         except ValueError as exc:
             await websocket.send_text(orjson.dumps({"type": "error", "detail": str(exc)}).decode())
@@ -147,7 +229,13 @@ def create_app(service: TactileService) -> FastAPI:
         service.hub.subscribers.add(subscriber)
         try:
             while True:
-                await websocket.send_text((await subscriber.next_message()).decode())
+                message, notice = await subscriber.next_message()
+                if notice is not None:
+                    await websocket.send_text(notice.decode())
+                if subscriber.binary:
+                    await websocket.send_bytes(message)
+                else:
+                    await websocket.send_text(message.decode())
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:

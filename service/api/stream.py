@@ -1,20 +1,24 @@
 """WebSocket fan-out: encode each frame once, bounded queue per client.
 
 The readout thread hands batches to the event loop with
-``call_soon_threadsafe``; ``Hub.publish`` then runs on the loop. Each frame is
-serialised once per batch however many clients take it; a client's message
-is those bytes joined. A client whose queue is full loses its own oldest
-message (never blocking the pipeline or other clients) and the next message
-it receives says how many frames it lost.
+``call_soon_threadsafe``; ``Hub.publish`` then runs on the loop. A frame is
+serialised once per (fields, encoding) however many clients take it; a
+client's message is those parts joined. A client may decimate
+(``max_rate_hz`` per sensor) or batch (``batch_ms``: frames are held and sent
+together once the interval has passed). A client whose queue is full loses
+its own oldest message — never blocking the pipeline or other clients — and
+is told how many frames it lost.
 """
 from __future__ import annotations
 
 import asyncio
+import struct
 from dataclasses import dataclass, field
 
 import orjson
 
 from ..reconstruct import ForceFrame
+from .messages import DEFAULT_FIELDS, to_binary, to_json_dict
 
 QUEUE_MESSAGES = 64
 _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
@@ -22,15 +26,23 @@ _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
 @dataclass(eq=False)
 class Subscriber:
-    """One WebSocket client. ``sensors`` None means all; ``max_rate_hz`` None
-    means every frame."""
+    """One WebSocket client. ``sensors`` None means all."""
 
     sensors: frozenset[int] | None = None
+    fields: frozenset[str] = DEFAULT_FIELDS
+    binary: bool = False
     max_rate_hz: float | None = None
+    batch_ms: float | None = None
     queue: asyncio.Queue = field(default_factory=lambda: asyncio.Queue(QUEUE_MESSAGES))
     dropped_frames: int = 0
     _next_due: dict[int, float] = field(default_factory=dict)
     _queued_counts: list[int] = field(default_factory=list)
+    _batch: list[bytes] = field(default_factory=list)
+    _batch_started: float | None = None
+
+    @property
+    def key(self) -> tuple[frozenset[str], bool]:
+        return self.fields, self.binary
 
     def wants(self, frame: ForceFrame) -> bool:
         sid = frame.sensor.id
@@ -46,20 +58,41 @@ class Subscriber:
         self._next_due[sid] = due + period if frame.t_host < due + period else frame.t_host + period
         return True
 
-    def offer(self, message: bytes, frame_count: int) -> None:
+    def take(self, parts: list[bytes], now: float) -> None:
+        """Queue ``parts`` (encoded frames), now or, when batching, once the
+        batch interval has passed."""
+        if self.batch_ms is None:
+            self._offer(parts)
+            return
+        if self._batch_started is None:
+            self._batch_started = now
+        self._batch.extend(parts)
+        if (now - self._batch_started) * 1000.0 >= self.batch_ms:
+            self._offer(self._batch)
+            self._batch, self._batch_started = [], None
+
+    def _offer(self, parts: list[bytes]) -> None:
+        if not parts:
+            return
+        if self.binary:
+            message = struct.pack("<H", len(parts)) + b"".join(parts)
+        else:
+            message = b'{"type":"frames","frames":[' + b",".join(parts) + b"]}"
         if self.queue.full():
             self.queue.get_nowait()
             self.dropped_frames += self._queued_counts.pop(0)
         self.queue.put_nowait(message)
-        self._queued_counts.append(frame_count)
+        self._queued_counts.append(len(parts))
 
-    async def next_message(self) -> bytes:
+    async def next_message(self) -> tuple[bytes, bytes | None]:
+        """The next message, and a JSON notice of frames lost before it (or None)."""
         message = await self.queue.get()
         self._queued_counts.pop(0)
+        notice = None
         if self.dropped_frames:
-            dropped, self.dropped_frames = self.dropped_frames, 0
-            message = message[:-1] + b',"dropped":' + str(dropped).encode() + b"}"
-        return message
+            notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
+            self.dropped_frames = 0
+        return message, notice
 
 
 class Hub:
@@ -71,14 +104,19 @@ class Hub:
         self.frames_published += len(frames)
         if not self.subscribers:
             return
-        encoded: dict[int, bytes] = {}
+        encoded: dict[tuple, bytes] = {}
+        now = frames[-1].t_host
         for subscriber in self.subscribers:
             parts = []
             for i, frame in enumerate(frames):
                 if subscriber.wants(frame):
-                    part = encoded.get(i)
+                    key = (i, subscriber.key)
+                    part = encoded.get(key)
                     if part is None:
-                        part = encoded[i] = orjson.dumps(frame.stream_dict(), option=_JSON_OPTIONS)
+                        if subscriber.binary:
+                            part = to_binary(frame, subscriber.fields)
+                        else:
+                            part = orjson.dumps(to_json_dict(frame, subscriber.fields), option=_JSON_OPTIONS)
+                        encoded[key] = part
                     parts.append(part)
-            if parts:
-                subscriber.offer(b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", len(parts))
+            subscriber.take(parts, now)

@@ -13,7 +13,7 @@ from .baseline import DEFAULT_TARE_FRAMES, Baseline
 from .contact import summarise
 from .frame import ForceFrame
 from .grid import GRID_LEVELS, NO_READING, GridProcessor, flag_names
-from .quad import QuadProcessor
+from .quad import QuadModel, QuadProcessor
 from .select import SceneConfig, choose_level
 from .taxel import TaxelResponse
 
@@ -75,13 +75,48 @@ class Reconstructor:
         self.hold_until_tared = hold_until_tared
         self._sensors: dict[int, _SensorState] = {}
         self._held: deque[tuple[_SensorState, Reading]] = deque()
+        self._uploaded: dict[int, GridCalibration | QuadModel] = {}
 
     def _processor(self, info: SensorInfo) -> GridProcessor | QuadProcessor:
+        uploaded = self._uploaded.get(info.id)
         if info.kind == "quad":
-            return QuadProcessor(self.level)
-        calibration = grid_calibration(info.rows, info.cols)
+            return QuadProcessor(self.level, uploaded) if isinstance(uploaded, QuadModel) else QuadProcessor(self.level)
+        calibration = uploaded if isinstance(uploaded, GridCalibration) else grid_calibration(info.rows, info.cols)
         response = None if self.level == "level0" else taxel_response(calibration, self.mounting)
         return GridProcessor(self.level, calibration, response)
+
+    def set_calibration(self, info: SensorInfo, upload: dict) -> dict:
+        """Replace a sensor's calibration; ValueError names the bad field.
+
+        Grid: ``sensitivity_pct_per_N`` per taxel. Quad: ``normal_fit``
+        [c2, c1] and ``shear_fit`` [a, b]. The baseline is kept."""
+        if info.kind == "grid":
+            values = np.asarray(upload.get("sensitivity_pct_per_N", []), dtype=float)
+            if values.shape != (info.channels,):
+                raise ValueError(f"sensitivity_pct_per_N: expected {info.channels} values (rows*cols), got {values.size}")
+            bad = np.flatnonzero(~((values > 0.1) & (values < 10.0)))
+            if bad.size:
+                raise ValueError(f"sensitivity_pct_per_N[{bad[0]}] = {values[bad[0]]} is outside (0.1, 10) %/N")
+            base = grid_calibration(info.rows, info.cols)
+            self._uploaded[info.id] = GridCalibration(info.rows, info.cols, base.c0_pF, values / 100.0)
+            applied = {"sensitivity_pct_per_N": values.tolist()}
+        else:
+            if "normal_fit" not in upload or "shear_fit" not in upload:
+                raise ValueError("a quad calibration needs normal_fit [c2, c1] and shear_fit [a, b]")
+            c2, c1 = upload["normal_fit"]
+            a, b = upload["shear_fit"]
+            if not (c1 > 0 and c2 <= 0):
+                raise ValueError(f"normal_fit: need c2 ≤ 0 < c1, got c2={c2}, c1={c1}")
+            if not (a > 0 and b >= 0):
+                raise ValueError(f"shear_fit: need a > 0 and b ≥ 0, got a={a}, b={b}")
+            usable_normal = 0.9 * c1 / (-2 * c2) if c2 < 0 else 50.0
+            usable_shear = 0.9 * a / (2 * b) if b > 0 else 50.0
+            self._uploaded[info.id] = QuadModel((c2, c1, 0.0), a, b, usable_normal, usable_shear)
+            applied = {"normal_fit": [c2, c1], "shear_fit": [a, b], "normal_usable_N": usable_normal, "shear_usable_N": usable_shear}
+        state = self._sensors.get(info.id)
+        if state is not None:
+            state.processor = self._processor(info)
+        return applied
 
     def _state(self, info: SensorInfo) -> _SensorState:
         state = self._sensors.get(info.id)

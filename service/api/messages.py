@@ -1,0 +1,157 @@
+"""The message a robot controller receives, in JSON and in a compact binary form.
+
+Shaped after ROS habits (std_msgs/Header, TactileState-like named arrays,
+geometry_msgs/WrenchStamped for the quad):
+
+    {"header": {"sensor_id": 0, "sensor_name": "grid0", "kind": "grid",
+                "seq": 1250, "board_time_us": 1251000, "stamp": 1795342752.12},
+     "rows": 8, "cols": 8,
+     "force_N": [64 numbers, row-major, null = no reading],      # grid, calibrated
+     "wrench": {"force": {"x": …, "y": …, "z": …}},             # quad, calibrated
+     "raw": {"capacitance_pF": [...]},                          # fields=raw
+     "contact": {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"},
+     "flags": [...], "taxel_flags": {"saturated": [27]}}
+
+``stamp`` is the host time at which the bytes were received (s since the
+epoch), ``board_time_us`` the board clock (wraps at 2^32). Numbers are
+numbers, never strings; null means no value.
+
+Binary (``encoding=binary``), little-endian, one record per frame,
+concatenated; a message starts with the u16 record count:
+
+    u8 version (1) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
+    (1 force, 2 raw) · u16 seq · u32 board_time_us · f64 stamp ·
+    u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · f32[n] force ·
+    f32[n'] raw (if requested; n' = channels) — NaN = no value.
+"""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from ..reconstruct import ForceFrame
+
+FIELDS = ("force", "raw", "contact", "flags")
+DEFAULT_FIELDS = frozenset({"force", "contact", "flags"})
+FRAME_FLAG_BITS = (
+    "taring", "saturated", "overrun", "seq_gap", "open_channel", "shorted_channel", "out_of_range",
+    "crosstalk_corrected", "drift_suspect", "stale", "normal_out_of_range", "shear_out_of_range", "electrode_fault",
+)
+_FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
+_RECORD = struct.Struct("<BBBBHIdIH")
+BINARY_VERSION = 1
+
+
+def sensor_name(frame: ForceFrame) -> str:
+    return f"{frame.sensor.kind}{frame.sensor.id}"
+
+
+def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> dict:
+    info = frame.sensor
+    out: dict = {
+        "header": {
+            "sensor_id": info.id,
+            "sensor_name": sensor_name(frame),
+            "kind": info.kind,
+            "seq": frame.seq,
+            "board_time_us": frame.t_us,
+            "stamp": frame.t_host,
+        }
+    }
+    if info.kind == "grid":
+        out["rows"], out["cols"] = info.rows, info.cols
+        if "force" in fields:
+            out["force_N"] = frame.forces_N
+        if "contact" in fields:
+            out["contact"] = frame.contact
+    elif "force" in fields:
+        fx, fy, fz = (None if np.isnan(v) else float(v) for v in frame.forces_N)
+        out["wrench"] = {"force": {"x": fx, "y": fy, "z": fz}}
+    if "raw" in fields:
+        out["raw"] = {"capacitance_pF": frame.capacitance_pF}
+    if "flags" in fields:
+        out["flags"] = frame.flags
+        if info.kind == "grid":
+            out["taxel_flags"] = frame.taxel_flag_lists()
+    return out
+
+
+def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> bytes:
+    info = frame.sensor
+    flag_bits = 0
+    for name in frame.flags:
+        flag_bits |= _FLAG_BIT.get(name, 0)
+    field_bits = (1 if "force" in fields else 0) | (2 if "raw" in fields else 0)
+    forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields else np.empty(0, "<f4")
+    head = _RECORD.pack(BINARY_VERSION, 0 if info.kind == "grid" else 1, info.id, field_bits, frame.seq,
+                        frame.t_us, frame.t_host, flag_bits, forces.size)
+    raw = np.asarray(frame.capacitance_pF, dtype="<f4").tobytes() if "raw" in fields else b""
+    return head + forces.tobytes() + raw
+
+
+def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> list[dict]:
+    """Parse a binary message (for clients and tests). ``channels`` gives the
+    raw channel count per sensor id (needed only when raw was requested;
+    default: the force count for a grid, 4 for a quad)."""
+    (count,) = struct.unpack_from("<H", message, 0)
+    pos, out = 2, []
+    for _ in range(count):
+        version, kind, sid, field_bits, seq, t_us, stamp, flag_bits, n = _RECORD.unpack_from(message, pos)
+        pos += _RECORD.size
+        record = {"sensor_id": sid, "kind": "grid" if kind == 0 else "quad", "seq": seq, "board_time_us": t_us,
+                  "stamp": stamp, "flags": [name for name, bit in _FLAG_BIT.items() if flag_bits & bit]}
+        record["force_N"] = np.frombuffer(message, "<f4", n, pos)
+        pos += 4 * n
+        if field_bits & 2:
+            m = (channels or {}).get(sid, n if kind == 0 else 4)
+            record["capacitance_pF"] = np.frombuffer(message, "<f4", m, pos)
+            pos += 4 * m
+        out.append(record)
+    return out
+
+
+class Header(BaseModel):
+    sensor_id: int
+    sensor_name: str
+    kind: str = Field(description="grid | quad")
+    seq: int = Field(description="board scan counter, wraps at 65536")
+    board_time_us: int = Field(description="board clock at the end of the scan, µs, wraps at 2^32")
+    stamp: float = Field(description="host receive time, s since the epoch")
+
+
+class Vector3(BaseModel):
+    x: float | None
+    y: float | None
+    z: float | None
+
+
+class Wrench(BaseModel):
+    force: Vector3
+
+
+class Contact(BaseModel):
+    total_N: float
+    cop_x_mm: float | None = Field(description="centre of pressure, array frame (origin at the centre, x along columns)")
+    cop_y_mm: float | None
+    area_mm2: float
+    contacts: int = Field(description="4-connected regions above 0.05 N")
+
+
+class Raw(BaseModel):
+    capacitance_pF: list[float | None]
+
+
+class FrameMessage(BaseModel):
+    """One reconstructed frame (fields present as subscribed)."""
+
+    header: Header
+    rows: int | None = None
+    cols: int | None = None
+    force_N: list[float | None] | None = Field(default=None, description="grid: normal force per taxel, row-major")
+    wrench: Wrench | None = Field(default=None, description="quad: force in N (Fz positive in compression)")
+    raw: Raw | None = None
+    contact: Contact | None = None
+    flags: list[str] | None = None
+    taxel_flags: dict[str, list[int]] | None = Field(default=None, description="flag name → row-major taxel indices")

@@ -1,0 +1,99 @@
+"""The dashboard in headless Debian Chromium, driven by Playwright.
+
+Uses /usr/bin/chromium (Debian's package, never a downloaded browser);
+skips with the reason when it is not installed. Saves out/dashboard.png.
+"""
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import uvicorn
+
+from service.api.app import create_app
+from service.runtime import TactileService
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+SCREENSHOT = Path(__file__).resolve().parents[1] / "out" / "dashboard.png"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+sync_api = pytest.importorskip("playwright.sync_api")
+if not Path(CHROMIUM).exists():
+    pytest.skip("Debian's chromium is not installed (apt-get install chromium)", allow_module_level=True)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def served():
+    service = TactileService("sim://?scene=press&sensors=grid,quad,grid4x4")
+    tares = []
+    original = service.pipeline.tare
+    service.pipeline.tare = lambda sensor_id=None: tares.append(sensor_id) or original(sensor_id)
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started and time.monotonic() < deadline:
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}/", tares
+    server.should_exit = True
+    thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def page(served):
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1300, "height": 760})
+        page.goto(served[0])
+        yield page
+        browser.close()
+
+
+def taxel_colour(page, sensor, index, cols, cell=44):
+    r, c = divmod(index, cols)
+    return page.evaluate(
+        """([sensor, x, y]) => Array.from(document.querySelector(`section[data-sensor="${sensor}"] canvas.live`)
+            .getContext("2d").getImageData(x, y, 1, 1).data).join(",")""",
+        [sensor, c * cell + 6, r * cell + cell - 6],
+    )
+
+
+def test_page_loads_with_live_frames_for_every_sensor(page):
+    page.wait_for_selector('section[data-sensor="2"][data-frames]', timeout=10_000)
+    first = int(page.get_attribute('section[data-sensor="0"]', "data-frames"))
+    page.wait_for_timeout(500)
+    assert int(page.get_attribute('section[data-sensor="0"]', "data-frames")) > first + 5
+    assert page.locator("section.panel").count() == 3
+    page.wait_for_function("document.getElementById('link').textContent.startsWith('link up')", timeout=5000)
+
+
+def test_heatmap_follows_the_press(page):
+    page.wait_for_selector('section[data-sensor="0"][data-frames]', timeout=10_000)
+    colours = set()
+    for _ in range(25):  # the press scene cycles 0 → 5 N → 0 every 2 s
+        colours.add(taxel_colour(page, 0, 27, 8))
+        page.wait_for_timeout(100)
+    assert len(colours) >= 4
+    untouched = {taxel_colour(page, 0, 0, 8) for _ in range(3)}
+    assert len(untouched) == 1
+
+
+def test_tare_button_tares_and_screenshot_is_saved(page, served):
+    _, tares = served
+    with page.expect_response("**/tare") as response:
+        page.click("#tare")
+    assert response.value.status == 200 and tares == [None]
+    page.wait_for_timeout(1500)
+    SCREENSHOT.parent.mkdir(exist_ok=True)
+    page.screenshot(path=str(SCREENSHOT))
+    assert SCREENSHOT.stat().st_size > 10_000
