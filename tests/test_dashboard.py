@@ -79,13 +79,13 @@ def test_page_loads_with_live_frames_for_every_sensor(page):
 
 def test_heatmap_follows_the_press(page):
     page.wait_for_selector('section[data-sensor="0"][data-frames]', timeout=10_000)
-    colours = set()
+    reds = []
     for _ in range(25):  # the press scene cycles 0 → 5 N → 0 every 2 s
-        colours.add(taxel_colour(page, 0, 27, 8))
+        reds.append(int(taxel_colour(page, 0, 27, 8).split(",")[0]))
         page.wait_for_timeout(100)
-    assert len(colours) >= 4
-    untouched = {taxel_colour(page, 0, 0, 8) for _ in range(3)}
-    assert len(untouched) == 1
+    assert max(reds) - min(reds) > 150  # the pressed taxel goes from dark to hot
+    untouched = [int(taxel_colour(page, 0, 0, 8).split(",")[0]) for _ in range(3)]
+    assert max(untouched) < 20  # a free taxel stays dark (noise is ~0.01 N)
 
 
 def test_tare_button_tares_and_screenshot_is_saved(page, served):

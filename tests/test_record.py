@@ -124,7 +124,7 @@ def test_replay_served_through_the_live_api(tmp_path):
         health = client.get("/health").json()
         assert health["replay"] is True and health["link"]["source"].startswith("replay://")
         assert health["sensors"]["0"]["frames"] == 1500
-        assert client.get("/sensors/0/latest").json()["seq"] == 1499
+        assert client.get("/sensors/0/latest").json()["header"]["seq"] == 1499
 
 
 def test_record_from_the_api(tmp_path):
