@@ -4,16 +4,9 @@ Uses /usr/bin/chromium (Debian's package, never a downloaded browser);
 skips with the reason when it is not installed. Saves out/dashboard.png.
 """
 import shutil
-import socket
-import threading
-import time
 from pathlib import Path
 
 import pytest
-import uvicorn
-
-from service.api.app import create_app
-from service.runtime import TactileService
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 SCREENSHOT = Path(__file__).resolve().parents[1] / "out" / "dashboard.png"
@@ -23,30 +16,6 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
 sync_api = pytest.importorskip("playwright.sync_api")
 if not Path(CHROMIUM).exists():
     pytest.skip("Debian's chromium is not installed (apt-get install chromium)", allow_module_level=True)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture(scope="module")
-def served():
-    service = TactileService("sim://?scene=press&sensors=grid,quad,grid4x4")
-    tares = []
-    original = service.pipeline.tare
-    service.pipeline.tare = lambda sensor_id=None: tares.append(sensor_id) or original(sensor_id)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}/", tares
-    server.should_exit = True
-    thread.join(10)
 
 
 @pytest.fixture(scope="module")

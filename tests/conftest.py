@@ -1,0 +1,34 @@
+"""Shared fixtures: a real server on loopback, reading the simulator."""
+import socket
+import threading
+import time
+
+import pytest
+import uvicorn
+
+from service.api.app import create_app
+from service.runtime import TactileService
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def served():
+    """(base URL, list of tare calls) of a live uvicorn server in a thread."""
+    service = TactileService("sim://?scene=press&sensors=grid,quad,grid4x4")
+    tares = []
+    original = service.pipeline.tare
+    service.pipeline.tare = lambda sensor_id=None: tares.append(sensor_id) or original(sensor_id)
+    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=free_port(), log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started and time.monotonic() < deadline:
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{server.config.port}/", tares
+    server.should_exit = True
+    thread.join(10)

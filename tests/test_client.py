@@ -1,0 +1,22 @@
+"""The Python client against a real server on loopback."""
+import itertools
+
+import pytest
+
+from service.client import TactileClient, TactileError
+
+
+def test_client_rest_and_subscriptions(served):
+    client = TactileClient(served[0])
+    assert [s["kind"] for s in client.sensors()] == ["grid", "quad", "grid"]
+    assert len(client.latest(0)["force_N"]) == 64
+    with pytest.raises(TactileError, match="404 unknown sensor id 7"):
+        client.latest(7)
+    frames = list(itertools.islice(client.subscribe(sensors=[1], binary=True), 50))
+    assert {f["sensor_id"] for f in frames} == {1} and frames[0]["force_N"].shape == (3,)
+    seqs = [f["seq"] for f in frames]
+    assert seqs == list(range(seqs[0], seqs[0] + 50))  # unbatched, undecimated: every frame
+    json_frames = list(itertools.islice(client.subscribe(sensors=[0], fields=["force"], max_rate=50), 5))
+    assert all(set(f) == {"header", "rows", "cols", "force_N"} for f in json_frames)
+    with pytest.raises(TactileError, match="max_rate"):
+        next(client.subscribe(max_rate=-5))
