@@ -36,7 +36,8 @@ def cmd_serve(args) -> int:
     print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
     if token:
         print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    # No per-message deflate: compressing every 1 kHz message costs more CPU than loopback or a LAN saves.
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws_per_message_deflate=False)
     return 0
 
 

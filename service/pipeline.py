@@ -18,7 +18,7 @@ Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
 
 RATE_WINDOW_S = 1.0
-HISTORY_FRAMES = 20_000  # per sensor: 20 s at 1 kHz
+HISTORY_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~12 MB for an 8x8 grid)
 
 
 class RateMeter:

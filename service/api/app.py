@@ -147,7 +147,7 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
     @app.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}})
     def history(
         sensor_id: int,
-        seconds: float = Query(2.0, gt=0, le=20, description="window length back from the latest frame"),
+        seconds: float = Query(2.0, gt=0, le=5, description="window length back from the latest frame (5 s kept at 1 kHz)"),
         max_points: int = Query(200, ge=1, le=5000, description="decimate to at most this many frames"),
         fields: str = Query("force,contact,flags", description=f"comma-separated: {', '.join(FIELDS)}"),
     ) -> JSONResponse:

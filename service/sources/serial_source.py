@@ -10,6 +10,9 @@ for _handlers in ("firmware_sim.urlhandler", "service.sources"):  # sim://, repl
         serial.protocol_handler_packages.append(_handlers)
 
 
+READ_BYTES = 1 << 16
+
+
 class SerialSource(Source):
     def __init__(self, url: str, baudrate: int = 2_000_000) -> None:
         self.url = url
@@ -21,16 +24,22 @@ class SerialSource(Source):
             raise OSError(f"cannot open {url!r}: {exc}") from None
 
     def _read_internal(self, timeout: float) -> bytes:
+        """Wait up to ``timeout`` for a first byte, then take everything
+        already received without waiting. (``in_waiting`` cannot size the read:
+        pyserial's socket:// answers 0 or 1 there, not a byte count.)"""
         try:
-            if self._port.timeout != timeout:  # on hardware, setting it reconfigures the port
-                self._port.timeout = timeout
-            data = self._port.read(max(self._port.in_waiting, 1))
-            waiting = self._port.in_waiting
-            if waiting:
-                data += self._port.read(waiting)
-            return data
+            self._set_timeout(timeout)
+            first = self._port.read(1)
+            if not first:
+                return b""
+            self._set_timeout(0)
+            return first + self._port.read(READ_BYTES)
         except serial.SerialException as exc:
             raise OSError(f"{self.url}: {exc}") from None
+
+    def _set_timeout(self, timeout: float) -> None:
+        if self._port.timeout != timeout:  # on hardware, setting it reconfigures the port
+            self._port.timeout = timeout
 
     def write(self, data: bytes) -> None:
         try:

@@ -1,0 +1,205 @@
+"""Load test of the live API on loopback (a script, not a unit test).
+
+    python scripts/loadtest.py --seconds 120 --out docs/load.md
+
+Starts a simulated board with 4 grid and 4 quad sensors at 1 kHz in its own
+process (`tactile sim --tcp`, as a real board is outside the service),
+`tactile serve` reading it over TCP, then, from this process: 20 healthy WebSocket clients subscribed
+to everything (binary, batched every 20 ms), 5 clients that subscribe to
+everything (JSON, unbatched) and never read, and one latency-critical
+client on one quad sensor, unbatched, binary. It reports, per client kind,
+the share of frames received (by sequence continuity), latency from the
+host receive stamp to client receipt (same machine, same clock), and the
+service's CPU and memory from /proc. Every loop is bounded in time and only
+loopback is used.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import multiprocessing
+import os
+import platform
+import struct
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import websockets
+
+SENSORS = "grid,grid,grid,grid,quad,quad,quad,quad"
+CRITICAL_SENSOR = 4  # the first quad
+RECORD = struct.Struct("<BBBBHIdIH")
+
+
+def proc_sample(pid: int) -> tuple[float, int]:
+    """(CPU seconds used, resident bytes) of a process."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / ticks
+    rss = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+    return cpu, rss
+
+
+class Tally:
+    """Frames seen per sensor (by seq, unwrapped) and latencies."""
+
+    def __init__(self) -> None:
+        self.seqs: dict[int, list[int]] = {}
+        self.latency: list[float] = []
+        self.dropped_notices = 0
+
+    def binary(self, message: bytes, now: float) -> None:
+        (count,) = struct.unpack_from("<H", message, 0)
+        pos = 2
+        for _ in range(count):
+            _, kind, sid, field_bits, seq, _, stamp, _, n = RECORD.unpack_from(message, pos)
+            pos += RECORD.size + 4 * n
+            self.seqs.setdefault(sid, []).append(seq)
+            self.latency.append(now - stamp)
+
+    def share(self, window: dict[int, tuple[int, int]]) -> float:
+        """Received / expected, counting each sensor's seqs inside the window
+        of seqs the latency-free reference saw."""
+        got = expected = 0
+        for sid, (first, last) in window.items():
+            seen = set(self.seqs.get(sid, []))
+            span = set(range(first, last + 1))
+            got += len(seen & span)
+            expected += len(span)
+        return got / expected if expected else 0.0
+
+
+async def healthy(url: str, tally: Tally, stop: float) -> None:
+    async with websockets.connect(url + "/ws?encoding=binary&batch_ms=20&fields=force,flags", max_size=None) as ws:
+        while time.time() < stop:
+            try:
+                message = await asyncio.wait_for(ws.recv(), timeout=max(stop - time.time(), 0.01))
+            except asyncio.TimeoutError:
+                break
+            if isinstance(message, bytes):
+                tally.binary(message, time.time())
+            else:
+                tally.dropped_notices += 1
+
+
+async def stalled(url: str, stop: float) -> None:
+    # Subscribe and never read: the server's queue for us must fill and drop.
+    async with websockets.connect(url + "/ws", max_size=None, max_queue=1) as ws:
+        ws.transport.pause_reading()
+        await asyncio.sleep(max(stop - time.time(), 0))
+
+
+async def run_clients(base: str, seconds: float) -> list[Tally]:
+    url = base.replace("http", "ws", 1)
+    stop = time.time() + seconds
+    tallies = [Tally() for _ in range(20)]
+    tasks = [asyncio.create_task(healthy(url, t, stop)) for t in tallies]
+    tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(5)]
+    await asyncio.gather(*tasks, return_exceptions=True)
+    return tallies
+
+
+def latency_client(base: str, seconds: float, sensor: int, results) -> None:
+    """In its own process, so the other clients' work does not delay it."""
+    async def run():
+        tally = Tally()
+        stop = time.time() + seconds
+        async with websockets.connect(f"{base.replace('http', 'ws', 1)}/ws?encoding=binary&fields=force&sensors={sensor}",
+                                      max_size=None) as ws:
+            while time.time() < stop:
+                try:
+                    message = await asyncio.wait_for(ws.recv(), timeout=max(stop - time.time(), 0.01))
+                except asyncio.TimeoutError:
+                    break
+                if isinstance(message, bytes):
+                    tally.binary(message, time.time())
+        results.put((tally.seqs, tally.latency))
+
+    asyncio.run(run())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=120.0)
+    parser.add_argument("--port", type=int, default=8765)
+    parser.add_argument("--out", help="write a markdown report here")
+    args = parser.parse_args()
+    board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
+                              "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(1.0)
+    source = f"socket://127.0.0.1:{args.port + 1}"
+    service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", source, "--port", str(args.port)],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    base = f"http://127.0.0.1:{args.port}"
+    try:
+        deadline = time.time() + 20
+        while time.time() < deadline:
+            try:
+                urllib.request.urlopen(base + "/health", timeout=1)
+                break
+            except OSError:
+                time.sleep(0.2)
+        time.sleep(2.0)  # past the auto-tare
+        cpu0, _ = proc_sample(service.pid)
+        t0 = time.time()
+        results = multiprocessing.Queue()
+        critical_process = multiprocessing.Process(target=latency_client, args=(base, args.seconds, CRITICAL_SENSOR, results))
+        critical_process.start()
+        healthy_tallies = asyncio.run(run_clients(base, args.seconds))
+        critical = Tally()
+        critical.seqs, critical.latency = results.get(timeout=30)
+        critical_process.join(10)
+        elapsed = time.time() - t0
+        cpu1, rss = proc_sample(service.pid)
+        health = json.loads(urllib.request.urlopen(base + "/health", timeout=5).read())
+    finally:
+        service.terminate()
+        service.wait(10)
+        board.terminate()
+        board.wait(10)
+
+    window = {}
+    for tally in healthy_tallies + [critical]:
+        for sid, seqs in tally.seqs.items():
+            first, last = min(seqs), max(seqs)
+            lo, hi = window.get(sid, (first, last))
+            window[sid] = (max(lo, first), min(hi, last))
+    window = {sid: span for sid, span in window.items() if span[1] > span[0]}
+    shares = [t.share(window) for t in healthy_tallies]
+    healthy_latency = np.concatenate([np.array(t.latency) for t in healthy_tallies]) * 1000
+    critical_latency = np.array(critical.latency) * 1000
+    report = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}",
+        "seconds": round(elapsed, 1),
+        "sensors": SENSORS,
+        "frames_published_per_s": health["stream"]["frames"] / max(health["uptime_s"], 1e-9),
+        "healthy_min_share": min(shares),
+        "healthy_mean_share": float(np.mean(shares)),
+        "healthy_dropped_notices": sum(t.dropped_notices for t in healthy_tallies),
+        "healthy_latency_ms_p50": float(np.percentile(healthy_latency, 50)),
+        "healthy_latency_ms_p99": float(np.percentile(healthy_latency, 99)),
+        "critical_share": critical.share({CRITICAL_SENSOR: window[CRITICAL_SENSOR]}) if CRITICAL_SENSOR in window else 0.0,
+        "critical_latency_ms_p50": float(np.percentile(critical_latency, 50)),
+        "critical_latency_ms_p99": float(np.percentile(critical_latency, 99)),
+        "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / elapsed,
+        "service_rss_MB": rss / 1e6,
+        "websocket_clients_at_end": health["websocket_clients"],
+    }
+    text = "\n".join(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in report.items())
+    print(json.dumps(report, indent=1))
+    if args.out:
+        Path(args.out).write_text(
+            "# Load test\n\nProduced by `python scripts/loadtest.py --seconds "
+            f"{args.seconds:g} --out {args.out}` (see the script's docstring for the set-up).\n\n"
+            "| figure | value |\n|---|---|\n" + text + "\n"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
