@@ -74,8 +74,9 @@ class Tally:
         return got / expected if expected else 0.0
 
 
-async def healthy(url: str, tally: Tally, stop: float) -> None:
-    async with websockets.connect(url + "/ws?encoding=binary&batch_ms=20&fields=force,flags", max_size=None) as ws:
+async def listen(url: str, tally: Tally, stop: float) -> None:
+    """Receive until ``stop`` (epoch s), tallying binary frames and drop notices."""
+    async with websockets.connect(url, max_size=None) as ws:
         while time.time() < stop:
             try:
                 message = await asyncio.wait_for(ws.recv(), timeout=max(stop - time.time(), 0.01))
@@ -98,7 +99,8 @@ async def run_clients(base: str, seconds: float) -> list[Tally]:
     url = base.replace("http", "ws", 1)
     stop = time.time() + seconds
     tallies = [Tally() for _ in range(20)]
-    tasks = [asyncio.create_task(healthy(url, t, stop)) for t in tallies]
+    healthy = url + "/ws?encoding=binary&batch_ms=20&fields=force,flags"
+    tasks = [asyncio.create_task(listen(healthy, t, stop)) for t in tallies]
     tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(5)]
     await asyncio.gather(*tasks, return_exceptions=True)
     return tallies
@@ -106,21 +108,10 @@ async def run_clients(base: str, seconds: float) -> list[Tally]:
 
 def latency_client(base: str, seconds: float, sensor: int, results) -> None:
     """In its own process, so the other clients' work does not delay it."""
-    async def run():
-        tally = Tally()
-        stop = time.time() + seconds
-        async with websockets.connect(f"{base.replace('http', 'ws', 1)}/ws?encoding=binary&fields=force&sensors={sensor}",
-                                      max_size=None) as ws:
-            while time.time() < stop:
-                try:
-                    message = await asyncio.wait_for(ws.recv(), timeout=max(stop - time.time(), 0.01))
-                except asyncio.TimeoutError:
-                    break
-                if isinstance(message, bytes):
-                    tally.binary(message, time.time())
-        results.put((tally.seqs, tally.latency))
-
-    asyncio.run(run())
+    tally = Tally()
+    url = f"{base.replace('http', 'ws', 1)}/ws?encoding=binary&fields=force&sensors={sensor}"
+    asyncio.run(listen(url, tally, time.time() + seconds))
+    results.put((tally.seqs, tally.latency))
 
 
 def main() -> int:
