@@ -137,6 +137,8 @@ class CrosstalkEstimator:
         and baseline (n,) they were computed with."""
         relative = np.atleast_2d(relative)
         snr = relative / noise
+        if not np.nanmax(snr, initial=-np.inf) >= self.min_snr:  # the usual frame: nothing strong enough
+            return
         peak = np.argmax(np.nan_to_num(snr, nan=-np.inf), axis=1)
         rows = np.arange(len(relative))
         peak_r = relative[rows, peak]

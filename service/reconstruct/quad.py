@@ -26,9 +26,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..physics import calibrate, shear
-from .level0 import quad_axes, quad_forces, relative_change
+from .level0 import quad_forces, relative_change
 
 QUAD_LEVELS = ("level0", "table", "full")
+# Electrodes (C11, C12, C21, C22) → combinations X (eq 30), Y (eq 32), Z (eq 19), R (redundant).
+# Rows: electrodes; columns: their weights in X, Y, Z, R.
+COMBINATIONS = np.array([[-1, -1, 1, 1], [1, -1, 1, -1], [-1, 1, 1, -1], [1, 1, 1, 1]], dtype=float) / 4.0
 FAULT_SIGMAS = 8.0
 FAULT_RELATIVE = 0.05  # model mismatch allowed in R, as a share of |Z|
 NOISE_FLOOR_PF = 2e-4
@@ -61,10 +64,9 @@ class QuadModel:
     def inverse(self, relative: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """(..., 4) electrode ΔC/C0 → (..., 3) (Fx, Fy, Fz) and masks of
         shape (...) for normal_out_of_range, shear_out_of_range; plus the
-        redundant combination R under "residual"."""
-        axes = quad_axes(relative)
-        r11, r12, r21, r22 = np.moveaxis(relative, -1, 0)
-        residual = (r11 + r22 - r12 - r21) / 4.0
+        combinations X, Y, Z and the redundant R under "combinations"."""
+        axes = relative @ COMBINATIONS
+        residual = axes[..., 3]
         fz, normal_out = calibrate.invert_fit(self.normal_fit, axes[..., 2])
         beyond = fz > self.normal_usable_N
         fz = np.minimum(fz, self.normal_usable_N)
@@ -76,7 +78,7 @@ class QuadModel:
         fy = np.clip(fy, -self.shear_usable_N, self.shear_usable_N)
         # A negative normal change below noise is just noise around zero force.
         normal_out = (normal_out & (axes[..., 2] > 0)) | beyond
-        masks = {"normal_out_of_range": normal_out, "shear_out_of_range": out_x | out_y | shear_beyond, "residual": residual}
+        masks = {"normal_out_of_range": normal_out, "shear_out_of_range": out_x | out_y | shear_beyond, "combinations": axes}
         return np.stack([fx, fy, fz], axis=-1), masks
 
 
@@ -96,7 +98,8 @@ class QuadProcessor:
         relative = relative_change(capacitance, baseline)
         forces, masks = self.model.inverse(relative)
         noise = np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0
-        masks["electrode_fault"] = np.abs(masks.pop("residual")) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(quad_axes(relative)[..., 2])
+        combinations = masks.pop("combinations")
+        masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
         names = list(masks)
         table = np.stack([masks[name] for name in names], axis=-1)
         return forces, [[name for name, hit in zip(names, row) if hit] for row in table.tolist()]
