@@ -11,7 +11,8 @@ client on one quad sensor, unbatched, binary. It reports, per client kind,
 the share of frames received (by sequence continuity), latency from the
 host receive stamp to client receipt (same machine, same clock), and the
 service's CPU and memory from /proc. Every loop is bounded in time and only
-loopback is used.
+loopback is used. ``--healthy/--stalled`` change the client counts;
+LOADTEST_SENSORS and LOADTEST_CRITICAL the board (e.g. one quad, sensor 0).
 """
 from __future__ import annotations
 
@@ -31,8 +32,8 @@ from pathlib import Path
 import numpy as np
 import websockets
 
-SENSORS = "grid,grid,grid,grid,quad,quad,quad,quad"
-CRITICAL_SENSOR = 4  # the first quad
+SENSORS = os.environ.get("LOADTEST_SENSORS", "grid,grid,grid,grid,quad,quad,quad,quad")
+CRITICAL_SENSOR = int(os.environ.get("LOADTEST_CRITICAL", "4"))  # the first quad
 RECORD = struct.Struct("<BBBBHIdIH")
 
 
@@ -95,13 +96,13 @@ async def stalled(url: str, stop: float) -> None:
         await asyncio.sleep(max(stop - time.time(), 0))
 
 
-async def run_clients(base: str, seconds: float) -> list[Tally]:
+async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int) -> list[Tally]:
     url = base.replace("http", "ws", 1)
     stop = time.time() + seconds
-    tallies = [Tally() for _ in range(20)]
+    tallies = [Tally() for _ in range(n_healthy)]
     healthy = url + "/ws?encoding=binary&batch_ms=20&fields=force,flags"
     tasks = [asyncio.create_task(listen(healthy, t, stop)) for t in tallies]
-    tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(5)]
+    tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(n_stalled)]
     await asyncio.gather(*tasks, return_exceptions=True)
     return tallies
 
@@ -119,6 +120,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=120.0)
     parser.add_argument("--port", type=int, default=8765)
     parser.add_argument("--out", help="write a markdown report here")
+    parser.add_argument("--healthy", type=int, default=20, help="healthy clients (default 20)")
+    parser.add_argument("--stalled", type=int, default=5, help="stalled clients (default 5)")
     args = parser.parse_args()
     board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
                               "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -141,7 +144,7 @@ def main() -> int:
         results = multiprocessing.Queue()
         critical_process = multiprocessing.Process(target=latency_client, args=(base, args.seconds, CRITICAL_SENSOR, results))
         critical_process.start()
-        healthy_tallies = asyncio.run(run_clients(base, args.seconds))
+        healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled))
         critical = Tally()
         critical.seqs, critical.latency = results.get(timeout=30)
         critical_process.join(10)
@@ -161,8 +164,8 @@ def main() -> int:
             lo, hi = window.get(sid, (first, last))
             window[sid] = (max(lo, first), min(hi, last))
     window = {sid: span for sid, span in window.items() if span[1] > span[0]}
-    shares = [t.share(window) for t in healthy_tallies]
-    healthy_latency = np.concatenate([np.array(t.latency) for t in healthy_tallies]) * 1000
+    shares = [t.share(window) for t in healthy_tallies] or [float("nan")]
+    healthy_latency = np.concatenate([np.array(t.latency) for t in healthy_tallies] + [np.full(1, np.nan)]) * 1000
     critical_latency = np.array(critical.latency) * 1000
     report = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}",
@@ -172,8 +175,8 @@ def main() -> int:
         "healthy_min_share": min(shares),
         "healthy_mean_share": float(np.mean(shares)),
         "healthy_dropped_notices": sum(t.dropped_notices for t in healthy_tallies),
-        "healthy_latency_ms_p50": float(np.percentile(healthy_latency, 50)),
-        "healthy_latency_ms_p99": float(np.percentile(healthy_latency, 99)),
+        "healthy_latency_ms_p50": float(np.nanpercentile(healthy_latency, 50)) if healthy_tallies else float("nan"),
+        "healthy_latency_ms_p99": float(np.nanpercentile(healthy_latency, 99)) if healthy_tallies else float("nan"),
         "critical_share": critical.share({CRITICAL_SENSOR: window[CRITICAL_SENSOR]}) if CRITICAL_SENSOR in window else 0.0,
         "critical_latency_ms_p50": float(np.percentile(critical_latency, 50)),
         "critical_latency_ms_p99": float(np.percentile(critical_latency, 99)),
