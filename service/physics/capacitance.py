@@ -67,18 +67,28 @@ class GapField:
         return np.inf if closing <= 0 else MAX_GAP_CLOSURE * self.d0_um / closing
 
 
+def _electrode_quadrature(solution: RitzSolution, points: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss points and weights along one side of the electrode quarter (the
+    electrode edge is a break of the partition, so the rule is exact per element)."""
+    x, w, _ = solution.bases[0].quadrature(points)
+    inside = x < solution.taxel.half_electrode_um
+    return x[inside], w[inside]
+
+
+def _between_electrodes(solution: RitzSolution, component: str, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Upper minus lower electrode displacement (µm) on the grid x × y."""
+    taxel = solution.taxel
+    z = taxel.interfaces_um
+    return (solution.displacement(component, x, y, z[taxel.upper_electrode_interface])
+            - solution.displacement(component, x, y, z[taxel.lower_electrode_interface]))
+
+
 def gap_field(solution: RitzSolution, force_of_solution_N: float, electrode_points: int | None = None) -> GapField:
     """Gap change per newton over the electrode from a solution computed for
     a load of total force ``force_of_solution_N`` (over the full unit)."""
-    taxel = solution.taxel
-    bx = solution.bases[0]
-    x, w, _ = bx.quadrature(electrode_points)
-    inside = x < taxel.half_electrode_um
-    x, w = x[inside], w[inside]
-    z = taxel.interfaces_um
-    upper = solution.displacement("w", x, x, z[taxel.upper_electrode_interface])
-    lower = solution.displacement("w", x, x, z[taxel.lower_electrode_interface])
-    return GapField(taxel.gap_um, (upper - lower) / force_of_solution_N, np.outer(w, w))
+    x, w = _electrode_quadrature(solution, electrode_points)
+    dgap = _between_electrodes(solution, "w", x, x) / force_of_solution_N
+    return GapField(solution.taxel.gap_um, dgap, np.outer(w, w))
 
 
 def sensitivity_per_N(field: GapField, forces_N: np.ndarray | None = None) -> float:
@@ -100,16 +110,11 @@ def shear_relative_change(solution: RitzSolution, force_of_solution_N: float, fo
     Returns shape (len(forces_N),).
     """
     taxel = solution.taxel
-    bx = solution.bases[0]
-    x, w, _ = bx.quadrature(points)
-    inside = x < taxel.half_electrode_um
-    x, w = x[inside], w[inside]
-    z = taxel.interfaces_um
-    zu, zl = z[taxel.upper_electrode_interface], z[taxel.lower_electrode_interface]
-    dgap = (solution.displacement("w", x, x, zu) - solution.displacement("w", x, x, zl)) / force_of_solution_N
+    x, w = _electrode_quadrature(solution, points)
+    dgap = _between_electrodes(solution, "w", x, x) / force_of_solution_N
     edge = np.array([taxel.half_electrode_um])
-    slide = (solution.displacement("u", edge, x, zu) - solution.displacement("u", edge, x, zl))[0] / force_of_solution_N
-    dgap_edge = (solution.displacement("w", edge, x, zu) - solution.displacement("w", edge, x, zl))[0] / force_of_solution_N
+    slide = _between_electrodes(solution, "u", edge, x)[0] / force_of_solution_N
+    dgap_edge = _between_electrodes(solution, "w", edge, x)[0] / force_of_solution_N
     d0 = taxel.gap_um
     forces = np.atleast_1d(np.asarray(forces_N, dtype=float))
     area = np.outer(w, w)
