@@ -68,7 +68,6 @@ class Board:
         self._command_buffer = bytearray()
         self.truth: list[Truth] | None = [] if keep_truth else None
         self._now = 0.0
-        self.dropped_scans = 0
 
     @property
     def next_scan_time(self) -> float:
@@ -105,7 +104,6 @@ class Board:
     def _scan(self, t: float, drop: bool) -> bytes:
         t_us = int(round(t * 1e6))
         if drop:
-            self.dropped_scans += 1
             self._overrun = True
             for sensor in self.config.sensors:
                 self._seq[sensor.id] += 1

@@ -22,7 +22,6 @@ log = logging.getLogger(__name__)
 OPEN_SENTINEL = 0xFFFFFFFF
 SHORT_SENTINEL = 0x00000000
 AF_PER_PF = 1e6
-QUAD_CHANNELS = ("C11", "C12", "C21", "C22")
 
 
 @dataclass(frozen=True, slots=True)

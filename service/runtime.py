@@ -84,6 +84,7 @@ class TactileService:
             "board_errors": [{"t_host": t, "text": text} for t, text in pipeline.interpreter.board_errors],
             "sensors": sensors,
             "websocket_clients": len(self.hub.subscribers),
+            "frames_published": self.hub.frames_published,
             "replay": self.readout.link.url.startswith("replay://"),
             "recording": None if self.recorder is None else self.recorder.status(),
             "reconstruction": {

@@ -7,7 +7,7 @@ from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import Drift, SimGrid, SimQuad
 from service.bench import _noise_floor_N
 from service.pipeline import Pipeline
-from service.protocol import FLAG_SATURATED, Decoder, FrameType, encode_frame
+from service.protocol import FLAG_SATURATED, FrameType, encode_frame
 from service.reconstruct import Reconstructor
 from service.reconstruct.select import SceneConfig
 
@@ -75,7 +75,6 @@ def test_contact_summary_counts_and_locates_contacts():
     contact = grid[-1].contact
     assert contact["contacts"] == 2
     assert contact["total_N"] == pytest.approx(5.0, rel=0.05)
-    _, _, _, _ = run("press", 2.0)
     _, press_grid, press_forces, press_expected = run("press", 2.0)
     peak = int(np.argmax(press_expected[:, PRESSED]))
     summary = press_grid[peak].contact

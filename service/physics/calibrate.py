@@ -153,13 +153,6 @@ class QuadCalibration:
         out = (np.asarray(relative) < 0) | (force > self.normal_usable_N)
         return np.minimum(force, self.normal_usable_N), out
 
-    def invert_shear(self, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Signed tangential force and an out-of-domain mask (past the usable
-        range or the model's turning point: held, flagged)."""
-        force, out = shear.shear_force(relative, self.shear_a_per_N, self.shear_b_per_N2)
-        beyond = np.abs(force) > self.shear_usable_N
-        return np.clip(force, -self.shear_usable_N, self.shear_usable_N), out | beyond
-
     def normal_relative(self, force_N: float) -> float:
         """ΔC/C0 at a compressive force (inverse of the monotone Yeoh law)."""
         if force_N <= 0:

@@ -42,7 +42,3 @@ def normal_force(relative: np.ndarray, c10_area_N: float, c20_area_N: float) -> 
     i1 = lam**2 + 2.0 / lam
     return 2.0 * (lam**-2 - lam) * (c10_area_N + 2.0 * c20_area_N * (i1 - 3.0))
 
-
-def normal_stiffness_at_zero(c10_area_N: float) -> float:
-    """dF/d(ΔC/C0) at zero load: 6 S0 C10 (Young's modulus 6 C10)."""
-    return 6.0 * c10_area_N

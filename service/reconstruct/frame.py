@@ -55,12 +55,3 @@ class ForceFrame:
             out["taxel_flags"] = self.taxel_flag_lists()
             out["contact"] = self.contact
         return out
-
-    def stream_dict(self) -> dict:
-        out = self.export_dict()
-        out["t_host"] = self.t_host
-        if self.sensor.kind == "grid":
-            out["rows"] = self.sensor.rows
-            out["cols"] = self.sensor.cols
-        return out
-

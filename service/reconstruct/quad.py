@@ -66,7 +66,6 @@ class QuadModel:
         shape (...) for normal_out_of_range, shear_out_of_range; plus the
         combinations X, Y, Z and the redundant R under "combinations"."""
         axes = relative @ COMBINATIONS
-        residual = axes[..., 3]
         fz, normal_out = calibrate.invert_fit(self.normal_fit, axes[..., 2])
         beyond = fz > self.normal_usable_N
         fz = np.minimum(fz, self.normal_usable_N)
