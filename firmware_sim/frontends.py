@@ -102,6 +102,8 @@ def serve_tcp(board: Board, server: socket.socket, stop: threading.Event, t0: fl
         except TimeoutError:
             continue
         client.setblocking(False)
+        # A board streams small frames at 1 kHz: Nagle's algorithm would hold them for ACKs.
+        client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         link = _Link(client.fileno(), client.send, client.recv)
         link.pending += board.power_up()
         try:

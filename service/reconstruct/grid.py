@@ -115,9 +115,9 @@ class GridProcessor:
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
         """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
         per-taxel flags (N, n). A single frame is a batch of one."""
-        flags = np.where(np.isnan(capacitance), NO_READING, 0).astype(np.uint8)
+        flags = np.isnan(capacitance).view(np.uint8) * np.uint8(NO_READING)
         if np.nanmax(baseline_std, initial=0.0) > NOISE_FLOOR_PF:
-            flags |= np.where(self._stuck(capacitance), STALE, 0).astype(np.uint8)
+            flags |= self._stuck(capacitance).view(np.uint8) * np.uint8(STALE)
         if self.level == "level0":
             return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags)
         noise = self.noise(baseline, baseline_std)
@@ -125,10 +125,11 @@ class GridProcessor:
             relative = level0.relative_change(capacitance, baseline)
         else:
             relative, corrected, suspect = self._compensate(capacitance, baseline, noise, t_s)
-            flags |= np.where(corrected, CROSSTALK_CORRECTED, 0).astype(np.uint8)
-            flags |= np.where(suspect[:, None] & (flags & NO_READING == 0), DRIFT_SUSPECT, 0).astype(np.uint8)
+            flags |= corrected.view(np.uint8) * np.uint8(CROSSTALK_CORRECTED)
+            if suspect.any():
+                flags |= (suspect[:, None] & (flags & NO_READING == 0)).view(np.uint8) * np.uint8(DRIFT_SUSPECT)
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
-        flags |= np.where(saturated, SATURATED, 0).astype(np.uint8) | np.where(out_of_range, OUT_OF_RANGE, 0).astype(np.uint8)
+        flags |= saturated.view(np.uint8) * np.uint8(SATURATED) | out_of_range.view(np.uint8) * np.uint8(OUT_OF_RANGE)
         return GridResult(forces, flags)
 
     def _compensate(self, capacitance, baseline, noise, t_s):
@@ -139,6 +140,10 @@ class GridProcessor:
         Refined coefficients take effect only at multiples of
         ADOPT_PERIOD_FRAMES frames, so the result does not depend on how the
         stream was cut into batches (a replay equals the live run)."""
+        if len(capacitance) <= ADOPT_PERIOD_FRAMES - self._frames_seen % ADOPT_PERIOD_FRAMES - 1:
+            # The whole batch lies inside one adoption period: no slicing needed.
+            self._frames_seen += len(capacitance)
+            return self._compensate_segment(capacitance, baseline, noise, t_s)
         parts = []
         start = 0
         while start < len(capacitance):

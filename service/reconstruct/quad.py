@@ -85,6 +85,7 @@ class QuadModel:
 class QuadProcessor:
     level: str
     model: QuadModel = field(default_factory=QuadModel)
+    _noise_for: tuple | None = None
 
     def __post_init__(self) -> None:
         if self.level not in QUAD_LEVELS:
@@ -96,9 +97,13 @@ class QuadProcessor:
             return quad_forces(capacitance, baseline), [[] for _ in range(len(capacitance))]
         relative = relative_change(capacitance, baseline)
         forces, masks = self.model.inverse(relative)
-        noise = np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0
+        if self._noise_for is None or self._noise_for[0] is not baseline_std:  # once per tare
+            self._noise_for = (baseline_std, np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0)
+        noise = self._noise_for[1]
         combinations = masks.pop("combinations")
         masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
         names = list(masks)
         table = np.stack([masks[name] for name in names], axis=-1)
+        if not table.any():  # the usual case: no flag on any frame
+            return forces, [[] for _ in range(len(forces))]
         return forces, [[name for name, hit in zip(names, row) if hit] for row in table.tolist()]
