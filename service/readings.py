@@ -84,7 +84,9 @@ def default_sensor(sensor_id: int, frame: Frame) -> SensorInfo | None:
 
 
 def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
-    """Parse an INFO payload; raise ValueError naming what is wrong."""
+    """Parse an INFO payload; raise ValueError naming what is wrong. A sensor
+    of a kind this service does not know is left out (logged), so one exotic
+    sensor does not hide the shapes of the others."""
     try:
         doc = orjson.loads(payload)
     except orjson.JSONDecodeError as exc:
@@ -104,7 +106,7 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
                 raise ValueError(f"INFO grid sensor {sid} has invalid shape rows={rows!r} cols={cols!r}")
             sensors[sid] = SensorInfo(sid, "grid", rows, cols)
         else:
-            raise ValueError(f"INFO sensor {sid} has unknown kind {kind!r}")
+            log.warning("INFO: ignoring sensor %s of unknown kind %r", sid, kind)
     return doc, sensors
 
 

@@ -61,13 +61,17 @@ def test_grid_of_unknown_shape_without_info_is_dropped_and_counted():
         (b"not json", "not JSON"),
         (b"[1]", "JSON object"),
         (b'{"sensors": [{"id": 0, "kind": "grid", "rows": 0, "cols": 8}]}', "invalid shape"),
-        (b'{"sensors": [{"id": 0, "kind": "tri"}]}', "unknown kind 'tri'"),
         (b'{"sensors": [{"kind": "quad"}]}', "integer id"),
     ],
 )
 def test_bad_info_names_the_problem(payload, message):
     with pytest.raises(ValueError, match=message):
         parse_info(payload)
+
+
+def test_unknown_sensor_kind_does_not_hide_the_others():
+    _, sensors = parse_info(b'{"sensors": [{"id": 0, "kind": "thermo"}, {"id": 1, "kind": "grid", "rows": 4, "cols": 4}]}')
+    assert list(sensors) == [1] and sensors[1].rows == 4
 
 
 def test_bad_info_is_counted_not_fatal():
