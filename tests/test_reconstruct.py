@@ -113,3 +113,14 @@ def test_hold_keeps_arrival_order_across_sensors():
         out += rec.process(reading(GRID, table1().c0_pF, seq))
         out += rec.process(reading(QUAD, np.full(4, 2.0), seq))
     assert [(f.sensor.id, f.seq) for f in out] == [(0, 0), (1, 0), (0, 1), (1, 1), (0, 2), (1, 2)]
+
+
+def test_a_channel_open_during_the_tare_gets_its_baseline_late():
+    base = Baseline(2, frames=3)
+    for _ in range(3):
+        base.update(np.array([1.0, np.nan]))
+    assert base.ready and np.isnan(base.value[1])
+    for value in (2.0, 2.2, 2.4):
+        base.update(np.array([5.0, value]))
+    assert base.value[0] == 1.0 and base.value[1] == pytest.approx(2.2)
+    assert base.std[1] == pytest.approx(np.std([2.0, 2.2, 2.4]))

@@ -9,8 +9,10 @@ DEFAULT_TARE_FRAMES = 100
 class Baseline:
     """Mean capacitance of the first ``frames`` readings after start or tare.
 
-    Sentinel channels (NaN) are left out of the mean; a channel that never
-    gave a valid reading keeps a NaN baseline, so it can never yield a force.
+    Sentinel channels (NaN) are left out of the mean. A channel that gave no
+    valid reading in the window keeps a NaN baseline (no force) until it has
+    given ``frames`` valid readings of its own, then gets its baseline late:
+    a trace that was open at start-up and recovers is not lost for good.
     The sensor must be unloaded while it tares: a load present then becomes
     the new zero (the price of auto-tare; a later tare with the sensor free
     corrects it).
@@ -26,6 +28,7 @@ class Baseline:
         self._seen = 0
         self.value = np.full(channels, np.nan)
         self.std = np.full(channels, np.nan)
+        self._late = np.zeros(channels, dtype=bool)
 
     @property
     def ready(self) -> bool:
@@ -39,21 +42,37 @@ class Baseline:
         self._seen = 0
         self.value = np.full_like(self.value, np.nan)
         self.std = np.full_like(self.std, np.nan)
+        self._late[:] = False
 
     def update(self, capacitance_pF: np.ndarray) -> bool:
         """Feed one reading of shape (channels,); return whether the baseline
         is ready (the reading that completes it is already tared)."""
         if self.ready:
+            if self._late.any():
+                self._accumulate(capacitance_pF, self._late)
+                done = self._late & (self._count >= self.frames)
+                if done.any():
+                    self._finish(done)
+                    self._late &= ~done
             return True
-        valid = ~np.isnan(capacitance_pF)
+        self._accumulate(capacitance_pF, np.ones(self._count.shape, dtype=bool))
+        self._seen += 1
+        if self.ready:
+            self._finish(self._count > 0)
+            self._late = self._count == 0
+        return self.ready
+
+    def _accumulate(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> None:
+        valid = channels & ~np.isnan(capacitance_pF)
         self._sum[valid] += capacitance_pF[valid]
         self._sum_sq[valid] += capacitance_pF[valid] ** 2
         self._count += valid
-        self._seen += 1
-        if self.ready:
-            count = np.maximum(self._count, 1)
-            mean = self._sum / count
-            self.value = np.where(self._count > 0, mean, np.nan)
-            # The spread of the tare window is the channel's noise floor.
-            self.std = np.where(self._count > 1, np.sqrt(np.maximum(self._sum_sq / count - mean**2, 0.0)), np.nan)
-        return self.ready
+
+    def _finish(self, channels: np.ndarray) -> None:
+        """Set the baseline of ``channels`` (new arrays, so caches keyed on
+        them see the change). The spread is the channel's noise floor."""
+        count = np.maximum(self._count, 1)
+        mean = self._sum / count
+        spread = np.sqrt(np.maximum(self._sum_sq / count - mean**2, 0.0))
+        self.value = np.where(channels, mean, self.value)
+        self.std = np.where(channels & (self._count > 1), spread, self.std)
