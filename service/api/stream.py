@@ -108,8 +108,9 @@ class Hub:
         now = frames[-1].t_host
         for subscriber in self.subscribers:
             parts = []
+            everything = subscriber.sensors is None and subscriber.max_rate_hz is None
             for i, frame in enumerate(frames):
-                if subscriber.wants(frame):
+                if everything or subscriber.wants(frame):
                     key = (i, subscriber.key)
                     part = encoded.get(key)
                     if part is None:

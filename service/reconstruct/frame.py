@@ -31,7 +31,7 @@ class ForceFrame:
 
     def taxel_flag_lists(self) -> dict[str, list[int]]:
         """Per-taxel flags as {name: [row-major taxel indices]}, only flags set."""
-        if self.taxel_flags is None:
+        if self.taxel_flags is None or not self.taxel_flags.any():
             return {}
         out = {}
         for bit, name in TAXEL_FLAG_NAMES.items():
