@@ -105,7 +105,3 @@ def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAUL
     pipeline.finish(t_last)
     return pipeline
 
-
-def replay_raw(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat") -> Pipeline:
-    """A raw capture as fast as possible (the issue-2 entry point)."""
-    return replay(path, export, level, mounting)

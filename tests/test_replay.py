@@ -9,14 +9,14 @@ from firmware_sim.board import BoardConfig, capture
 from firmware_sim.faults import inject
 from service.cli import main
 from service.protocol import FrameType
-from service.replay import replay_raw
+from service.replay import replay
 
 DATA_TYPES = (FrameType.GRID, FrameType.QUAD)
 
 
 def export(path):
     out = io.BytesIO()
-    pipeline = replay_raw(path, out)
+    pipeline = replay(path, out)
     return [orjson.loads(line) for line in out.getvalue().splitlines()], pipeline
 
 
