@@ -60,7 +60,9 @@ class Tally:
         for _ in range(count):
             _, kind, sid, field_bits, seq, _, stamp, _, n = RECORD.unpack_from(message, pos)
             pos += RECORD.size + 4 * n
-            self.seqs.setdefault(sid, []).append(seq)
+            seen = self.seqs.setdefault(sid, [])
+            # Unwrap the 16-bit sequence (it wraps every 65.5 s at 1 kHz); frames of one sensor arrive in order.
+            seen.append(seen[-1] + ((seq - seen[-1]) & 0xFFFF) if seen else seq)
             self.latency.append(now - stamp)
 
     def share(self, window: dict[int, tuple[int, int]]) -> float:
@@ -91,16 +93,16 @@ async def listen(url: str, tally: Tally, stop: float) -> None:
 
 async def stalled(url: str, stop: float) -> None:
     # Subscribe and never read: the server's queue for us must fill and drop.
-    async with websockets.connect(url + "/ws", max_size=None, max_queue=1) as ws:
+    async with websockets.connect(url + "/ws", max_size=None, max_queue=1, close_timeout=0.5) as ws:
         ws.transport.pause_reading()
         await asyncio.sleep(max(stop - time.time(), 0))
 
 
-async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int) -> list[Tally]:
+async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int, batch_ms: float) -> list[Tally]:
     url = base.replace("http", "ws", 1)
     stop = time.time() + seconds
     tallies = [Tally() for _ in range(n_healthy)]
-    healthy = url + "/ws?encoding=binary&batch_ms=20&fields=force,flags"
+    healthy = url + f"/ws?encoding=binary&batch_ms={batch_ms:g}&fields=force,flags"
     tasks = [asyncio.create_task(listen(healthy, t, stop)) for t in tallies]
     tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(n_stalled)]
     await asyncio.gather(*tasks, return_exceptions=True)
@@ -122,12 +124,15 @@ def main() -> int:
     parser.add_argument("--out", help="write a markdown report here")
     parser.add_argument("--healthy", type=int, default=20, help="healthy clients (default 20)")
     parser.add_argument("--stalled", type=int, default=5, help="stalled clients (default 5)")
+    parser.add_argument("--batch-ms", type=float, default=5.0, help="healthy clients' batching interval (default 5)")
+    parser.add_argument("--level", default="full", help="the service's reconstruction level (default full)")
     args = parser.parse_args()
     board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
                               "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(1.0)
     source = f"socket://127.0.0.1:{args.port + 1}"
-    service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", source, "--port", str(args.port)],
+    service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", source, "--port", str(args.port),
+                                "--level", args.level],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     base = f"http://127.0.0.1:{args.port}"
     try:
@@ -144,12 +149,12 @@ def main() -> int:
         results = multiprocessing.Queue()
         critical_process = multiprocessing.Process(target=latency_client, args=(base, args.seconds, CRITICAL_SENSOR, results))
         critical_process.start()
-        healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled))
+        healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms))
+        elapsed = time.time() - t0
+        cpu1, rss = proc_sample(service.pid)
         critical = Tally()
         critical.seqs, critical.latency = results.get(timeout=30)
         critical_process.join(10)
-        elapsed = time.time() - t0
-        cpu1, rss = proc_sample(service.pid)
         health = json.loads(urllib.request.urlopen(base + "/health", timeout=5).read())
     finally:
         service.terminate()

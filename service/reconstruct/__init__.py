@@ -10,7 +10,6 @@ import numpy as np
 from ..calibration import GridCalibration, grid_calibration
 from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES, Baseline
-from .contact import summarise
 from .frame import ForceFrame
 from .grid import GRID_LEVELS, NO_READING, GridProcessor, flag_names
 from .quad import QuadModel, QuadProcessor
@@ -194,7 +193,7 @@ class Reconstructor:
     def _reconstruct_sensor(self, state: _SensorState, readings: list[Reading]) -> list[ForceFrame]:
         info = state.info
         flags = [r.frame_flags() for r in readings]
-        taxel_flags = contacts = None
+        taxel_flags = None
         if not state.baseline.ready:
             forces = np.full((len(readings), 3 if info.kind == "quad" else info.channels), np.nan)
             for f in flags:
@@ -208,14 +207,12 @@ class Reconstructor:
                 union = np.bitwise_or.reduce(taxel_flags & ~np.uint8(NO_READING), axis=1)
                 for f, bits in zip(flags, union.tolist()):
                     f.extend(flag_names(bits))
-                summary = summarise(forces, info.rows, info.cols)
-                contacts = [dict(zip(summary, values)) for values in zip(*(v.tolist() for v in summary.values()))]
             else:
                 forces, quad_flags = state.processor.process(capacitance, state.baseline.value, state.baseline.std)
                 for f, extra in zip(flags, quad_flags):
                     f.extend(extra)
         return [
             ForceFrame(info, r.seq, r.t_us, r.t_host, forces[k], r.capacitance_pF, flags[k], self.level,
-                       None if taxel_flags is None else taxel_flags[k], None if contacts is None else contacts[k])
+                       None if taxel_flags is None else taxel_flags[k])
             for k, r in enumerate(readings)
         ]

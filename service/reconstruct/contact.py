@@ -40,35 +40,21 @@ def _regions(cells: list[int], cols: int) -> int:
     return regions
 
 
-def count_regions(active: np.ndarray) -> np.ndarray:
-    """Number of 4-connected regions of True in (..., rows, cols) masks."""
-    cols = active.shape[-1]
-    flat = active.reshape(-1, active.shape[-2] * cols)
-    counts = np.array([_regions(np.flatnonzero(mask).tolist(), cols) if mask.any() else 0 for mask in flat], dtype=np.int64)
-    return counts.reshape(active.shape[:-2])
-
-
 def summarise(forces_N: np.ndarray, rows: int, cols: int, threshold_N: float = DEFAULT_THRESHOLD_N) -> dict:
-    """Contact summary of (..., rows*cols) forces (NaN = no reading).
+    """Contact summary of one frame's (rows*cols,) forces (NaN = no reading).
 
-    Returns arrays of shape (...): total_N, cop_x_mm, cop_y_mm (NaN without
+    Returns plain numbers: total_N, cop_x_mm, cop_y_mm (NaN without
     contact), area_mm2, contacts."""
-    forces = np.asarray(forces_N, dtype=float)
-    active = forces > threshold_N  # NaN compares False: no reading, no contact
-    loaded = np.where(active, forces, 0.0)
-    total = loaded.sum(axis=-1)
-    if not active.any():
-        zeros = np.zeros(total.shape)
-        return {"total_N": zeros, "cop_x_mm": np.full(total.shape, np.nan), "cop_y_mm": np.full(total.shape, np.nan),
-                "area_mm2": zeros, "contacts": np.zeros(total.shape, dtype=np.int64)}
+    active = np.flatnonzero(forces_N > threshold_N)  # NaN compares False: no reading, no contact
+    if not active.size:
+        return {"total_N": 0.0, "cop_x_mm": float("nan"), "cop_y_mm": float("nan"), "area_mm2": 0.0, "contacts": 0}
+    loaded = forces_N[active]
+    total = float(loaded.sum())
     x, y = taxel_centres_mm(rows, cols)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cop_x = np.where(total > 0, (loaded * x).sum(axis=-1) / total, np.nan)
-        cop_y = np.where(total > 0, (loaded * y).sum(axis=-1) / total, np.nan)
     return {
         "total_N": total,
-        "cop_x_mm": cop_x,
-        "cop_y_mm": cop_y,
-        "area_mm2": active.sum(axis=-1) * PITCH_MM * PITCH_MM,
-        "contacts": count_regions(active.reshape(active.shape[:-1] + (rows, cols))),
+        "cop_x_mm": float(x[active] @ loaded) / total,
+        "cop_y_mm": float(y[active] @ loaded) / total,
+        "area_mm2": active.size * PITCH_MM * PITCH_MM,
+        "contacts": _regions(active.tolist(), cols),
     }

@@ -1,11 +1,12 @@
 """ForceFrame: one reconstructed frame, the unit every listener receives."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..readings import SensorInfo
+from .contact import summarise
 from .grid import TAXEL_FLAG_NAMES
 
 
@@ -27,7 +28,16 @@ class ForceFrame:
     flags: list[str]
     level: str
     taxel_flags: np.ndarray | None = None  # grid: (rows*cols,) bit set, see grid.TAXEL_FLAG_NAMES
-    contact: dict | None = None  # grid: total_N, cop_x_mm, cop_y_mm, area_mm2, contacts
+    _contact: dict | None = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def contact(self) -> dict | None:
+        """Grid: total_N, cop_x_mm, cop_y_mm, area_mm2, contacts; None for a quad
+        or a frame without any force (taring). Computed on first use: most
+        listeners of a 1 kHz stream never ask."""
+        if self._contact is None and self.sensor.kind == "grid" and not np.isnan(self.forces_N).all():
+            self._contact = summarise(self.forces_N, self.sensor.rows, self.sensor.cols)
+        return self._contact
 
     def taxel_flag_lists(self) -> dict[str, list[int]]:
         """Per-taxel flags as {name: [row-major taxel indices]}, only flags set."""
