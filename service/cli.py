@@ -37,7 +37,6 @@ def cmd_serve(args) -> int:
     if token:
         print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
     # No per-message deflate: compressing every 1 kHz message costs more CPU than loopback or a LAN saves.
-    import sys; sys.setswitchinterval(float(os.environ.get("SWI", "0.005")))
     uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws_per_message_deflate=False)
     return 0
 
