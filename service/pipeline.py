@@ -56,17 +56,29 @@ class Pipeline:
         self._lock = threading.Lock()
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
-        for listener in self.byte_listeners:
-            listener(data, t_host)
+        return self.feed_chunks([(data, t_host)])
+
+    def feed_chunks(self, chunks: list[tuple[bytes, float]]) -> list[ForceFrame]:
+        """Several reads at once: each chunk is decoded with its own receive
+        time, then all are reconstructed together (one call per sensor, not
+        per read) and published as one batch."""
+        readings = []
+        for data, t_host in chunks:
+            for listener in self.byte_listeners:
+                listener(data, t_host)
+            with self._lock:
+                readings += self._interpret(self.decoder.feed(data), t_host)
         with self._lock:
-            frames = self._reconstruct(self.decoder.feed(data), t_host)
-        self._publish(frames, t_host)
+            frames = self.reconstructor.process_many(readings) if readings else []
+        if chunks:
+            self._publish(frames, chunks[-1][1])
         return frames
 
     def finish(self, t_host: float) -> list[ForceFrame]:
         """End of a finite stream: decode what is left, release held frames."""
         with self._lock:
-            frames = self._reconstruct(self.decoder.finish(), t_host) + self.reconstructor.flush()
+            readings = self._interpret(self.decoder.finish(), t_host)
+            frames = (self.reconstructor.process_many(readings) if readings else []) + self.reconstructor.flush()
         self._publish(frames, t_host)
         return frames
 
@@ -82,9 +94,8 @@ class Pipeline:
         with self._lock:
             return self.reconstructor.set_calibration(info, upload)
 
-    def _reconstruct(self, frames, t_host: float) -> list[ForceFrame]:
-        readings = [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
-        return self.reconstructor.process_many(readings) if readings else []
+    def _interpret(self, frames, t_host: float) -> list:
+        return [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
 
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:

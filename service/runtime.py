@@ -1,14 +1,25 @@
-"""The running service: readout thread → pipeline → API hub, wired once."""
+"""The running service: readout thread → pipeline → API hub, wired once.
+
+The readout thread only reads: each chunk goes into an inbox with its
+receive time, and the event loop drains the inbox, decodes, reconstructs and
+publishes. Decoding and sending then share one thread, so a frame is sent
+as soon as its batch is reconstructed; with the pipeline in the reading
+thread, every socket send of the loop (which releases the GIL) handed the
+GIL back to the reconstruction for up to a switch interval (5 ms), and
+latency piled up. Reads that arrive while the loop is busy are drained
+together, so the batches grow under load instead of the backlog.
+"""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 
 from .api.stream import Hub
 from .pipeline import Pipeline
 from .readout import Readout
 from .record.recorder import Recorder
-from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
+from .reconstruct import DEFAULT_LEVEL, Reconstructor
 from .sources import DEFAULT_SOURCE
 
 
@@ -19,14 +30,17 @@ class TactileService:
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat") -> None:
         self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
         self.hub = Hub()
-        self.readout = Readout(source, self.pipeline.feed, self.pipeline.link_lost)
+        self.readout = Readout(source, self._received, self._link_lost)
         self.started_at = time.time()
         self.recorder: Recorder | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._inbox: list[tuple[bytes, float] | None] = []  # None marks a lost link
+        self._inbox_lock = threading.Lock()
+        self._drain_scheduled = False
 
     def start(self) -> None:
         self._loop = asyncio.get_running_loop()
-        self.pipeline.listeners.append(self._to_loop)
+        self.pipeline.listeners.append(self.hub.publish)
         self.readout.start()
 
     def start_recording(self, path: str, raw_path: str | None = None) -> dict:
@@ -51,13 +65,40 @@ class TactileService:
     def stop(self) -> None:
         self.stop_recording()
         self.readout.stop()
-        if self._to_loop in self.pipeline.listeners:
-            self.pipeline.listeners.remove(self._to_loop)
+        if self.hub.publish in self.pipeline.listeners:
+            self.pipeline.listeners.remove(self.hub.publish)
 
-    def _to_loop(self, frames: list[ForceFrame]) -> None:
+    def _received(self, data: bytes, t_host: float) -> None:
+        """Readout thread: queue a chunk; wake the loop unless it is already due to drain."""
+        self._post((data, t_host))
+
+    def _link_lost(self) -> None:
+        self._post(None)
+
+    def _post(self, item: tuple[bytes, float] | None) -> None:
+        with self._inbox_lock:
+            self._inbox.append(item)
+            if self._drain_scheduled:
+                return
+            self._drain_scheduled = True
         loop = self._loop
         if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(self.hub.publish, frames)
+            loop.call_soon_threadsafe(self._drain)
+
+    def _drain(self) -> None:
+        """Event loop: feed everything queued, in order, as few batches as possible."""
+        with self._inbox_lock:
+            items, self._inbox = self._inbox, []
+            self._drain_scheduled = False
+        chunks: list[tuple[bytes, float]] = []
+        for item in items:
+            if item is not None:
+                chunks.append(item)
+                continue
+            self.pipeline.feed_chunks(chunks)
+            chunks = []
+            self.pipeline.link_lost()
+        self.pipeline.feed_chunks(chunks)
 
     def health(self) -> dict:
         now = time.time()

@@ -67,7 +67,7 @@ def invert_fit(coefficients, relative: np.ndarray) -> tuple[np.ndarray, np.ndarr
     c2, c1, c0 = coefficients
     r = np.asarray(relative, dtype=float)
     top = c0 - c1 * c1 / (4 * c2)
-    clipped = np.clip(r, c0, top)
+    clipped = np.minimum(np.maximum(r, c0), top)  # np.clip's dispatch costs more than the math at 1 frame
     force = 2 * (clipped - c0) / (c1 + np.sqrt(np.maximum(c1 * c1 + 4 * c2 * (clipped - c0), 0.0)))
     return force, (r > top) | (r < c0)
 
