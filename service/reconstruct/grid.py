@@ -67,8 +67,11 @@ class GridProcessor:
     _last_raw: np.ndarray | None = None
     _same_count: np.ndarray | None = None
     _noise_for: tuple | None = None
+    _noisy_for: tuple | None = None
+    _reference_for: tuple | None = None
     adopted_events: int = 0
     _frames_seen: int = 0
+    _sampled: list = field(default_factory=list)  # (ΔC/C0 rows, noise, baseline) awaiting the estimator
 
     def __post_init__(self) -> None:
         if self.level not in GRID_LEVELS:
@@ -115,9 +118,11 @@ class GridProcessor:
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
         """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
         per-taxel flags (N, n). A single frame is a batch of one."""
-        flags = np.isnan(capacitance).view(np.uint8) * np.uint8(NO_READING)
-        if np.nanmax(baseline_std, initial=0.0) > NOISE_FLOOR_PF:
-            flags |= self._stuck(capacitance).view(np.uint8) * np.uint8(STALE)
+        # Flags are set with ``where=`` masks: at 1 kHz frame by frame the
+        # number of numpy calls, not their arithmetic, is the cost.
+        flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
+        if self._noisy_board(baseline_std):
+            np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance))
         if self.level == "level0":
             return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags)
         noise = self.noise(baseline, baseline_std)
@@ -125,12 +130,20 @@ class GridProcessor:
             relative = level0.relative_change(capacitance, baseline)
         else:
             relative, corrected, suspect = self._compensate(capacitance, baseline, noise, t_s)
-            flags |= corrected.view(np.uint8) * np.uint8(CROSSTALK_CORRECTED)
+            np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=corrected)
             if suspect.any():
-                flags |= (suspect[:, None] & (flags & NO_READING == 0)).view(np.uint8) * np.uint8(DRIFT_SUSPECT)
+                np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & NO_READING == 0))
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
-        flags |= saturated.view(np.uint8) * np.uint8(SATURATED) | out_of_range.view(np.uint8) * np.uint8(OUT_OF_RANGE)
+        np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
+        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
         return GridResult(forces, flags)
+
+    def _noisy_board(self, baseline_std_pF: np.ndarray) -> bool:
+        """Whether the converter shows noise at all (else equal counts in a
+        row are normal and stuck channels cannot be told). Once per tare."""
+        if self._noisy_for is None or self._noisy_for[0] is not baseline_std_pF:
+            self._noisy_for = (baseline_std_pF, bool(np.nanmax(baseline_std_pF, initial=0.0) > NOISE_FLOOR_PF))
+        return self._noisy_for[1]
 
     def _compensate(self, capacitance, baseline, noise, t_s):
         """Leakage → drift → mechanical unmixing, on (N, n) frames at (N,) times.
@@ -142,8 +155,9 @@ class GridProcessor:
         stream was cut into batches (a replay equals the live run)."""
         if len(capacitance) <= ADOPT_PERIOD_FRAMES - self._frames_seen % ADOPT_PERIOD_FRAMES - 1:
             # The whole batch lies inside one adoption period: no slicing needed.
+            result = self._compensate_segment(capacitance, baseline, noise, t_s)
             self._frames_seen += len(capacitance)
-            return self._compensate_segment(capacitance, baseline, noise, t_s)
+            return result
         parts = []
         start = 0
         while start < len(capacitance):
@@ -151,24 +165,46 @@ class GridProcessor:
             parts.append(self._compensate_segment(capacitance[start:end], baseline, noise, t_s[start:end]))
             self._frames_seen += end - start
             if self._frames_seen % ADOPT_PERIOD_FRAMES == 0:
+                self._observe_sampled()
                 self._adopt_estimates()
             start = end
         return tuple(np.concatenate(arrays) for arrays in zip(*parts))
 
     def _compensate_segment(self, capacitance, baseline, noise, t_s):
         crosstalk = self.crosstalk
-        relative = crosstalk.unleak(capacitance, baseline) / crosstalk.unleak(baseline, baseline) - 1.0
+        relative = crosstalk.unleak(capacitance, baseline) / self._reference(baseline) - 1.0
         drift, suspect = self.drift.update(relative, noise, t_s)
         relative = DriftTracker.correct(relative, drift[:, None])
         # Every ESTIMATE_EVERY-th frame (by frame count, so batching does not matter)
-        # is plenty for coefficients that change over hours, and costs a quarter.
-        sampled = (self._frames_seen + np.arange(len(relative))) % ESTIMATE_EVERY == 0
-        if sampled.any():
-            self.estimator.observe(relative[sampled], noise, baseline)
+        # is plenty for coefficients that change over hours; they are observed
+        # together once per adoption period, which costs far less than per frame.
+        first = -self._frames_seen % ESTIMATE_EVERY
+        if first < len(relative):
+            self._sampled.append((relative[first::ESTIMATE_EVERY], noise, baseline))
         compensated = crosstalk.unmix_mechanical(relative)
         uncompensated = DriftTracker.correct(capacitance / baseline - 1.0, drift[:, None])
         corrected = np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise
         return compensated, corrected, suspect
+
+    def _reference(self, baseline: np.ndarray) -> np.ndarray:
+        """The baseline as the multiplexer would read it without leakage;
+        recomputed only after a tare or a new leakage fraction."""
+        electrical = self.crosstalk.electrical
+        cached = self._reference_for
+        if cached is None or cached[0] is not baseline or cached[1] != electrical:
+            cached = self._reference_for = (baseline, electrical, self.crosstalk.unleak(baseline, baseline))
+        return cached[2]
+
+    def _observe_sampled(self) -> None:
+        """Feed the estimator the frames sampled this period, one call per tare."""
+        sampled, self._sampled = self._sampled, []
+        while sampled:
+            _, noise, baseline = sampled[0]
+            same = 0
+            while same < len(sampled) and sampled[same][1] is noise and sampled[same][2] is baseline:
+                same += 1
+            self.estimator.observe(np.concatenate([rows for rows, _, _ in sampled[:same]]), noise, baseline)
+            sampled = sampled[same:]
 
     def _adopt_estimates(self) -> None:
         """Refine the coefficients from the data once enough isolated loads
