@@ -179,14 +179,24 @@ class Reconstructor:
         return frames
 
     def _reconstruct(self, items: list[tuple[_SensorState, Reading]]) -> list[ForceFrame]:
-        groups: dict[int, list[int]] = {}
+        groups: dict[int, tuple[_SensorState, list[int]]] = {}
         for index, (state, _) in enumerate(items):
-            groups.setdefault(id(state), []).append(index)
+            groups.setdefault(id(state), (state, []))[1].append(index)
         out: list[ForceFrame | None] = [None] * len(items)
-        for indices in groups.values():
-            state = items[indices[0]][0]
+        # Tared quads that share a model are solved in one call: at 1 kHz the
+        # per-call cost, not the per-frame arithmetic, dominates.
+        quads: dict[tuple, list[tuple[_SensorState, list[int]]]] = {}
+        for state, indices in groups.values():
+            if state.info.kind == "quad" and state.baseline.ready:
+                quads.setdefault(state.processor.batch_key, []).append((state, indices))
+                continue
             readings = [items[i][1] for i in indices]
             for i, frame in zip(indices, self._reconstruct_sensor(state, readings)):
+                out[i] = frame
+        for batch in quads.values():
+            readings = [items[i][1] for _, indices in batch for i in indices]
+            frames = self._reconstruct_quads([(state, len(indices)) for state, indices in batch], readings)
+            for i, frame in zip((i for _, indices in batch for i in indices), frames):
                 out[i] = frame
         return out
 
@@ -200,19 +210,29 @@ class Reconstructor:
                 f.append("taring")
         else:
             capacitance = np.stack([r.capacitance_pF for r in readings])
-            if info.kind == "grid":
-                t_s = np.array([r.t_us * 1e-6 for r in readings])
-                result = state.processor.process(capacitance, state.baseline.value, state.baseline.std, t_s)
-                forces, taxel_flags = result.forces_N, result.taxel_flags
-                union = np.bitwise_or.reduce(taxel_flags & ~np.uint8(NO_READING), axis=1)
+            t_s = np.array([r.t_us * 1e-6 for r in readings])
+            result = state.processor.process(capacitance, state.baseline.value, state.baseline.std, t_s)
+            forces, taxel_flags = result.forces_N, result.taxel_flags
+            union = np.bitwise_or.reduce(taxel_flags, axis=1) & ~np.uint8(NO_READING)
+            if union.any():
                 for f, bits in zip(flags, union.tolist()):
                     f.extend(flag_names(bits))
-            else:
-                forces, quad_flags = state.processor.process(capacitance, state.baseline.value, state.baseline.std)
-                for f, extra in zip(flags, quad_flags):
-                    f.extend(extra)
-        return [
-            ForceFrame(info, r.seq, r.t_us, r.t_host, forces[k], r.capacitance_pF, flags[k], self.level,
-                       None if taxel_flags is None else taxel_flags[k])
-            for k, r in enumerate(readings)
-        ]
+        return self._frames(readings, forces, flags, taxel_flags)
+
+    def _reconstruct_quads(self, sensors: list[tuple[_SensorState, int]], readings: list[Reading]) -> list[ForceFrame]:
+        """Tared quads sharing one model; ``sensors`` gives each sensor's
+        state and how many of ``readings`` (in order) are its."""
+        counts = [count for _, count in sensors]
+        capacitance = np.stack([r.capacitance_pF for r in readings])
+        baseline = np.repeat(np.stack([state.baseline.value for state, _ in sensors]), counts, axis=0)
+        noise = np.repeat([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in sensors], counts)
+        forces, quad_flags = sensors[0][0].processor.process(capacitance, baseline, noise)
+        flags = [r.frame_flags() + extra for r, extra in zip(readings, quad_flags)]
+        return self._frames(readings, forces, flags, None)
+
+    def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None) -> list[ForceFrame]:
+        if taxel_flags is None:
+            return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, self.level)
+                    for r, f, fl in zip(readings, forces, flags)]
+        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, self.level, tf)
+                for r, f, fl, tf in zip(readings, forces, flags, taxel_flags)]

@@ -21,7 +21,7 @@ end and flagged, never taken from the falling branch of a fit.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 
 import numpy as np
 
@@ -88,20 +88,28 @@ class QuadProcessor:
     level: str
     model: QuadModel = field(default_factory=QuadModel)
     _noise_for: tuple | None = None
+    # Processors with equal keys give the same result on the same input, so
+    # their sensors' frames can go through one call.
+    batch_key: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
+        self.batch_key = (self.level, astuple(self.model))
 
-    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple[np.ndarray, list[list[str]]]:
-        """Capacitances (N, 4) pF → forces (N, 3) and each frame's flags."""
+    def noise(self, baseline: np.ndarray, baseline_std: np.ndarray) -> float:
+        """Noise of the combinations' ΔC/C0 from the tare spread (once per tare)."""
+        if self._noise_for is None or self._noise_for[0] is not baseline_std:
+            self._noise_for = (baseline_std, float(np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0))
+        return self._noise_for[1]
+
+    def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float) -> tuple[np.ndarray, list[list[str]]]:
+        """Capacitances (N, 4) pF against baselines (4,) or (N, 4) with the
+        combinations' noise (scalar or (N,)) → forces (N, 3) and each frame's flags."""
         if self.level == "level0":
             return quad_forces(capacitance, baseline), [[] for _ in range(len(capacitance))]
         relative = relative_change(capacitance, baseline)
         forces, masks = self.model.inverse(relative)
-        if self._noise_for is None or self._noise_for[0] is not baseline_std:  # once per tare
-            self._noise_for = (baseline_std, np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0)
-        noise = self._noise_for[1]
         combinations = masks.pop("combinations")
         masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
         if not any(mask.any() for mask in masks.values()):  # the usual case: no flag on any frame
