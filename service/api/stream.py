@@ -1,13 +1,13 @@
-"""WebSocket fan-out: encode each frame once, bounded queue per client.
+"""WebSocket fan-out: bounded queue per client, each frame encoded once.
 
-The readout thread hands batches to the event loop with
-``call_soon_threadsafe``; ``Hub.publish`` then runs on the loop. A frame is
-serialised once per (fields, encoding) however many clients take it; a
-client's message is those parts joined. A client may decimate
-(``max_rate_hz`` per sensor) or batch (``batch_ms``: frames are held and sent
-together once the interval has passed). A client whose queue is full loses
-its own oldest message — never blocking the pipeline or other clients — and
-is told how many frames it lost.
+``Hub.publish`` runs on the event loop with each reconstructed batch and
+queues references to the frames each client wants. A frame is serialised
+when a client's message is sent — once per (fields, encoding), cached on the
+frame, however many clients take it — so frames a stalled client drops cost
+nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
+(``batch_ms``: frames are held and sent together once the interval has
+passed). A client whose queue is full loses its own oldest message — never
+blocking the pipeline or other clients — and is told how many frames it lost.
 """
 from __future__ import annotations
 
@@ -36,8 +36,7 @@ class Subscriber:
     queue: asyncio.Queue = field(default_factory=lambda: asyncio.Queue(QUEUE_MESSAGES))
     dropped_frames: int = 0
     _next_due: dict[int, float] = field(default_factory=dict)
-    _queued_counts: list[int] = field(default_factory=list)
-    _batch: list[bytes] = field(default_factory=list)
+    _batch: list[ForceFrame] = field(default_factory=list)
     _batch_started: float | None = None
 
     @property
@@ -58,41 +57,49 @@ class Subscriber:
         self._next_due[sid] = due + period if frame.t_host < due + period else frame.t_host + period
         return True
 
-    def take(self, parts: list[bytes], now: float) -> None:
-        """Queue ``parts`` (encoded frames), now or, when batching, once the
-        batch interval has passed."""
+    def take(self, frames: list[ForceFrame], now: float) -> None:
+        """Queue ``frames``, now or, when batching, once the batch interval has passed."""
         if self.batch_ms is None:
-            self._offer(parts)
+            self._offer(frames)
             return
         if self._batch_started is None:
             self._batch_started = now
-        self._batch.extend(parts)
+        self._batch.extend(frames)
         if (now - self._batch_started) * 1000.0 >= self.batch_ms:
             self._offer(self._batch)
             self._batch, self._batch_started = [], None
 
-    def _offer(self, parts: list[bytes]) -> None:
-        if not parts:
+    def _offer(self, frames: list[ForceFrame]) -> None:
+        if not frames:
             return
-        if self.binary:
-            message = struct.pack("<H", len(parts)) + b"".join(parts)
-        else:
-            message = b'{"type":"frames","frames":[' + b",".join(parts) + b"]}"
         if self.queue.full():
-            self.queue.get_nowait()
-            self.dropped_frames += self._queued_counts.pop(0)
-        self.queue.put_nowait(message)
-        self._queued_counts.append(len(parts))
+            self.dropped_frames += len(self.queue.get_nowait())
+        self.queue.put_nowait(frames)
 
     async def next_message(self) -> tuple[bytes, bytes | None]:
         """The next message, and a JSON notice of frames lost before it (or None)."""
-        message = await self.queue.get()
-        self._queued_counts.pop(0)
+        frames = await self.queue.get()
         notice = None
         if self.dropped_frames:
             notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
             self.dropped_frames = 0
-        return message, notice
+        parts = [self._encode(frame) for frame in frames]
+        if self.binary:
+            return struct.pack("<H", len(parts)) + b"".join(parts), notice
+        return b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", notice
+
+    def _encode(self, frame: ForceFrame) -> bytes:
+        cache = frame.encoded
+        if cache is None:
+            cache = frame.encoded = {}
+        part = cache.get(self.key)
+        if part is None:
+            if self.binary:
+                part = to_binary(frame, self.fields)
+            else:
+                part = orjson.dumps(to_json_dict(frame, self.fields), option=_JSON_OPTIONS)
+            cache[self.key] = part
+        return part
 
 
 class Hub:
@@ -102,22 +109,11 @@ class Hub:
 
     def publish(self, frames: list[ForceFrame]) -> None:
         self.frames_published += len(frames)
-        if not self.subscribers:
+        if not frames:
             return
-        encoded: dict[tuple, bytes] = {}
         now = frames[-1].t_host
         for subscriber in self.subscribers:
-            parts = []
-            everything = subscriber.sensors is None and subscriber.max_rate_hz is None
-            for i, frame in enumerate(frames):
-                if everything or subscriber.wants(frame):
-                    key = (i, subscriber.key)
-                    part = encoded.get(key)
-                    if part is None:
-                        if subscriber.binary:
-                            part = to_binary(frame, subscriber.fields)
-                        else:
-                            part = orjson.dumps(to_json_dict(frame, subscriber.fields), option=_JSON_OPTIONS)
-                        encoded[key] = part
-                    parts.append(part)
-            subscriber.take(parts, now)
+            if subscriber.sensors is None and subscriber.max_rate_hz is None:
+                subscriber.take(frames, now)
+            else:
+                subscriber.take([frame for frame in frames if subscriber.wants(frame)], now)

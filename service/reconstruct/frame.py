@@ -29,6 +29,10 @@ class ForceFrame:
     level: str
     taxel_flags: np.ndarray | None = None  # grid: (rows*cols,) bit set, see grid.TAXEL_FLAG_NAMES
     _contact: dict | None = field(default=None, init=False, repr=False, compare=False)
+    # Serialised forms by (fields, encoding), filled by the API on first send:
+    # a frame is encoded once however many clients take it, and never for a
+    # client that drops it unsent.
+    encoded: dict | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def contact(self) -> dict | None:
