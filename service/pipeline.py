@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from typing import Callable
 
+from .history import History
 from .protocol import Decoder
 from .readings import Interpreter
 from .reconstruct import ForceFrame, Reconstructor
@@ -18,7 +18,7 @@ Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
 
 RATE_WINDOW_S = 1.0
-HISTORY_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~12 MB for an 8x8 grid)
+HISTORY_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5 MB for an 8x8 grid)
 
 
 class RateMeter:
@@ -49,7 +49,7 @@ class Pipeline:
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
         self.latest: dict[int, ForceFrame] = {}
-        self.history: dict[int, deque[ForceFrame]] = {}
+        self.history: dict[int, History] = {}
         self.rates: dict[int, RateMeter] = {}
         self.listeners: list[Listener] = []
         self.byte_listeners: list[ByteListener] = []
@@ -103,8 +103,8 @@ class Pipeline:
         for frame in frames:
             self.latest[frame.sensor.id] = frame
             history = self.history.get(frame.sensor.id)
-            if history is None:
-                history = self.history[frame.sensor.id] = deque(maxlen=HISTORY_FRAMES)
+            if history is None or history.info != frame.sensor:
+                history = self.history[frame.sensor.id] = History(frame.sensor, HISTORY_FRAMES, frame.forces_N.size)
             history.append(frame)
             meter = self.rates.get(frame.sensor.id)
             if meter is None:

@@ -10,7 +10,6 @@ import hmac
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-import numpy as np
 import orjson
 from fastapi import Depends, FastAPI, Header, HTTPException, Query, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, Response
@@ -156,12 +155,9 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
             wanted = _parse_fields(fields)
         except ValueError as exc:
             raise HTTPException(422, str(exc)) from None
-        frames = list(service.pipeline.history.get(sensor_id, ()))
-        if frames:
-            start = frames[-1].t_host - seconds
-            frames = [f for f in frames if f.t_host >= start]
-        picks = np.unique(np.linspace(0, len(frames) - 1, min(max_points, len(frames))).round().astype(int)) if frames else []
-        return JSONResponse([to_json_dict(frames[i], wanted) for i in picks])
+        history = service.pipeline.history.get(sensor_id)
+        frames = [] if history is None else history.window(seconds, max_points)
+        return JSONResponse([to_json_dict(frame, wanted) for frame in frames])
 
     @app.post("/sensors/{sensor_id}/tare", dependencies=[Depends(authorised)])
     def tare_sensor(sensor_id: int) -> JSONResponse:

@@ -1,0 +1,79 @@
+"""The last seconds of one sensor's frames, kept in arrays.
+
+Keeping 5 s of 1 kHz frames as ForceFrame objects meant ~40 000 live objects
+for eight sensors, all surviving into the garbage collector's oldest
+generation; its full passes over them stalled the event loop for up to
+~90 ms. Here a sensor's history is a ring of numpy arrays (not traversed by
+the collector) plus one tuple of flag names per frame (tuples of strings are
+untracked by the collector), and ForceFrames are rebuilt only for the frames
+a history request returns.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .readings import SensorInfo
+from .reconstruct import ForceFrame
+
+
+class History:
+    """Ring of the last ``capacity`` frames of one sensor.
+
+    Parameters
+    ----------
+    info : the sensor; frames of another sensor are refused
+    capacity : frames kept
+    outputs : forces per frame (rows*cols for a grid, 3 for a quad)
+    """
+
+    def __init__(self, info: SensorInfo, capacity: int, outputs: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be at least 1, got {capacity}")
+        self.info = info
+        self.capacity = capacity
+        self._t_host = np.zeros(capacity)
+        self._seq = np.zeros(capacity, dtype=np.int64)
+        self._t_us = np.zeros(capacity, dtype=np.int64)
+        self._forces = np.zeros((capacity, outputs))
+        self._raw = np.zeros((capacity, info.channels))
+        self._taxel_flags = np.zeros((capacity, outputs), dtype=np.uint8) if info.kind == "grid" else None
+        self._flags: list[tuple[str, ...]] = [()] * capacity
+        self._levels: list[str] = [""] * capacity
+        self._count = 0  # frames ever appended
+
+    def __len__(self) -> int:
+        return min(self._count, self.capacity)
+
+    def append(self, frame: ForceFrame) -> None:
+        """Store the sensor's next frame."""
+        if frame.sensor != self.info:
+            raise ValueError(f"history of sensor {self.info.id} was given a frame of sensor {frame.sensor.id}")
+        i = self._count % self.capacity
+        self._t_host[i], self._seq[i], self._t_us[i] = frame.t_host, frame.seq, frame.t_us
+        self._forces[i] = frame.forces_N
+        self._raw[i] = frame.capacitance_pF
+        if self._taxel_flags is not None:
+            self._taxel_flags[i] = 0 if frame.taxel_flags is None else frame.taxel_flags
+        self._flags[i] = tuple(frame.flags)
+        self._levels[i] = frame.level
+        self._count += 1
+
+    def window(self, seconds: float, max_points: int) -> list[ForceFrame]:
+        """Frames received in the last ``seconds`` before the newest one,
+        evenly decimated to at most ``max_points``, oldest first."""
+        n = len(self)
+        if n == 0:
+            return []
+        order = (self._count - n + np.arange(n)) % self.capacity  # ring slots, oldest first
+        stamps = self._t_host[order]
+        first = int(np.searchsorted(stamps, stamps[-1] - seconds, side="left"))
+        kept = order[first:]
+        picks = np.unique(np.linspace(0, len(kept) - 1, min(max_points, len(kept))).round().astype(int))
+        return [self._frame(int(kept[p])) for p in picks]
+
+    def _frame(self, i: int) -> ForceFrame:
+        return ForceFrame(
+            self.info, int(self._seq[i]), int(self._t_us[i]), float(self._t_host[i]), self._forces[i].copy(),
+            self._raw[i].copy(), list(self._flags[i]), self._levels[i],
+            None if self._taxel_flags is None else self._taxel_flags[i].copy(),
+        )

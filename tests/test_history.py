@@ -1,0 +1,49 @@
+"""The per-sensor history ring: what goes in comes out, windowed and decimated."""
+import numpy as np
+import pytest
+
+from service.history import History
+from service.readings import SensorInfo
+from service.reconstruct import ForceFrame
+
+GRID = SensorInfo(0, "grid", 2, 2)
+
+
+def frame(seq: int, info: SensorInfo = GRID) -> ForceFrame:
+    forces = np.array([seq, seq + 0.5, np.nan, -seq], dtype=float)
+    flags = ["seq_gap"] if seq % 3 == 0 else []
+    return ForceFrame(info, seq, seq * 1000, 100.0 + seq * 1e-3, forces, forces + 10.0, flags, "full",
+                      np.array([0, 1, 1, 0], dtype=np.uint8) * (seq % 2))
+
+
+def test_the_ring_keeps_the_newest_frames_as_they_were():
+    history = History(GRID, capacity=50, outputs=4)
+    originals = [frame(seq) for seq in range(120)]
+    for f in originals:
+        history.append(f)
+    assert len(history) == 50
+    out = history.window(seconds=10.0, max_points=1000)
+    assert [f.seq for f in out] == list(range(70, 120))
+    for got, want in zip(out, originals[70:]):
+        np.testing.assert_array_equal(got.forces_N, want.forces_N)
+        np.testing.assert_array_equal(got.capacitance_pF, want.capacitance_pF)
+        np.testing.assert_array_equal(got.taxel_flags, want.taxel_flags)
+        assert (got.t_us, got.t_host, got.flags, got.level) == (want.t_us, want.t_host, want.flags, want.level)
+
+
+def test_window_is_measured_back_from_the_newest_frame_and_decimated():
+    history = History(GRID, capacity=5000, outputs=4)
+    for seq in range(1000):  # 1 s at 1 kHz
+        history.append(frame(seq))
+    recent = history.window(seconds=0.1, max_points=1000)
+    assert recent[0].seq == 899 and recent[-1].seq == 999  # stamps 0.899 … 0.999 s
+    sparse = history.window(seconds=1.0, max_points=11)
+    assert len(sparse) == 11 and sparse[0].seq == 0 and sparse[-1].seq == 999
+    assert set(np.diff([f.seq for f in sparse])) <= {99, 100}  # evenly spread over the window
+
+
+def test_frames_of_another_sensor_are_refused():
+    history = History(GRID, capacity=10, outputs=4)
+    with pytest.raises(ValueError, match="sensor 0 was given a frame of sensor 5"):
+        history.append(frame(1, SensorInfo(5, "grid", 2, 2)))
+    assert history.window(1.0, 10) == []
