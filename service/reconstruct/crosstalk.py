@@ -9,8 +9,10 @@ neighbour coupling; compensation multiplies by (I + K)⁻¹ (precomputed).
 Electrical. The multiplexer does not settle fully, so a channel reads a
 fraction α of the channel scanned just before it (row-major order within a
 frame): m_k = (1 − α) C_k + α C_(k−1). This is an FIR filter along the scan;
-compensation is its inverse IIR (scipy.signal.lfilter), applied to the raw
-capacitances and to the baseline alike.
+compensation is its inverse IIR, applied to the raw capacitances and to the
+baseline alike. The IIR over one 64-channel frame is applied as its
+(n, n) impulse-response matrix: one call whatever the batch, and the same
+summation order for every row.
 
 Detection (``CrosstalkEstimator``): isolated single-taxel loads — one taxel
 well above noise, every taxel beyond its 3×3 neighbourhood at noise level,
@@ -48,6 +50,7 @@ class Crosstalk:
     electrical: float = 0.0
     _neighbours: np.ndarray = field(init=False, repr=False)
     _unmix: np.ndarray = field(init=False, repr=False)
+    _unleak_for: tuple | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not -0.05 < self.mechanical <= 0.05:
@@ -68,10 +71,12 @@ class Crosstalk:
 
     def unmix_mechanical(self, relative: np.ndarray) -> np.ndarray:
         """(..., n) measured → compensated ΔC/C0 (NaN channels count as 0)."""
-        missing = np.isnan(relative)
         # einsum's own loop gives every row the same summation order whatever
         # the batch size (BLAS does not), so forces do not depend on how the
         # stream was cut into batches.
+        missing = np.isnan(relative)
+        if not missing.any():
+            return np.einsum("...j,jk->...k", relative, self._unmix)
         out = np.einsum("...j,jk->...k", np.where(missing, 0.0, relative), self._unmix)
         return np.where(missing, np.nan, out)
 
@@ -87,9 +92,19 @@ class Crosstalk:
         if self.electrical == 0.0:
             return capacitance
         missing = np.isnan(capacitance)
-        filled = np.where(missing, fill, capacitance)
-        out = lfilter([1.0], [1.0 - self.electrical, self.electrical], filled, axis=-1)
+        if not missing.any():
+            return np.einsum("...j,jk->...k", capacitance, self._unleak_matrix())
+        out = np.einsum("...j,jk->...k", np.where(missing, fill, capacitance), self._unleak_matrix())
         return np.where(missing, np.nan, out)
+
+    def _unleak_matrix(self) -> np.ndarray:
+        """(n, n) matrix M with row vectors unleaked = measured @ M: column k
+        is the inverse IIR's response at channel k to each earlier channel."""
+        if self._unleak_for is None or self._unleak_for[0] != self.electrical:
+            n = self.rows * self.cols
+            matrix = lfilter([1.0], [1.0 - self.electrical, self.electrical], np.eye(n), axis=-1)
+            self._unleak_for = (self.electrical, matrix)
+        return self._unleak_for[1]
 
 
 @dataclass

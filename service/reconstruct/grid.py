@@ -108,6 +108,9 @@ class GridProcessor:
         prior = self._same_count if previous is not None else np.zeros(capacitance.shape[1], dtype=np.int64)
         shifted = np.vstack([previous[None] if previous is not None else np.full((1, capacitance.shape[1]), np.nan), capacitance[:-1]])
         same = capacitance == shifted
+        if not same.any():  # with converter noise, the usual batch: every run restarts
+            self._last_raw, self._same_count = capacitance[-1].copy(), np.zeros(capacitance.shape[1], dtype=np.int64)
+            return np.zeros(capacitance.shape, dtype=bool)
         # Run lengths of `same` along the frames, continuing the previous batch's runs.
         runs = np.cumsum(same, axis=0)
         resets = np.maximum.accumulate(np.where(same, 0, runs), axis=0)
@@ -172,9 +175,10 @@ class GridProcessor:
 
     def _compensate_segment(self, capacitance, baseline, noise, t_s):
         crosstalk = self.crosstalk
-        relative = crosstalk.unleak(capacitance, baseline) / self._reference(baseline) - 1.0
-        drift, suspect = self.drift.update(relative, noise, t_s)
-        relative = DriftTracker.correct(relative, drift[:, None])
+        ratio = crosstalk.unleak(capacitance, baseline) / self._reference(baseline)
+        drift, suspect = self.drift.update(ratio - 1.0, noise, t_s)
+        scale = 1.0 + drift[:, None]
+        relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
         # Every ESTIMATE_EVERY-th frame (by frame count, so batching does not matter)
         # is plenty for coefficients that change over hours; they are observed
         # together once per adoption period, which costs far less than per frame.
@@ -182,7 +186,7 @@ class GridProcessor:
         if first < len(relative):
             self._sampled.append((relative[first::ESTIMATE_EVERY], noise, baseline))
         compensated = crosstalk.unmix_mechanical(relative)
-        uncompensated = DriftTracker.correct(capacitance / baseline - 1.0, drift[:, None])
+        uncompensated = capacitance / (baseline * scale) - 1.0
         corrected = np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise
         return compensated, corrected, suspect
 
