@@ -46,7 +46,7 @@ class History:
 
     def append(self, frame: ForceFrame) -> None:
         """Store the sensor's next frame."""
-        if frame.sensor != self.info:
+        if frame.sensor is not self.info and frame.sensor != self.info:
             raise ValueError(f"history of sensor {self.info.id} was given a frame of sensor {frame.sensor.id}")
         i = self._count % self.capacity
         self._t_host[i], self._seq[i], self._t_us[i] = frame.t_host, frame.seq, frame.t_us

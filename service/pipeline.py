@@ -103,7 +103,7 @@ class Pipeline:
         for frame in frames:
             self.latest[frame.sensor.id] = frame
             history = self.history.get(frame.sensor.id)
-            if history is None or history.info != frame.sensor:
+            if history is None or (history.info is not frame.sensor and history.info != frame.sensor):
                 history = self.history[frame.sensor.id] = History(frame.sensor, HISTORY_FRAMES, frame.forces_N.size)
             history.append(frame)
             meter = self.rates.get(frame.sensor.id)

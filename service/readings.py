@@ -55,8 +55,8 @@ class Reading:
     board_flags: int
     gap: int
     capacitance_pF: np.ndarray
-    open_mask: np.ndarray
-    short_mask: np.ndarray
+    open_channel: bool
+    shorted_channel: bool
 
     def frame_flags(self) -> list[str]:
         flags = []
@@ -66,9 +66,9 @@ class Reading:
             flags.append("overrun")
         if self.gap:
             flags.append("seq_gap")
-        if self.open_mask.any():
+        if self.open_channel:
             flags.append("open_channel")
-        if self.short_mask.any():
+        if self.shorted_channel:
             flags.append("shorted_channel")
         return flags
 
@@ -144,11 +144,15 @@ class Interpreter:
             self.rejected["shape_mismatch"] += 1
             return None
         raw = np.frombuffer(frame.payload, dtype="<u4")
-        open_mask = raw == OPEN_SENTINEL
-        short_mask = raw == SHORT_SENTINEL
         capacitance = raw / AF_PER_PF
-        capacitance[open_mask | short_mask] = np.nan
-        return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, open_mask, short_mask)
+        # The two sentinels are the ends of the u32 range: one wrapped compare finds both.
+        sentinel = (raw - np.uint32(SHORT_SENTINEL + 1)) >= np.uint32(OPEN_SENTINEL - 1)
+        opened = shorted = False
+        if sentinel.any():
+            capacitance[sentinel] = np.nan
+            opened = bool((raw == OPEN_SENTINEL).any())
+            shorted = bool((raw == SHORT_SENTINEL).any())
+        return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted)
 
     def _on_info(self, payload: bytes) -> None:
         try:

@@ -13,8 +13,7 @@ QUAD = SensorInfo(1, "quad", 2, 2)
 
 def reading(info, capacitance, seq=0):
     capacitance = np.asarray(capacitance, dtype=float)
-    none = np.zeros(capacitance.shape, bool)
-    return Reading(info, seq, seq * 1000, 0.0, 0, 0, capacitance, np.isnan(capacitance), none)
+    return Reading(info, seq, seq * 1000, 0.0, 0, 0, capacitance, bool(np.isnan(capacitance).any()), False)
 
 
 def test_table1_copied_faithfully():

@@ -119,7 +119,7 @@ class Reconstructor:
 
     def _state(self, info: SensorInfo) -> _SensorState:
         state = self._sensors.get(info.id)
-        if state is None or state.info != info:
+        if state is None or (state.info is not info and state.info != info):
             state = _SensorState(info, Baseline(info.channels, self.tare_frames), self._processor(info))
             self._sensors[info.id] = state
         return state
