@@ -108,21 +108,28 @@ class Board:
             for sensor in self.config.sensors:
                 self._seq[sensor.id] += 1
             return b""
+        sensors = self.config.sensors
+        truths = [self._scene(sensor, t) for sensor in sensors]
+        capacitance_aF = np.concatenate([sensor.capacitance(truth, t) for sensor, truth in zip(sensors, truths)]) * 1e6
+        # One draw and one conversion for the whole scan: at 8 sensors × 1 kHz
+        # the per-call cost, not the arithmetic, is what the simulator spends.
+        noisy_aF = capacitance_aF + self._rng.normal(0.0, self.config.noise_fF * 1e3, capacitance_aF.size)
+        full_scale_aF = min(self.config.full_scale_pF * 1e6, FULL_SCALE_AF)
+        out_of_scale = (noisy_aF >= full_scale_aF) | (noisy_aF < 1)
+        payload = np.minimum(np.maximum(np.rint(noisy_aF), 1), full_scale_aF).astype("<u4").tobytes()
         out = bytearray()
-        for sensor in self.config.sensors:
-            truth = self._scene(sensor, t)
-            capacitance_pF = sensor.capacitance(truth, t)
-            noisy_aF = capacitance_pF * 1e6 + self._rng.normal(0.0, self.config.noise_fF * 1e3, sensor.channels)
-            full_scale_aF = min(self.config.full_scale_pF * 1e6, FULL_SCALE_AF)
-            saturated = bool((noisy_aF >= full_scale_aF).any() or (noisy_aF < 1).any())
-            counts = np.clip(np.rint(noisy_aF), 1, full_scale_aF).astype("<u4")
+        start = 0
+        for sensor, truth in zip(sensors, truths):
+            end = start + sensor.channels
+            saturated = bool(out_of_scale[start:end].any())
             flags = (FLAG_SATURATED if saturated else 0) | (FLAG_OVERRUN if self._overrun else 0)
             seq = self._seq[sensor.id]
             frame_type = FrameType.GRID if sensor.kind == "grid" else FrameType.QUAD
-            out += encode_frame(frame_type, sensor.id, seq, t_us, counts.tobytes(), flags)
+            out += encode_frame(frame_type, sensor.id, seq, t_us, payload[4 * start : 4 * end], flags)
             if self.truth is not None:
                 self.truth.append(Truth(sensor.id, seq % 65536, t_us % (1 << 32), truth))
             self._seq[sensor.id] = seq + 1
+            start = end
         self._overrun = False
         return bytes(out)
 

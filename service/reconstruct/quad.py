@@ -32,6 +32,7 @@ QUAD_LEVELS = ("level0", "table", "full")
 # Electrodes (C11, C12, C21, C22) → combinations X (eq 30), Y (eq 32), Z (eq 19), R (redundant).
 # Rows: electrodes; columns: their weights in X, Y, Z, R.
 COMBINATIONS = np.array([[-1, -1, 1, 1], [1, -1, 1, -1], [-1, 1, 1, -1], [1, 1, 1, 1]], dtype=float) / 4.0
+_SHEAR_SIGNS = np.array([[-1.0, 1.0, -1.0, 1.0], [-1.0, -1.0, 1.0, 1.0]])  # rows: X, Y sides of each electrode
 FAULT_SIGMAS = 8.0
 FAULT_RELATIVE = 0.05  # model mismatch allowed in R, as a share of |Z|
 NOISE_FLOOR_PF = 2e-4
@@ -47,19 +48,18 @@ class QuadModel:
     coupling: float = 0.0
 
     def normal_response(self, force_N):
-        f = np.clip(force_N, 0.0, self.normal_usable_N)
-        return np.polyval(self.normal_fit, f)
+        c2, c1, c0 = self.normal_fit
+        f = np.minimum(np.maximum(force_N, 0.0), self.normal_usable_N)
+        return (c2 * f + c1) * f + c0
 
     def forward(self, fxyz_N: np.ndarray) -> np.ndarray:
         """(..., 3) forces → (..., 4) electrode ΔC/C0 (C11, C12, C21, C22)."""
         fxyz = np.asarray(fxyz_N, dtype=float)
         n = self.normal_response(fxyz[..., 2])
-        tx = shear.shear_response(np.clip(fxyz[..., 0], -self.shear_usable_N, self.shear_usable_N), self.shear_a, self.shear_b)
-        ty = shear.shear_response(np.clip(fxyz[..., 1], -self.shear_usable_N, self.shear_usable_N), self.shear_a, self.shear_b)
+        limit = self.shear_usable_N
+        txy = shear.shear_response(np.minimum(np.maximum(fxyz[..., :2], -limit), limit), self.shear_a, self.shear_b)
         scale = 1.0 - self.coupling * n
-        sx = np.array([-1.0, 1.0, -1.0, 1.0])
-        sy = np.array([-1.0, -1.0, 1.0, 1.0])
-        return n[..., None] + (tx[..., None] * sx + ty[..., None] * sy) * scale[..., None]
+        return n[..., None] + (txy @ _SHEAR_SIGNS) * scale[..., None]
 
     def inverse(self, relative: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """(..., 4) electrode ΔC/C0 → (..., 3) (Fx, Fy, Fz) and masks of
