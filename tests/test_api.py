@@ -148,7 +148,8 @@ def test_a_stalled_client_loses_only_its_own_oldest_frames():
     async def scenario():
         hub = Hub()
         stalled, healthy = Subscriber(), Subscriber()
-        hub.subscribers |= {stalled, healthy}
+        hub.add(stalled)
+        hub.add(healthy)
         info = SensorInfo(1, "quad", 2, 2)
         received = []
         for seq in range(QUEUE_MESSAGES + 10):
@@ -174,3 +175,13 @@ def test_mutating_endpoints_need_the_token_when_one_is_set():
         assert client.post("/tare", headers={"Authorization": "Bearer wrong"}).status_code == 401
         assert client.post("/tare", headers={"Authorization": "Bearer s3cret"}).status_code == 200
         assert client.get("/health").status_code == 200
+
+
+def test_unbatched_clients_are_served_first():
+    hub = Hub()
+    batched, unbatched = Subscriber(batch_ms=5.0), Subscriber()
+    hub.add(batched)
+    hub.add(unbatched)
+    assert hub.subscribers == [unbatched, batched]
+    hub.remove(unbatched)
+    assert hub.subscribers == [batched]

@@ -222,7 +222,7 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
             await websocket.send_text(orjson.dumps({"type": "error", "detail": str(exc)}).decode())
             await websocket.close(code=1008, reason=str(exc)[:120])
             return
-        service.hub.subscribers.add(subscriber)
+        service.hub.add(subscriber)
         try:
             while True:
                 message, notice = await subscriber.next_message()
@@ -235,7 +235,7 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:
-            service.hub.subscribers.discard(subscriber)
+            service.hub.remove(subscriber)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

@@ -104,8 +104,18 @@ class Subscriber:
 
 class Hub:
     def __init__(self) -> None:
-        self.subscribers: set[Subscriber] = set()
+        self.subscribers: list[Subscriber] = []
         self.frames_published = 0
+
+    def add(self, subscriber: Subscriber) -> None:
+        # Unbatched clients first: their senders wake first after each batch,
+        # so a latency-critical client does not wait behind batched ones.
+        self.subscribers.append(subscriber)
+        self.subscribers.sort(key=lambda s: s.batch_ms is not None)
+
+    def remove(self, subscriber: Subscriber) -> None:
+        if subscriber in self.subscribers:
+            self.subscribers.remove(subscriber)
 
     def publish(self, frames: list[ForceFrame]) -> None:
         self.frames_published += len(frames)
