@@ -214,7 +214,7 @@ class Reconstructor:
             result = state.processor.process(capacitance, state.baseline.value, state.baseline.std, t_s)
             forces, taxel_flags = result.forces_N, result.taxel_flags
             union = np.bitwise_or.reduce(taxel_flags, axis=1) & ~np.uint8(NO_READING)
-            if union.any():
+            if np.count_nonzero(union):
                 for f, bits in zip(flags, union.tolist()):
                     f.extend(flag_names(bits))
         return self._frames(readings, forces, flags, taxel_flags)

@@ -75,7 +75,7 @@ class Crosstalk:
         # the batch size (BLAS does not), so forces do not depend on how the
         # stream was cut into batches.
         missing = np.isnan(relative)
-        if not missing.any():
+        if not np.count_nonzero(missing):
             return np.einsum("...j,jk->...k", relative, self._unmix)
         out = np.einsum("...j,jk->...k", np.where(missing, 0.0, relative), self._unmix)
         return np.where(missing, np.nan, out)
@@ -92,7 +92,7 @@ class Crosstalk:
         if self.electrical == 0.0:
             return capacitance
         missing = np.isnan(capacitance)
-        if not missing.any():
+        if not np.count_nonzero(missing):
             return np.einsum("...j,jk->...k", capacitance, self._unleak_matrix())
         out = np.einsum("...j,jk->...k", np.where(missing, fill, capacitance), self._unleak_matrix())
         return np.where(missing, np.nan, out)

@@ -108,7 +108,7 @@ class GridProcessor:
         prior = self._same_count if previous is not None else np.zeros(capacitance.shape[1], dtype=np.int64)
         shifted = np.vstack([previous[None] if previous is not None else np.full((1, capacitance.shape[1]), np.nan), capacitance[:-1]])
         same = capacitance == shifted
-        if not same.any():  # with converter noise, the usual batch: every run restarts
+        if not np.count_nonzero(same):  # with converter noise, the usual batch: every run restarts
             self._last_raw, self._same_count = capacitance[-1].copy(), np.zeros(capacitance.shape[1], dtype=np.int64)
             return np.zeros(capacitance.shape, dtype=bool)
         # Run lengths of `same` along the frames, continuing the previous batch's runs.
@@ -134,7 +134,7 @@ class GridProcessor:
         else:
             relative, corrected, suspect = self._compensate(capacitance, baseline, noise, t_s)
             np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=corrected)
-            if suspect.any():
+            if np.count_nonzero(suspect):
                 np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & NO_READING == 0))
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
         np.bitwise_or(flags, SATURATED, out=flags, where=saturated)

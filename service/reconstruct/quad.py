@@ -112,7 +112,7 @@ class QuadProcessor:
         forces, masks = self.model.inverse(relative)
         combinations = masks.pop("combinations")
         masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
-        if not any(mask.any() for mask in masks.values()):  # the usual case: no flag on any frame
+        if not any(np.count_nonzero(mask) for mask in masks.values()):  # the usual case: no flag on any frame
             return forces, [[] for _ in range(len(forces))]
         names = list(masks)
         table = np.stack([masks[name] for name in names], axis=-1)
