@@ -65,7 +65,10 @@ class TactileClient:
         return self._request("POST", "/tare" if sensor_id is None else f"/sensors/{sensor_id}/tare")
 
     def subscribe(self, sensors: list[int] | None = None, fields: list[str] | None = None, max_rate: float | None = None,
-                  batch_ms: float | None = None, binary: bool = False) -> Iterator[dict]:
+                  batch_ms: float | None = None, binary: bool = False, timeout: float = 5.0) -> Iterator[dict]:
+        """Frames as they arrive. A controller must not wait forever on a
+        silent stream: TactileError when no message comes within ``timeout`` s."""
+        from websockets.exceptions import ConnectionClosedOK
         from websockets.sync.client import connect
 
         query = {"encoding": "binary" if binary else "json"}
@@ -79,7 +82,13 @@ class TactileClient:
             query["batch_ms"] = str(batch_ms)
         url = self.base_url.replace("http", "ws", 1) + "/ws?" + urllib.parse.urlencode(query)
         with connect(url, max_size=None) as ws:
-            for message in ws:
+            while True:
+                try:
+                    message = ws.recv(timeout=timeout)
+                except TimeoutError:
+                    raise TactileError(f"no message from {url} within {timeout} s") from None
+                except ConnectionClosedOK:
+                    return
                 if isinstance(message, bytes):
                     yield from decode_binary(message)
                     continue

@@ -27,7 +27,7 @@ def served():
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 10
-    while not server.started and time.monotonic() < deadline:
+    while not (server.started and len(service.pipeline.latest) == 3) and time.monotonic() < deadline:
         time.sleep(0.05)
     yield f"http://127.0.0.1:{server.config.port}/", tares
     server.should_exit = True

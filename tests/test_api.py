@@ -185,3 +185,4 @@ def test_unbatched_clients_are_served_first():
     assert hub.subscribers == [unbatched, batched]
     hub.remove(unbatched)
     assert hub.subscribers == [batched]
+

@@ -1,5 +1,6 @@
 """The Python client against a real server on loopback."""
 import itertools
+import time
 
 import pytest
 
@@ -20,3 +21,14 @@ def test_client_rest_and_subscriptions(served):
     assert all(set(f) == {"header", "rows", "cols", "force_N"} for f in json_frames)
     with pytest.raises(TactileError, match="max_rate"):
         next(client.subscribe(max_rate=-5))
+
+
+def test_a_silent_stream_raises_and_the_server_forgets_the_client(served):
+    client = TactileClient(served[0])
+    with pytest.raises(TactileError, match="no message .* within 0.3 s"):
+        next(client.subscribe(sensors=[99], timeout=0.3))  # no such sensor: nothing ever comes
+    # Nothing was ever sent to it, yet the server notices that it left.
+    deadline = time.monotonic() + 5
+    while client.health()["websocket_clients"] and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert client.health()["websocket_clients"] == 0

@@ -179,3 +179,33 @@ def test_forces_do_not_depend_on_how_the_stream_is_cut():
         np.testing.assert_array_equal(a.forces_N, b.forces_N)
     np.testing.assert_array_equal(*(np.stack([f.taxel_flags for f in frames if f.taxel_flags is not None]) for frames in (whole, single)))
     assert [f.flags for f in whole] == [f.flags for f in single]
+
+
+def test_a_sensors_forces_do_not_depend_on_the_other_sensors():
+    """Grids (and quads) of a board are reconstructed together, one call per
+    step; each sensor must get exactly what it would get alone."""
+    from service.protocol import Decoder
+    from service.readings import Interpreter
+
+    sensors = [SimGrid(0, electrical_leakage=0.01, drift=Drift(0.002, 5.0)), SimGrid(1, mechanical_coupling=-0.004),
+               SimQuad(2), SimGrid(3, rows=4, cols=4)]
+    data, _ = capture(BoardConfig(sensors=sensors, scene="demo", seed=9), 1.2)
+    interpreter = Interpreter(clock=lambda: 0.0)
+    readings = [r for r in (interpreter.interpret(f, 0.0) for f in Decoder().feed(data)) if r is not None]
+
+    def forces(subset, step):
+        reconstructor = Reconstructor(hold_until_tared=True)
+        out = []
+        for i in range(0, len(subset), step):
+            out += reconstructor.process_many(subset[i : i + step])
+        out += reconstructor.flush()
+        return {(f.sensor.id, f.seq): (f.forces_N, f.taxel_flags, f.flags) for f in out}
+
+    together = forces(readings, 12)
+    for sid in (0, 1, 3):
+        alone = forces([r for r in readings if r.sensor.id == sid], 3)
+        assert len(alone) == 1200
+        for key, (f, taxel_flags, flags) in alone.items():
+            np.testing.assert_array_equal(together[key][0], f)
+            np.testing.assert_array_equal(together[key][1], taxel_flags)
+            assert together[key][2] == flags

@@ -10,6 +10,7 @@ import hmac
 from contextlib import asynccontextmanager
 from pathlib import Path
 
+import anyio
 import orjson
 from fastapi import Depends, FastAPI, Header, HTTPException, Query, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, Response
@@ -222,8 +223,7 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
             await websocket.send_text(orjson.dumps({"type": "error", "detail": str(exc)}).decode())
             await websocket.close(code=1008, reason=str(exc)[:120])
             return
-        service.hub.add(subscriber)
-        try:
+        async def send_forever() -> None:
             while True:
                 message, notice = await subscriber.next_message()
                 if notice is not None:
@@ -232,8 +232,25 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
                     await websocket.send_bytes(message)
                 else:
                     await websocket.send_text(message.decode())
-        except (WebSocketDisconnect, RuntimeError):
-            pass
+
+        async def until_disconnected() -> None:
+            # A client that leaves is noticed here even when nothing is being
+            # sent to it (a subscription that matches no frame).
+            while (await websocket.receive())["type"] != "websocket.disconnect":
+                pass
+
+        service.hub.add(subscriber)
+        try:
+            async with anyio.create_task_group() as group:
+                async def until_either_ends(run) -> None:
+                    try:
+                        await run()
+                    except (WebSocketDisconnect, RuntimeError):  # the client went away mid-send
+                        pass
+                    group.cancel_scope.cancel()
+
+                group.start_soon(until_either_ends, send_forever)
+                group.start_soon(until_either_ends, until_disconnected)
         finally:
             service.hub.remove(subscriber)
 

@@ -11,7 +11,7 @@ from ..calibration import GridCalibration, grid_calibration
 from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES, Baseline
 from .frame import ForceFrame
-from .grid import GRID_LEVELS, NO_READING, GridProcessor, flag_names
+from .grid import GRID_LEVELS, NO_READING, GridJob, GridProcessor, flag_names, process_full
 from .quad import QuadModel, QuadProcessor
 from .select import SceneConfig, choose_level
 from .taxel import TaxelResponse
@@ -183,41 +183,54 @@ class Reconstructor:
         for index, (state, _) in enumerate(items):
             groups.setdefault(id(state), (state, []))[1].append(index)
         out: list[ForceFrame | None] = [None] * len(items)
-        # Tared quads that share a model are solved in one call: at 1 kHz the
-        # per-call cost, not the per-frame arithmetic, dominates.
-        quads: dict[tuple, list[tuple[_SensorState, list[int]]]] = {}
-        for state, indices in groups.values():
-            if state.info.kind == "quad" and state.baseline.ready:
-                quads.setdefault(state.processor.batch_key, []).append((state, indices))
-                continue
-            readings = [items[i][1] for i in indices]
-            for i, frame in zip(indices, self._reconstruct_sensor(state, readings)):
+
+        def place(indices, frames):
+            for i, frame in zip(indices, frames):
                 out[i] = frame
+
+        # Tared sensors of a kind go through one call per step, all sensors'
+        # frames together: at 1 kHz the per-call cost, not the per-frame
+        # arithmetic, dominates. Quads are batched by model, grids by level.
+        quads: dict[tuple, list[tuple[_SensorState, list[int]]]] = {}
+        grids: list[tuple[_SensorState, list[int]]] = []
+        for state, indices in groups.values():
+            if not state.baseline.ready:
+                place(indices, self._taring_frames(state, [items[i][1] for i in indices]))
+            elif state.info.kind == "quad":
+                quads.setdefault(state.processor.batch_key, []).append((state, indices))
+            else:
+                grids.append((state, indices))
+        if grids:
+            readings = [[items[i][1] for i in indices] for _, indices in grids]
+            for (_, indices), frames in zip(grids, self._reconstruct_grids([state for state, _ in grids], readings)):
+                place(indices, frames)
         for batch in quads.values():
             readings = [items[i][1] for _, indices in batch for i in indices]
             frames = self._reconstruct_quads([(state, len(indices)) for state, indices in batch], readings)
-            for i, frame in zip((i for _, indices in batch for i in indices), frames):
-                out[i] = frame
+            place((i for _, indices in batch for i in indices), frames)
         return out
 
-    def _reconstruct_sensor(self, state: _SensorState, readings: list[Reading]) -> list[ForceFrame]:
-        info = state.info
-        flags = [r.frame_flags() for r in readings]
-        taxel_flags = None
-        if not state.baseline.ready:
-            forces = np.full((len(readings), 3 if info.kind == "quad" else info.channels), np.nan)
-            for f in flags:
-                f.append("taring")
+    def _taring_frames(self, state: _SensorState, readings: list[Reading]) -> list[ForceFrame]:
+        forces = np.full((len(readings), 3 if state.info.kind == "quad" else state.info.channels), np.nan)
+        return self._frames(readings, forces, [r.frame_flags() + ["taring"] for r in readings], None)
+
+    def _reconstruct_grids(self, states: list[_SensorState], readings: list[list[Reading]]) -> list[list[ForceFrame]]:
+        """Tared grids, each with its readings; frames per sensor."""
+        jobs = [GridJob(state.processor, np.stack([r.capacitance_pF for r in rs]), state.baseline.value, state.baseline.std,
+                        np.array([r.t_us * 1e-6 for r in rs])) for state, rs in zip(states, readings)]
+        if self.level == "full":
+            results = process_full(jobs)
         else:
-            capacitance = np.stack([r.capacitance_pF for r in readings])
-            t_s = np.array([r.t_us * 1e-6 for r in readings])
-            result = state.processor.process(capacitance, state.baseline.value, state.baseline.std, t_s)
-            forces, taxel_flags = result.forces_N, result.taxel_flags
-            union = np.bitwise_or.reduce(taxel_flags, axis=1) & ~np.uint8(NO_READING)
+            results = [job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s) for job in jobs]
+        out = []
+        for rs, result in zip(readings, results):
+            flags = [r.frame_flags() for r in rs]
+            union = np.bitwise_or.reduce(result.taxel_flags, axis=1) & ~np.uint8(NO_READING)
             if np.count_nonzero(union):
                 for f, bits in zip(flags, union.tolist()):
                     f.extend(flag_names(bits))
-        return self._frames(readings, forces, flags, taxel_flags)
+            out.append(self._frames(rs, result.forces_N, flags, result.taxel_flags))
+        return out
 
     def _reconstruct_quads(self, sensors: list[tuple[_SensorState, int]], readings: list[Reading]) -> list[ForceFrame]:
         """Tared quads sharing one model; ``sensors`` gives each sensor's

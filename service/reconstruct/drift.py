@@ -19,15 +19,38 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Row medians of (N, n) ``values`` over the True entries of ``mask``;
-    NaN for a row with none. (np.nanmedian goes through masked arrays and
-    costs ~100 µs a row.)"""
-    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
-    count = np.count_nonzero(mask, axis=1)
-    rows = np.arange(len(values))
-    middle = (ordered[rows, np.maximum((count - 1) // 2, 0)] + ordered[rows, count // 2]) / 2
-    return np.where(count > 0, middle, np.nan)
+def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame of (N, n) ΔC/C0: the median of the quiet taxels (within
+    ``band`` — (n,) or (N, n) — of the frame's median), and whether they are
+    enough (at least half the valid ones; the median means nothing where
+    not). Both (N,). Rows are independent, so frames of several sensors can
+    go through one call. (np.nanmedian goes through masked arrays and costs
+    ~100 µs a row.)"""
+    if len(relative) == 1:  # one frame: a third of the numpy calls
+        median, enough = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
+        return np.array([median]), np.array([enough])
+    rows = np.arange(len(relative))
+    valid = np.sum(relative == relative, axis=1)  # NaN ≠ NaN
+    ordered = np.sort(relative, axis=1)  # NaN sorts last
+    centre = (ordered[rows, np.maximum(valid - 1, 0) // 2] + ordered[rows, valid // 2]) / 2
+    quiet = np.abs(relative - centre[:, None]) < band  # NaN compares False
+    count = np.sum(quiet, axis=1)
+    ordered = np.sort(np.where(quiet, relative, np.inf), axis=1)
+    medians = (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2]) / 2
+    return medians, (count * 2 >= valid) & (count > 0)
+
+
+def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, bool]:
+    ordered = np.sort(row)  # NaN sorts last
+    valid = np.count_nonzero(ordered == ordered)
+    if not valid:
+        return float("nan"), False
+    centre = (ordered[(valid - 1) // 2] + ordered[valid // 2]) / 2
+    quiet = np.sort(row[np.abs(row - centre) < band])  # NaN compares False, silently
+    n = quiet.size
+    if not n or n * 2 < valid:
+        return float("nan"), False
+    return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), True
 
 
 @dataclass
@@ -43,36 +66,15 @@ class DriftTracker:
     def reset(self) -> None:
         self.drift, self._last_t, self._frozen_since = 0.0, None, None
 
-    def update(self, relative: np.ndarray, noise: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Feed frames (N, n) of ΔC/C0 at times (N,) s; return the drift after
-        each frame (N,) and which frames are drift-suspect (N,)."""
-        if len(relative) == 1:  # the live path's common case, in a third of the numpy calls
-            medians, enough = self._quiet_median(relative[0], noise)
-            drift, suspect = self._step(float(t_s[0]), enough, medians)
-            return np.array([drift]), np.array([suspect])
-        valid = ~np.isnan(relative)
-        centre = masked_median(relative, valid)
-        quiet = valid & (np.abs(relative - centre[:, None]) < self.band * noise)
-        enough = (quiet.sum(axis=1) * 2 >= valid.sum(axis=1)) & quiet.any(axis=1)
-        medians = masked_median(relative, quiet)
-        out = np.empty(len(relative))
-        suspect = np.zeros(len(relative), dtype=bool)
+    def follow(self, t_s: np.ndarray, enough: np.ndarray, medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Advance through frames at times (N,) given their quiet medians and
+        whether those were enough (from ``quiet_medians``); return the drift
+        after each frame (N,) and which frames are drift-suspect (N,)."""
+        out = np.empty(len(t_s))
+        suspect = np.empty(len(t_s), dtype=bool)
         for i, (t, ok, median) in enumerate(zip(t_s.tolist(), enough.tolist(), medians.tolist())):
             out[i], suspect[i] = self._step(t, ok, median)
         return out, suspect
-
-    def _quiet_median(self, row: np.ndarray, noise: np.ndarray) -> tuple[float, bool]:
-        """One frame (n,): median of its quiet taxels, and whether they are enough."""
-        ordered = np.sort(row)  # NaN sorts last
-        valid = np.count_nonzero(ordered == ordered)
-        if not valid:
-            return float("nan"), False
-        centre = (ordered[(valid - 1) // 2] + ordered[valid // 2]) / 2
-        quiet = np.sort(row[np.abs(row - centre) < self.band * noise])  # NaN compares False, silently
-        n = quiet.size
-        if not n or n * 2 < valid:
-            return float("nan"), False
-        return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), True
 
     def _step(self, t: float, enough: bool, median: float) -> tuple[float, bool]:
         """Advance the exponential average to board time ``t``."""

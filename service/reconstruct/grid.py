@@ -23,7 +23,7 @@ import numpy as np
 from ..calibration import GridCalibration
 from . import level0
 from .crosstalk import Crosstalk, CrosstalkEstimator
-from .drift import DriftTracker
+from .drift import DriftTracker, quiet_medians
 from .taxel import TaxelResponse
 
 NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE = (1 << i for i in range(6))
@@ -69,6 +69,8 @@ class GridProcessor:
     _noise_for: tuple | None = None
     _noisy_for: tuple | None = None
     _reference_for: tuple | None = None
+    _parameters_for: tuple | None = None
+    _stacked_for: tuple | None = None
     adopted_events: int = 0
     _frames_seen: int = 0
     _sampled: list = field(default_factory=list)  # (ΔC/C0 rows, noise, baseline) awaiting the estimator
@@ -121,25 +123,25 @@ class GridProcessor:
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
         """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
         per-taxel flags (N, n). A single frame is a batch of one."""
-        # Flags are set with ``where=`` masks: at 1 kHz frame by frame the
-        # number of numpy calls, not their arithmetic, is the cost.
-        flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
-        if self._noisy_board(baseline_std):
-            np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance))
+        if self.level == "full":
+            return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
+        flags = self._reading_flags(capacitance, baseline_std)
         if self.level == "level0":
             return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags)
         noise = self.noise(baseline, baseline_std)
-        if self.level == "table":
-            relative = level0.relative_change(capacitance, baseline)
-        else:
-            relative, corrected, suspect = self._compensate(capacitance, baseline, noise, t_s)
-            np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=corrected)
-            if np.count_nonzero(suspect):
-                np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & NO_READING == 0))
-        forces, saturated, out_of_range = self.response.inverse(relative, noise)
+        forces, saturated, out_of_range = self.response.inverse(level0.relative_change(capacitance, baseline), noise)
         np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
         np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
         return GridResult(forces, flags)
+
+    def _reading_flags(self, capacitance: np.ndarray, baseline_std: np.ndarray) -> np.ndarray:
+        """No-reading and stale bits of (N, n) frames. Flags are set with
+        ``where=`` masks: at 1 kHz the number of numpy calls, not their
+        arithmetic, is the cost."""
+        flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
+        if self._noisy_board(baseline_std):
+            np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance))
+        return flags
 
     def _noisy_board(self, baseline_std_pF: np.ndarray) -> bool:
         """Whether the converter shows noise at all (else equal counts in a
@@ -148,47 +150,45 @@ class GridProcessor:
             self._noisy_for = (baseline_std_pF, bool(np.nanmax(baseline_std_pF, initial=0.0) > NOISE_FLOOR_PF))
         return self._noisy_for[1]
 
-    def _compensate(self, capacitance, baseline, noise, t_s):
-        """Leakage → drift → mechanical unmixing, on (N, n) frames at (N,) times.
-        Returns compensated ΔC/C0, the crosstalk-corrected mask and the
-        drift-suspect mask (N,).
+    def frames_to_adoption(self) -> int:
+        """Frames left before the next adoption point. Refined coefficients
+        take effect only at multiples of ADOPT_PERIOD_FRAMES frames, so the
+        result does not depend on how the stream was cut into batches (a
+        replay equals the live run)."""
+        return ADOPT_PERIOD_FRAMES - self._frames_seen % ADOPT_PERIOD_FRAMES
 
-        Refined coefficients take effect only at multiples of
-        ADOPT_PERIOD_FRAMES frames, so the result does not depend on how the
-        stream was cut into batches (a replay equals the live run)."""
-        if len(capacitance) <= ADOPT_PERIOD_FRAMES - self._frames_seen % ADOPT_PERIOD_FRAMES - 1:
-            # The whole batch lies inside one adoption period: no slicing needed.
-            result = self._compensate_segment(capacitance, baseline, noise, t_s)
-            self._frames_seen += len(capacitance)
-            return result
-        parts = []
-        start = 0
-        while start < len(capacitance):
-            end = min(len(capacitance), start + ADOPT_PERIOD_FRAMES - self._frames_seen % ADOPT_PERIOD_FRAMES)
-            parts.append(self._compensate_segment(capacitance[start:end], baseline, noise, t_s[start:end]))
-            self._frames_seen += end - start
-            if self._frames_seen % ADOPT_PERIOD_FRAMES == 0:
-                self._observe_sampled()
-                self._adopt_estimates()
-            start = end
-        return tuple(np.concatenate(arrays) for arrays in zip(*parts))
-
-    def _compensate_segment(self, capacitance, baseline, noise, t_s):
-        crosstalk = self.crosstalk
-        ratio = crosstalk.unleak(capacitance, baseline) / self._reference(baseline)
-        drift, suspect = self.drift.update(ratio - 1.0, noise, t_s)
-        scale = 1.0 + drift[:, None]
-        relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
-        # Every ESTIMATE_EVERY-th frame (by frame count, so batching does not matter)
-        # is plenty for coefficients that change over hours; they are observed
-        # together once per adoption period, which costs far less than per frame.
+    def _sample(self, relative: np.ndarray, noise: np.ndarray, baseline: np.ndarray) -> None:
+        """Keep every ESTIMATE_EVERY-th frame (by frame count, so batching does
+        not matter) for the estimator: plenty for coefficients that change over
+        hours; they are observed together once per adoption period."""
         first = -self._frames_seen % ESTIMATE_EVERY
         if first < len(relative):
             self._sampled.append((relative[first::ESTIMATE_EVERY], noise, baseline))
-        compensated = crosstalk.unmix_mechanical(relative)
-        uncompensated = capacitance / (baseline * scale) - 1.0
-        corrected = np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise
-        return compensated, corrected, suspect
+
+    def _advance(self, frames: int) -> None:
+        self._frames_seen += frames
+        if self._frames_seen % ADOPT_PERIOD_FRAMES == 0:
+            self._observe_sampled()
+            self._adopt_estimates()
+
+    def _row_parameters(self, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple:
+        """(baseline, noise, un-leaked reference, drift band, gain), each (n,):
+        what the full level needs per row; the same tuple until a tare or a
+        new leakage fraction, so stacks of it can be kept."""
+        cached = self._parameters_for
+        if cached is None or cached[0] is not baseline or cached[1] is not baseline_std or cached[2] != self.crosstalk.electrical:
+            noise = self.noise(baseline, baseline_std)
+            values = (baseline, noise, self._reference(baseline), self.drift.band * noise, self.response.gain)
+            cached = self._parameters_for = (baseline, baseline_std, self.crosstalk.electrical, values)
+        return cached[3]
+
+    def _stacked(self, parameters: list[tuple]) -> tuple:
+        """Several sensors' ``_row_parameters`` stacked field by field, (S, n)
+        each; rebuilt only when one sensor's tuple changes."""
+        cached = self._stacked_for
+        if cached is None or len(cached[0]) != len(parameters) or any(a is not b for a, b in zip(cached[0], parameters)):
+            cached = self._stacked_for = (tuple(parameters), tuple(np.array(field) for field in zip(*parameters)))
+        return cached[1]
 
     def _reference(self, baseline: np.ndarray) -> np.ndarray:
         """The baseline as the multiplexer would read it without leakage;
@@ -224,3 +224,100 @@ class GridProcessor:
         crosstalk.set_mechanical(float(np.clip(report["mechanical"]["estimate"], -0.02, 0.0)))
         self.adopted_events += estimator.electrical.events
         estimator.electrical = type(estimator.electrical)()
+
+
+@dataclass
+class GridJob:
+    """One grid sensor's share of a batch: frames (N, n) pF at board times
+    (N,) s, with the sensor's tare baseline and spread (n,)."""
+
+    processor: GridProcessor
+    capacitance: np.ndarray
+    baseline: np.ndarray
+    baseline_std: np.ndarray
+    t_s: np.ndarray
+
+
+def process_full(jobs: list[GridJob]) -> list[GridResult]:
+    """The full level for several grid sensors at once (each result equals,
+    bit for bit, what the sensor's frames would give alone).
+
+    Leakage → drift → mechanical unmixing → table inversion. Every step
+    except the drift's exponential average and the estimator's bookkeeping
+    works row by row, so the frames of all sensors go through one call per
+    step: at 1 kHz the per-call cost, not the per-frame arithmetic,
+    dominates. A sensor whose batch crosses its adoption point is split there
+    and the rest goes through the next round, with the adopted coefficients.
+    """
+    shapes: dict[tuple[int, int], list[int]] = {}
+    for k, job in enumerate(jobs):
+        shapes.setdefault((job.processor.calibration.rows, job.processor.calibration.cols), []).append(k)
+    if len(shapes) > 1:  # rows of one pass must have one length
+        results: list[GridResult | None] = [None] * len(jobs)
+        for ks in shapes.values():
+            for k, result in zip(ks, process_full([jobs[k] for k in ks])):
+                results[k] = result
+        return results
+    parts: list[list[GridResult]] = [[] for _ in jobs]
+    pending = [(k, 0) for k in range(len(jobs))]
+    while pending:
+        spans = [(k, start, min(len(jobs[k].capacitance), start + jobs[k].processor.frames_to_adoption())) for k, start in pending]
+        for (k, start, end), result in zip(spans, _full_rows(jobs, spans)):
+            parts[k].append(result)
+            jobs[k].processor._advance(end - start)
+        pending = [(k, end) for k, _, end in spans if end < len(jobs[k].capacitance)]
+    return [part[0] if len(part) == 1 else GridResult(np.concatenate([r.forces_N for r in part]),
+                                                       np.concatenate([r.taxel_flags for r in part])) for part in parts]
+
+
+def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[GridResult]:
+    """One pass over rows ``start:end`` of each job (none crossing an adoption point)."""
+    pieces = [(jobs[k].processor, jobs[k], slice(start, end)) for k, start, end in spans]
+    counts = [end - start for _, start, end in spans]
+    bounds = np.cumsum([0] + counts).tolist()
+    rows = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    first = pieces[0][0]
+    params = [p._row_parameters(job.baseline, job.baseline_std) for p, job, _ in pieces]
+    if len(pieces) == 1:
+        capacitance, t_s = pieces[0][1].capacitance[pieces[0][2]], pieces[0][1].t_s[pieces[0][2]]
+        baseline, noise, reference, band, gain = params[0]
+    else:
+        capacitance = np.concatenate([job.capacitance[sl] for _, job, sl in pieces])
+        t_s = np.concatenate([job.t_s[sl] for _, job, sl in pieces])
+        stacked = first._stacked(params)
+        baseline, noise, reference, band, gain = stacked if max(counts) == 1 else (np.repeat(a, counts, axis=0) for a in stacked)
+    flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
+    for (p, job, sl), r in zip(pieces, rows):
+        if p._noisy_board(job.baseline_std):
+            np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
+    if any(p.crosstalk.electrical for p, _, _ in pieces):
+        unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
+        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
+    else:
+        ratio = capacitance / reference
+    medians, enough = quiet_medians(ratio - 1.0, band)
+    drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
+    for (p, _, _), r in zip(pieces, rows):
+        drift[r], suspect[r] = p.drift.follow(t_s[r], enough[r], medians[r])
+    scale = 1.0 + drift[:, None]
+    relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
+    for (p, job, _), r, (_, n, _, _, _) in zip(pieces, rows, params):
+        p._sample(relative[r], n, job.baseline)
+    # Sensors with the same coupling share the unmixing matrix, and sensors
+    # on the same model table the inversion, so their rows go through one call.
+    if all(p.crosstalk.mechanical == first.crosstalk.mechanical for p, _, _ in pieces):
+        compensated = first.crosstalk.unmix_mechanical(relative)
+    else:
+        compensated = np.concatenate([p.crosstalk.unmix_mechanical(relative[r]) for (p, _, _), r in zip(pieces, rows)])
+    uncompensated = capacitance / (baseline * scale) - 1.0
+    np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise)
+    if np.count_nonzero(suspect):
+        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & NO_READING == 0))
+    if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
+        forces, saturated, out_of_range = first.response.inverse(compensated, noise, gain)
+    else:
+        inverted = [p.response.inverse(compensated[r], n) for (p, _, _), r, (_, n, _, _, _) in zip(pieces, rows, params)]
+        forces, saturated, out_of_range = (np.concatenate(arrays) for arrays in zip(*inverted))
+    np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
+    np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
+    return [GridResult(forces[r], flags[r]) for r in rows]

@@ -75,15 +75,22 @@ class TaxelResponse:
         """ΔC/C0 for forces of shape (..., n); held at the top past the table."""
         return np.interp(np.asarray(forces_N) * self.gain, self.force_N, self.relative)
 
-    def inverse(self, relative: np.ndarray, noise: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def shares_curve(self, other: TaxelResponse) -> bool:
+        """Whether both were built on the same model table (gains may differ)."""
+        return self.force_N is other.force_N and self.relative is other.relative
+
+    def inverse(self, relative: np.ndarray, noise: np.ndarray | float = 0.0,
+                gain: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Forces (..., n) from ΔC/C0 (..., n).
 
         Returns (force, saturated, out_of_range): saturated where ΔC/C0 is
         above the table (force held at the table's top), out_of_range where
-        it is below −5·noise (force 0). NaN stays NaN.
+        it is below −5·noise (force 0). NaN stays NaN. ``gain`` (..., n)
+        replaces this response's own, for rows of several sensors that share
+        the curve.
         """
         dense_r, dense_f = self._dense
-        force = np.interp(relative, dense_r, dense_f) / self.gain
+        force = np.interp(relative, dense_r, dense_f) / (self.gain if gain is None else gain)
         saturated = relative > self.top
         out_of_range = relative < -OUT_OF_RANGE_SIGMAS * np.asarray(noise)
         return force, saturated, out_of_range
