@@ -29,6 +29,7 @@ class Baseline:
         self.value = np.full(channels, np.nan)
         self.std = np.full(channels, np.nan)
         self._late = np.zeros(channels, dtype=bool)
+        self._any_late = False  # checked per reading: a bool, not an array scan
 
     @property
     def ready(self) -> bool:
@@ -43,23 +44,26 @@ class Baseline:
         self.value = np.full_like(self.value, np.nan)
         self.std = np.full_like(self.std, np.nan)
         self._late[:] = False
+        self._any_late = False
 
     def update(self, capacitance_pF: np.ndarray) -> bool:
         """Feed one reading of shape (channels,); return whether the baseline
         is ready (the reading that completes it is already tared)."""
         if self.ready:
-            if self._late.any():
+            if self._any_late:
                 self._accumulate(capacitance_pF, self._late)
                 done = self._late & (self._count >= self.frames)
                 if done.any():
                     self._finish(done)
                     self._late &= ~done
+                    self._any_late = bool(self._late.any())
             return True
         self._accumulate(capacitance_pF, np.ones(self._count.shape, dtype=bool))
         self._seen += 1
         if self.ready:
             self._finish(self._count > 0)
             self._late = self._count == 0
+            self._any_late = bool(self._late.any())
         return self.ready
 
     def _accumulate(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> None:
