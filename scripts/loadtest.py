@@ -109,6 +109,7 @@ async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int,
     healthy = url + f"/ws?encoding=binary&batch_ms={batch_ms:g}&fields=force,flags"
     tasks = [asyncio.create_task(listen(healthy, t, stop)) for t in tallies]
     tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(n_stalled)]
+    tasks.append(asyncio.create_task(asyncio.sleep(seconds)))  # the test lasts as long with no clients here
     await asyncio.gather(*tasks, return_exceptions=True)
     return tallies
 
@@ -159,7 +160,7 @@ def main() -> int:
         elapsed = time.time() - t0
         cpu1, rss = proc_sample(service.pid)
         critical = Tally()
-        critical.seqs, critical.latency = results.get(timeout=30)
+        critical.seqs, critical.latency = results.get(timeout=args.seconds + 30)
         critical_process.join(10)
         health = json.loads(urllib.request.urlopen(base + "/health", timeout=5).read())
     finally:

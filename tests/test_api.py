@@ -186,3 +186,22 @@ def test_unbatched_clients_are_served_first():
     hub.remove(unbatched)
     assert hub.subscribers == [batched]
 
+
+
+def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    info = SensorInfo(1, "quad", 2, 2)
+
+    async def scenario():
+        subscriber = Subscriber(batch_ms=30.0)
+        received = time.time()
+        for seq in range(3):  # no further frames arrive to trigger the send
+            subscriber.take([ForceFrame(info, seq, seq, received + seq * 1e-3, np.zeros(3), np.ones(4), [], "full")])
+        assert subscriber.queue.empty()
+        frames = await asyncio.wait_for(subscriber.queue.get(), 1.0)
+        return [f.seq for f in frames], time.time() - received
+
+    seqs, waited = asyncio.run(scenario())
+    assert seqs == [0, 1, 2] and 0.025 < waited < 0.2

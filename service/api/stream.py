@@ -5,14 +5,15 @@ queues references to the frames each client wants. A frame is serialised
 when a client's message is sent — once per (fields, encoding), cached on the
 frame, however many clients take it — so frames a stalled client drops cost
 nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
-(``batch_ms``: frames are held and sent together once the interval has
-passed). A client whose queue is full loses its own oldest message — never
+(``batch_ms``: frames are held and sent together, at most that long after the
+oldest of them was received). A client whose queue is full loses its own oldest message — never
 blocking the pipeline or other clients — and is told how many frames it lost.
 """
 from __future__ import annotations
 
 import asyncio
 import struct
+import time
 from dataclasses import dataclass, field
 
 import orjson
@@ -37,7 +38,7 @@ class Subscriber:
     dropped_frames: int = 0
     _next_due: dict[int, float] = field(default_factory=dict)
     _batch: list[ForceFrame] = field(default_factory=list)
-    _batch_started: float | None = None
+    _flush_timer: asyncio.TimerHandle | None = None
 
     @property
     def key(self) -> tuple[frozenset[str], bool]:
@@ -57,17 +58,27 @@ class Subscriber:
         self._next_due[sid] = due + period if frame.t_host < due + period else frame.t_host + period
         return True
 
-    def take(self, frames: list[ForceFrame], now: float) -> None:
-        """Queue ``frames``, now or, when batching, once the batch interval has passed."""
+    def take(self, frames: list[ForceFrame]) -> None:
+        """Queue ``frames``, now or, when batching, in the batch that is sent
+        ``batch_ms`` after its oldest frame was received: a batched frame
+        waits at most ``batch_ms``, whenever the next frames come."""
         if self.batch_ms is None:
             self._offer(frames)
             return
-        if self._batch_started is None:
-            self._batch_started = now
+        if not frames:
+            return
+        if not self._batch:
+            delay = frames[0].t_host + self.batch_ms / 1000.0 - time.time()
+            self._flush_timer = asyncio.get_running_loop().call_later(max(delay, 0.0), self._flush)
         self._batch.extend(frames)
-        if (now - self._batch_started) * 1000.0 >= self.batch_ms:
-            self._offer(self._batch)
-            self._batch, self._batch_started = [], None
+
+    def close(self) -> None:
+        if self._flush_timer is not None:
+            self._flush_timer.cancel()
+
+    def _flush(self) -> None:
+        self._offer(self._batch)
+        self._batch, self._flush_timer = [], None
 
     def _offer(self, frames: list[ForceFrame]) -> None:
         if not frames:
@@ -114,6 +125,7 @@ class Hub:
         self.subscribers.sort(key=lambda s: s.batch_ms is not None)
 
     def remove(self, subscriber: Subscriber) -> None:
+        subscriber.close()
         if subscriber in self.subscribers:
             self.subscribers.remove(subscriber)
 
@@ -121,9 +133,8 @@ class Hub:
         self.frames_published += len(frames)
         if not frames:
             return
-        now = frames[-1].t_host
         for subscriber in self.subscribers:
             if subscriber.sensors is None and subscriber.max_rate_hz is None:
-                subscriber.take(frames, now)
+                subscriber.take(frames)
             else:
-                subscriber.take([frame for frame in frames if subscriber.wants(frame)], now)
+                subscriber.take([frame for frame in frames if subscriber.wants(frame)])
