@@ -23,6 +23,8 @@ from .record.recorder import Recorder
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
 from .sources import DEFAULT_SOURCE
 
+INBOX_LIMIT_BYTES = 1 << 22  # ~3 s of 8 sensors at 1 kHz read but not yet decoded
+
 
 class TactileService:
     """Owns the data path for one source. ``start`` must be called from the
@@ -37,6 +39,8 @@ class TactileService:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._inbox: list[tuple[bytes, float] | None] = []  # None marks a lost link
         self._inbox_lock = threading.Lock()
+        self._inbox_bytes = 0
+        self._drained = threading.Event()
         self._drain_scheduled = False
 
     def start(self) -> None:
@@ -83,18 +87,26 @@ class TactileService:
     def _post(self, item: tuple[bytes, float] | None) -> None:
         with self._inbox_lock:
             self._inbox.append(item)
-            if self._drain_scheduled:
-                return
+            self._inbox_bytes += 0 if item is None else len(item[0])
+            full = self._inbox_bytes > INBOX_LIMIT_BYTES
+            if full:
+                self._drained.clear()
+            wake = not self._drain_scheduled
             self._drain_scheduled = True
         loop = self._loop
-        if loop is not None and not loop.is_closed():
+        if wake and loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(self._drain)
+        if full:
+            # A host that cannot keep up must not buffer without end: the reader
+            # waits, the port's buffer fills and the board reports OVERRUN.
+            self._drained.wait(1.0)
 
     def _drain(self) -> None:
         """Event loop: feed everything queued, in order, as few batches as possible."""
         with self._inbox_lock:
-            items, self._inbox = self._inbox, []
+            items, self._inbox, self._inbox_bytes = self._inbox, [], 0
             self._drain_scheduled = False
+            self._drained.set()
         chunks: list[tuple[bytes, float]] = []
         for item in items:
             if item is not None:
