@@ -6,8 +6,9 @@ when a client's message is sent — once per (fields, encoding), cached on the
 frame, however many clients take it — so frames a stalled client drops cost
 nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
 (``batch_ms``: frames are held and sent together, at most that long after the
-oldest of them was received). A client whose queue is full loses its own oldest message — never
-blocking the pipeline or other clients — and is told how many frames it lost.
+oldest of them was received). A client whose queue is full loses its own
+oldest message — never blocking the pipeline or other clients — and is told
+how many frames it lost.
 """
 from __future__ import annotations
 
