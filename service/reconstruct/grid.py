@@ -17,6 +17,7 @@ pF, shape (n,) per frame or (N, n) per batch, and the sensor's baseline (n,).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import accumulate
 
 import numpy as np
 
@@ -274,7 +275,7 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     """One pass over rows ``start:end`` of each job (none crossing an adoption point)."""
     pieces = [(jobs[k].processor, jobs[k], slice(start, end)) for k, start, end in spans]
     counts = [end - start for _, start, end in spans]
-    bounds = np.cumsum([0] + counts).tolist()
+    bounds = list(accumulate(counts, initial=0))
     rows = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     first = pieces[0][0]
     params = [p._row_parameters(job.baseline, job.baseline_std) for p, job, _ in pieces]
