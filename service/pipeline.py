@@ -11,7 +11,7 @@ from typing import Callable
 
 from .history import History
 from .protocol import Decoder
-from .readings import Interpreter
+from .readings import Interpreter, Reading
 from .reconstruct import ForceFrame, Reconstructor
 
 Listener = Callable[[list[ForceFrame]], None]
@@ -62,16 +62,24 @@ class Pipeline:
         """Several reads at once: each chunk is decoded with its own receive
         time, then all are reconstructed together (one call per sensor, not
         per read) and published as one batch."""
+        readings = self.decode_chunks(chunks)
+        return self.reconstruct(readings, chunks[-1][1]) if chunks else []
+
+    def decode_chunks(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
+        """Bytes → readings, each chunk with its own receive time (byte listeners see every chunk)."""
         readings = []
         for data, t_host in chunks:
             for listener in self.byte_listeners:
                 listener(data, t_host)
             with self._lock:
                 readings += self._interpret(self.decoder.feed(data), t_host)
+        return readings
+
+    def reconstruct(self, readings: list[Reading], t_host: float) -> list[ForceFrame]:
+        """Readings → forces, published as one batch to the listeners."""
         with self._lock:
             frames = self.reconstructor.process_many(readings) if readings else []
-        if chunks:
-            self._publish(frames, chunks[-1][1])
+        self._publish(frames, t_host)
         return frames
 
     def finish(self, t_host: float) -> list[ForceFrame]:
@@ -94,7 +102,7 @@ class Pipeline:
         with self._lock:
             return self.reconstructor.set_calibration(info, upload)
 
-    def _interpret(self, frames, t_host: float) -> list:
+    def _interpret(self, frames, t_host: float) -> list[Reading]:
         return [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
 
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:

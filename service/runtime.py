@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+from collections import deque
 import threading
 import time
 
@@ -42,6 +43,7 @@ class TactileService:
         self._inbox_bytes = 0
         self._drained = threading.Event()
         self._drain_scheduled = False
+        self._deferred: deque[tuple[list, float]] = deque()
 
     def start(self) -> None:
         # What exists now (modules, the app) lives as long as the process:
@@ -103,6 +105,7 @@ class TactileService:
 
     def _drain(self) -> None:
         """Event loop: feed everything queued, in order, as few batches as possible."""
+        self._finish_deferred()
         with self._inbox_lock:
             items, self._inbox, self._inbox_bytes = self._inbox, [], 0
             self._drain_scheduled = False
@@ -112,10 +115,33 @@ class TactileService:
             if item is not None:
                 chunks.append(item)
                 continue
-            self.pipeline.feed_chunks(chunks)
+            self._feed(chunks)
             chunks = []
             self.pipeline.link_lost()
-        self.pipeline.feed_chunks(chunks)
+        self._feed(chunks)
+
+    def _feed(self, chunks: list[tuple[bytes, float]]) -> None:
+        """Sensors that are cheap to reconstruct (all but grids) are published
+        first, and the loop sends them before it reconstructs the grids of
+        the same reads: a controller on a quad does not wait for four 8x8
+        grids. Each sensor's frames stay in order."""
+        if not chunks:
+            return
+        readings = self.pipeline.decode_chunks(chunks)
+        t_host = chunks[-1][1]
+        cheap = [r for r in readings if r.sensor.kind != "grid"]
+        if not cheap or len(cheap) == len(readings):
+            self.pipeline.reconstruct(readings, t_host)
+            return
+        self.pipeline.reconstruct(cheap, t_host)
+        self._deferred.append(([r for r in readings if r.sensor.kind == "grid"], t_host))
+        self._loop.call_soon(self._finish_deferred)
+
+    def _finish_deferred(self) -> None:
+        """Grids put off by ``_feed``; run before anything read later."""
+        while self._deferred:
+            readings, t_host = self._deferred.popleft()
+            self.pipeline.reconstruct(readings, t_host)
 
     def health(self) -> dict:
         now = time.time()

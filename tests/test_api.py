@@ -1,6 +1,5 @@
 """The API in-process with TestClient, reading the built-in simulator."""
 import asyncio
-import threading
 import time
 
 import numpy as np
@@ -207,29 +206,3 @@ def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
     seqs, waited = asyncio.run(scenario())
     assert seqs == [0, 1, 2] and 0.025 < waited < 0.2
 
-
-def test_reads_wait_when_the_loop_falls_behind_instead_of_piling_up():
-    from service import runtime
-
-    service = TactileService("sim://?scene=idle")
-    service._loop = asyncio.new_event_loop()  # not running yet: nothing drains
-    chunk = bytes(1 << 16)
-    posted = []
-
-    def reader():
-        for _ in range(2 * runtime.INBOX_LIMIT_BYTES // len(chunk)):
-            service._received(chunk, time.time())
-            posted.append(1)
-
-    thread = threading.Thread(target=reader, daemon=True)
-    thread.start()
-    time.sleep(0.3)
-    assert thread.is_alive() and service._inbox_bytes <= runtime.INBOX_LIMIT_BYTES + len(chunk)
-    held = len(posted)
-    service._loop.run_until_complete(asyncio.sleep(0.05))  # the loop drains: the reader goes on
-    thread.join(5)
-    assert not thread.is_alive() and len(posted) > held
-    service._loop.run_until_complete(asyncio.sleep(0.05))  # and the rest
-    service._loop.close()
-    assert service._inbox_bytes == 0  # nothing lost on the way: every byte reached the decoder
-    assert service.pipeline.decoder.counters.bytes_discarded == 2 * runtime.INBOX_LIMIT_BYTES  # zeros are no frames

@@ -126,7 +126,7 @@ class Reconstructor:
 
     def tare(self, sensor_id: int | None = None) -> list[int]:
         """Restart the baseline of one sensor (or all); return the ids tared."""
-        ids = list(self._sensors) if sensor_id is None else [sensor_id]
+        ids = sorted(self._sensors) if sensor_id is None else [sensor_id]
         for sid in ids:
             if sid not in self._sensors:
                 raise KeyError(sid)
