@@ -7,15 +7,16 @@ as soon as its batch is reconstructed; with the pipeline in the reading
 thread, every socket send of the loop (which releases the GIL) handed the
 GIL back to the reconstruction for up to a switch interval (5 ms), and
 latency piled up. Reads that arrive while the loop is busy are drained
-together, so the batches grow under load instead of the backlog.
+together, so the batches grow under load instead of the backlog; sensors
+that are cheap to reconstruct go out before the grids of the same reads.
 """
 from __future__ import annotations
 
 import asyncio
 import gc
-from collections import deque
 import threading
 import time
+from collections import deque
 
 from .api.stream import Hub
 from .pipeline import Pipeline
