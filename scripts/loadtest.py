@@ -50,34 +50,64 @@ def proc_sample(pid: int) -> tuple[float, int]:
     return cpu, rss
 
 
+HEADER = np.dtype([("version", "u1"), ("kind", "u1"), ("sid", "u1"), ("field_bits", "u1"), ("seq", "<u2"),
+                   ("t_us", "<u4"), ("stamp", "<f8"), ("flag_bits", "<u4"), ("n", "<u2")])
+COUNT_AT = struct.Struct("<H").unpack_from
+HEADER_BYTES = np.arange(HEADER.itemsize)
+
+
 class Tally:
-    """Frames seen per sensor (by seq, unwrapped) and latencies."""
+    """Frames seen per sensor (by seq, unwrapped) and latencies.
+
+    A client on the same two cores as the service takes CPU from it, so a
+    message is only cut into its record headers here (numpy, no per-frame
+    Python objects); sequences are unwrapped once at the end."""
 
     def __init__(self) -> None:
-        self.seqs: dict[int, list[int]] = {}
-        self.latency: list[float] = []
+        self._sids: list[np.ndarray] = []
+        self._seqs: list[np.ndarray] = []
+        self._latency: list[np.ndarray] = []
         self.dropped_notices = 0
 
     def binary(self, message: bytes, now: float) -> None:
-        (count,) = struct.unpack_from("<H", message, 0)
-        pos = 2
+        (count,) = COUNT_AT(message, 0)
+        starts, pos = [], 2
         for _ in range(count):
-            _, kind, sid, field_bits, seq, _, stamp, _, n = RECORD.unpack_from(message, pos)
-            pos += RECORD.size + 4 * n
-            seen = self.seqs.setdefault(sid, [])
-            # Unwrap the 16-bit sequence (it wraps every 65.5 s at 1 kHz); frames of one sensor arrive in order.
-            seen.append(seen[-1] + ((seq - seen[-1]) & 0xFFFF) if seen else seq)
-            self.latency.append(now - stamp)
+            starts.append(pos)
+            pos += HEADER.itemsize + 4 * COUNT_AT(message, pos + HEADER.itemsize - 2)[0]
+        raw = np.frombuffer(message, np.uint8)[np.add.outer(starts, HEADER_BYTES)]
+        headers = raw.view(HEADER)[:, 0]
+        self._sids.append(headers["sid"])
+        self._seqs.append(headers["seq"])
+        self._latency.append(now - headers["stamp"])
 
-    def share(self, window: dict[int, tuple[int, int]]) -> float:
+    @property
+    def latency(self) -> np.ndarray:
+        """Seconds from the host's receive stamp to receipt, every frame."""
+        return np.concatenate(self._latency) if self._latency else np.empty(0)
+
+    @property
+    def seqs(self) -> dict[int, np.ndarray]:
+        """Per sensor, the sequence numbers received, unwrapped (16 bits wrap
+        every 65.5 s at 1 kHz; frames of one sensor arrive in order)."""
+        if not self._sids:
+            return {}
+        sids, seqs = np.concatenate(self._sids), np.concatenate(self._seqs).astype(np.int64)
+        out = {}
+        for sid in np.unique(sids):
+            own = seqs[sids == sid]
+            out[int(sid)] = own[0] + np.concatenate(([0], np.cumsum(np.diff(own) & 0xFFFF)))
+        return out
+
+    @staticmethod
+    def share(seqs: dict[int, np.ndarray], window: dict[int, tuple[int, int]]) -> float:
         """Received / expected, counting each sensor's seqs inside the window
-        of seqs the latency-free reference saw."""
+        of seqs every client saw."""
         got = expected = 0
         for sid, (first, last) in window.items():
-            seen = set(self.seqs.get(sid, []))
-            span = set(range(first, last + 1))
-            got += len(seen & span)
-            expected += len(span)
+            own = seqs.get(sid, np.empty(0, np.int64))
+            got += np.unique(own[(own >= first) & (own <= last)]).size
+            expected += last - first + 1
         return got / expected if expected else 0.0
 
 
@@ -87,7 +117,7 @@ async def listen(url: str, tally: Tally, stop: float) -> None:
         while time.time() < stop:
             try:
                 message = await asyncio.wait_for(ws.recv(), timeout=max(stop - time.time(), 0.01))
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 break
             if isinstance(message, bytes):
                 tally.binary(message, time.time())
@@ -159,8 +189,7 @@ def main() -> int:
         healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms))
         elapsed = time.time() - t0
         cpu1, rss = proc_sample(service.pid)
-        critical = Tally()
-        critical.seqs, critical.latency = results.get(timeout=args.seconds + 30)
+        critical_seqs, critical_latency = results.get(timeout=args.seconds + 30)
         critical_process.join(10)
         health = json.loads(urllib.request.urlopen(base + "/health", timeout=5).read())
     finally:
@@ -169,16 +198,17 @@ def main() -> int:
         board.terminate()
         board.wait(10)
 
+    healthy_seqs = [t.seqs for t in healthy_tallies]
     window = {}
-    for tally in healthy_tallies + [critical]:
-        for sid, seqs in tally.seqs.items():
-            first, last = min(seqs), max(seqs)
+    for seqs_by_sensor in healthy_seqs + [critical_seqs]:
+        for sid, seqs in seqs_by_sensor.items():
+            first, last = int(seqs.min()), int(seqs.max())
             lo, hi = window.get(sid, (first, last))
             window[sid] = (max(lo, first), min(hi, last))
     window = {sid: span for sid, span in window.items() if span[1] > span[0]}
-    shares = [t.share(window) for t in healthy_tallies] or [float("nan")]
-    healthy_latency = np.concatenate([np.array(t.latency) for t in healthy_tallies] + [np.full(1, np.nan)]) * 1000
-    critical_latency = np.array(critical.latency) * 1000
+    shares = [Tally.share(seqs, window) for seqs in healthy_seqs] or [float("nan")]
+    healthy_latency = np.concatenate([t.latency for t in healthy_tallies] + [np.full(1, np.nan)]) * 1000
+    critical_latency = critical_latency * 1000
     report = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}",
         "seconds": round(elapsed, 1),
@@ -192,7 +222,8 @@ def main() -> int:
         "healthy_dropped_notices": sum(t.dropped_notices for t in healthy_tallies),
         "healthy_latency_ms_p50": float(np.nanpercentile(healthy_latency, 50)) if healthy_tallies else float("nan"),
         "healthy_latency_ms_p99": float(np.nanpercentile(healthy_latency, 99)) if healthy_tallies else float("nan"),
-        "critical_share": critical.share({CRITICAL_SENSOR: window[CRITICAL_SENSOR]}) if CRITICAL_SENSOR in window else 0.0,
+        "critical_share": (Tally.share(critical_seqs, {CRITICAL_SENSOR: window[CRITICAL_SENSOR]})
+                           if CRITICAL_SENSOR in window else 0.0),
         "critical_latency_ms_p50": float(np.percentile(critical_latency, 50)),
         "critical_latency_ms_p99": float(np.percentile(critical_latency, 99)),
         "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / elapsed,
