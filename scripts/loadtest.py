@@ -132,16 +132,33 @@ async def stalled(url: str, stop: float) -> None:
         await asyncio.sleep(max(stop - time.time(), 0))
 
 
-async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int, batch_ms: float) -> list[Tally]:
+async def poll_service_latency(base: str, stop: float, windows: list[dict]) -> None:
+    """The service's own latency figures (GET /health, each over its last
+    ~1-10 s), once a second: where the time goes before the client."""
+    while time.time() < stop - 1.0:
+        await asyncio.sleep(1.0)
+        body = await asyncio.to_thread(lambda: urllib.request.urlopen(base + "/health", timeout=2).read())
+        windows.append(json.loads(body)["latency"])
+
+
+async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int, batch_ms: float,
+                      service_latency: list[dict]) -> list[Tally]:
     url = base.replace("http", "ws", 1)
     stop = time.time() + seconds
     tallies = [Tally() for _ in range(n_healthy)]
     healthy = url + f"/ws?encoding=binary&batch_ms={batch_ms:g}&fields=force,flags"
     tasks = [asyncio.create_task(listen(healthy, t, stop)) for t in tallies]
     tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(n_stalled)]
+    tasks.append(asyncio.create_task(poll_service_latency(base, stop, service_latency)))
     tasks.append(asyncio.create_task(asyncio.sleep(seconds)))  # the test lasts as long with no clients here
     await asyncio.gather(*tasks, return_exceptions=True)
     return tallies
+
+
+def window_p99s(windows: list[dict], stage: str) -> str:
+    """Median and worst of the service's per-window p99 for one stage."""
+    p99s = [w[stage]["p99_ms"] for w in windows if w[stage]["p99_ms"] is not None]
+    return f"{np.median(p99s):.3g} / {max(p99s):.3g}" if p99s else "-"
 
 
 def latency_client(base: str, seconds: float, sensor: int, results) -> None:
@@ -186,7 +203,9 @@ def main() -> int:
         results = multiprocessing.Queue()
         critical_process = multiprocessing.Process(target=latency_client, args=(base, args.seconds, CRITICAL_SENSOR, results))
         critical_process.start()
-        healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms))
+        service_latency: list[dict] = []
+        healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms,
+                                                  service_latency))
         elapsed = time.time() - t0
         cpu1, rss = proc_sample(service.pid)
         critical_seqs, critical_latency = results.get(timeout=args.seconds + 30)
@@ -226,6 +245,9 @@ def main() -> int:
                            if CRITICAL_SENSOR in window else 0.0),
         "critical_latency_ms_p50": float(np.percentile(critical_latency, 50)),
         "critical_latency_ms_p99": float(np.percentile(critical_latency, 99)),
+        "service_p99_ms_received_to_published (median / worst window)": window_p99s(service_latency, "published"),
+        "service_p99_ms_received_to_sent_unbatched (median / worst window)": window_p99s(service_latency, "sent_unbatched"),
+        "service_p99_ms_received_to_sent_batched (median / worst window)": window_p99s(service_latency, "sent_batched"),
         "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / elapsed,
         "service_rss_MB": rss / 1e6,
         "websocket_clients_at_end": health["websocket_clients"],

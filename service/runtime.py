@@ -8,7 +8,8 @@ thread, every socket send of the loop (which releases the GIL) handed the
 GIL back to the reconstruction for up to a switch interval (5 ms), and
 latency piled up. Reads that arrive while the loop is busy are drained
 together, so the batches grow under load instead of the backlog; sensors
-that are cheap to reconstruct go out before the grids of the same reads.
+that are cheap to reconstruct go out before any grid waiting to be
+reconstructed.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import time
 from collections import deque
 
 from .api.stream import Hub
+from .latency import LatencyMeter
 from .pipeline import Pipeline
 from .readout import Readout
 from .record.recorder import Recorder
@@ -35,6 +37,7 @@ class TactileService:
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat") -> None:
         self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
         self.hub = Hub()
+        self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
         self.readout = Readout(source, self._received, self._link_lost)
         self.started_at = time.time()
         self.recorder: Recorder | None = None
@@ -52,7 +55,7 @@ class TactileService:
         # stall the loop for tens of ms every few seconds at 8 kHz of frames.
         gc.freeze()
         self._loop = asyncio.get_running_loop()
-        self.pipeline.listeners.append(self.hub.publish)
+        self.pipeline.listeners += [self._measure_published, self.hub.publish]
         self.readout.start()
 
     def start_recording(self, path: str, raw_path: str | None = None) -> dict:
@@ -77,8 +80,12 @@ class TactileService:
     def stop(self) -> None:
         self.stop_recording()
         self.readout.stop()
-        if self.hub.publish in self.pipeline.listeners:
-            self.pipeline.listeners.remove(self.hub.publish)
+        for listener in (self._measure_published, self.hub.publish):
+            if listener in self.pipeline.listeners:
+                self.pipeline.listeners.remove(listener)
+
+    def _measure_published(self, frames: list) -> None:
+        self.published_latency.add(time.time(), [frame.t_host for frame in frames])
 
     def _received(self, data: bytes, t_host: float) -> None:
         """Readout thread: queue a chunk; wake the loop unless it is already due to drain."""
@@ -106,7 +113,6 @@ class TactileService:
 
     def _drain(self) -> None:
         """Event loop: feed everything queued, in order, as few batches as possible."""
-        self._finish_deferred()
         with self._inbox_lock:
             items, self._inbox, self._inbox_bytes = self._inbox, [], 0
             self._drain_scheduled = False
@@ -123,26 +129,29 @@ class TactileService:
 
     def _feed(self, chunks: list[tuple[bytes, float]]) -> None:
         """Sensors that are cheap to reconstruct (all but grids) are published
-        first, and the loop sends them before it reconstructs the grids of
-        the same reads: a controller on a quad does not wait for four 8x8
-        grids. Each sensor's frames stay in order."""
+        at once; grids are queued and reconstructed in a later turn of the
+        loop, after the sends of what was published and ahead of nothing read
+        later: a controller on a quad waits neither for the grids of its own
+        read nor for those of earlier reads. Each sensor's frames stay in order."""
         if not chunks:
             return
         readings = self.pipeline.decode_chunks(chunks)
         t_host = chunks[-1][1]
         cheap = [r for r in readings if r.sensor.kind != "grid"]
-        if not cheap or len(cheap) == len(readings):
-            self.pipeline.reconstruct(readings, t_host)
-            return
-        self.pipeline.reconstruct(cheap, t_host)
-        self._deferred.append(([r for r in readings if r.sensor.kind == "grid"], t_host))
-        self._loop.call_soon(self._finish_deferred)
+        if cheap:
+            self.pipeline.reconstruct(cheap, t_host)
+        if len(cheap) < len(readings):
+            self._deferred.append(([r for r in readings if r.sensor.kind == "grid"], t_host))
+            if len(self._deferred) == 1:
+                self._loop.call_soon(self._finish_deferred)
 
     def _finish_deferred(self) -> None:
-        """Grids put off by ``_feed``; run before anything read later."""
-        while self._deferred:
-            readings, t_host = self._deferred.popleft()
-            self.pipeline.reconstruct(readings, t_host)
+        """The grids queued by ``_feed``, all in one batch (reads that piled up
+        while the loop was busy cost one call per step, not one per read)."""
+        if not self._deferred:
+            return
+        batches, self._deferred = self._deferred, deque()
+        self.pipeline.reconstruct([r for readings, _ in batches for r in readings], batches[-1][1])
 
     def health(self) -> dict:
         now = time.time()
@@ -169,6 +178,10 @@ class TactileService:
             "board_errors": [{"t_host": t, "text": text} for t, text in pipeline.interpreter.board_errors],
             "sensors": sensors,
             "websocket_clients": len(self.hub.subscribers),
+            "latency": {
+                "published": self.published_latency.summary(),
+                **{f"sent_{kind}": meter.summary() for kind, meter in self.hub.sent_latency.items()},
+            },
             "frames_published": self.hub.frames_published,
             "replay": self.readout.link.url.startswith("replay://"),
             "recording": None if self.recorder is None else self.recorder.status(),

@@ -40,6 +40,19 @@ def test_health_reports_link_rates_counters_and_reconstruction(client):
     assert body["reconstruction"]["crosstalk"]["0"]["mechanical_coupling_in_use"] < 0
 
 
+def test_health_reports_latency_through_the_service(client):
+    with client.websocket_connect("/ws?sensors=1&encoding=binary") as ws:
+        for _ in range(20):
+            ws.receive_bytes()
+    latency = client.get("/health").json()["latency"]
+    assert latency["published"]["frames"] > 100
+    assert latency["sent_unbatched"]["frames"] >= 19
+    for stage in ("published", "sent_unbatched"):
+        summary = latency[stage]
+        assert 0 <= summary["p50_ms"] <= summary["p99_ms"] <= summary["max_ms"] < 1000
+    assert set(latency) == {"published", "sent_unbatched", "sent_batched"}
+
+
 def test_sensors_lists_what_the_board_announced(client):
     body = client.get("/sensors").json()
     assert body["board"]["board"] == "tactile-sim-8x8-quad"
@@ -155,9 +168,9 @@ def test_a_stalled_client_loses_only_its_own_oldest_frames():
         for seq in range(QUEUE_MESSAGES + 10):
             frame = ForceFrame(info, seq, seq, float(seq), np.zeros(3), np.ones(4), [], "full")
             hub.publish([frame])
-            message, _ = await healthy.next_message()
+            message, _, _ = await healthy.next_message()
             received.append(orjson.loads(message)["frames"][0]["header"]["seq"])
-        first, notice = await stalled.next_message()
+        first, notice, _ = await stalled.next_message()
         return received, orjson.loads(first), orjson.loads(notice)
 
     received, first, notice = asyncio.run(scenario())

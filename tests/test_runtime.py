@@ -29,6 +29,23 @@ def test_cheap_sensors_are_published_first_and_every_sensor_stays_in_order():
         assert seqs == list(range(seqs[0], seqs[0] + 400))
 
 
+def test_a_quad_read_later_goes_out_before_grids_still_waiting():
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="press"), 0.4)
+    service = TactileService("sim://")
+    service._loop = loop = asyncio.new_event_loop()
+    batches = []
+    service.pipeline.listeners.append(lambda frames: batches.append([(f.sensor.id, f.seq) for f in frames]))
+    half = len(data) // 2
+    for part in (data[:half], data[half:]):  # the second read is drained before the loop turns
+        service._received(part, time.time())
+        service._drain()
+    loop.run_until_complete(asyncio.sleep(0.01))
+    loop.close()
+    assert [{sid for sid, _ in batch} for batch in batches] == [{1}, {1}, {0}]  # both quads, then all grids at once
+    grid_seqs = [seq for sid, seq in batches[2]]
+    assert grid_seqs == list(range(grid_seqs[0], grid_seqs[0] + 400))
+
+
 def test_reads_wait_when_the_loop_falls_behind_instead_of_piling_up():
     service = TactileService("sim://?scene=idle")
     service._loop = asyncio.new_event_loop()  # not running yet: nothing drains

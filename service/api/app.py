@@ -7,6 +7,7 @@ Mutating endpoints (tare, calibration, recording) require
 from __future__ import annotations
 
 import hmac
+import time
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -225,13 +226,14 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
             return
         async def send_forever() -> None:
             while True:
-                message, notice = await subscriber.next_message()
+                message, notice, stamps = await subscriber.next_message()
                 if notice is not None:
                     await websocket.send_text(notice.decode())
                 if subscriber.binary:
                     await websocket.send_bytes(message)
                 else:
                     await websocket.send_text(message.decode())
+                service.hub.sent(subscriber, time.time(), stamps)
 
         async def until_disconnected() -> None:
             # A client that leaves is noticed here even when nothing is being

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import orjson
 
+from ..latency import LatencyMeter
 from ..reconstruct import ForceFrame
 from .messages import DEFAULT_FIELDS, to_binary, to_json_dict
 
@@ -88,17 +89,19 @@ class Subscriber:
             self.dropped_frames += len(self.queue.get_nowait())
         self.queue.put_nowait(frames)
 
-    async def next_message(self) -> tuple[bytes, bytes | None]:
-        """The next message, and a JSON notice of frames lost before it (or None)."""
+    async def next_message(self) -> tuple[bytes, bytes | None, list[float]]:
+        """The next message, a JSON notice of frames lost before it (or None),
+        and its frames' receive stamps."""
         frames = await self.queue.get()
         notice = None
         if self.dropped_frames:
             notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
             self.dropped_frames = 0
         parts = [self._encode(frame) for frame in frames]
+        stamps = [frame.t_host for frame in frames]
         if self.binary:
-            return struct.pack("<H", len(parts)) + b"".join(parts), notice
-        return b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", notice
+            return struct.pack("<H", len(parts)) + b"".join(parts), notice, stamps
+        return b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", notice, stamps
 
     def _encode(self, frame: ForceFrame) -> bytes:
         cache = frame.encoded
@@ -118,6 +121,12 @@ class Hub:
     def __init__(self) -> None:
         self.subscribers: list[Subscriber] = []
         self.frames_published = 0
+        # Receive stamp → handed to the client's socket, per kind of client
+        # (a batched frame also waits for its batch, by request).
+        self.sent_latency = {"unbatched": LatencyMeter(), "batched": LatencyMeter()}
+
+    def sent(self, subscriber: Subscriber, now: float, stamps: list[float]) -> None:
+        self.sent_latency["unbatched" if subscriber.batch_ms is None else "batched"].add(now, stamps)
 
     def add(self, subscriber: Subscriber) -> None:
         # Unbatched clients first: their senders wake first after each batch,
