@@ -44,6 +44,7 @@ def test_page_loads_with_live_frames_for_every_sensor(page):
     assert int(page.get_attribute('section[data-sensor="0"]', "data-frames")) > first + 5
     assert page.locator("section.panel").count() == 3
     page.wait_for_function("document.getElementById('link').textContent.startsWith('link up')", timeout=5000)
+    page.wait_for_function("/latency p99 \\d+\\.\\d ms/.test(document.getElementById('stats').textContent)", timeout=5000)
 
 
 def test_heatmap_follows_the_press(page):

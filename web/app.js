@@ -186,7 +186,9 @@ async function pollHealth() {
     const rates = Object.entries(health.sensors).map(([id, s]) => `#${id} ${s.rate_hz} Hz`).join(" · ");
     document.getElementById("stats").textContent =
       `${rates} · CRC errors ${health.stream.crc_errors} · discarded ${health.stream.bytes_discarded} B · gaps ` +
-      Object.values(health.sensors).reduce((n, s) => n + (s.seq_gaps || 0), 0) + (health.replay ? " · REPLAY" : "");
+      Object.values(health.sensors).reduce((n, s) => n + (s.seq_gaps || 0), 0) +
+      (health.latency.published.p99_ms === null ? "" : ` · latency p99 ${health.latency.published.p99_ms.toFixed(1)} ms`) +
+      (health.replay ? " · REPLAY" : "");
     const rec = health.recording;
     recordButton.textContent = rec && rec.active ? `Stop recording (${rec.messages} msgs)` : "Record";
     recordButton.title = rec && rec.error ? rec.error : "";
