@@ -85,7 +85,7 @@ class TactileService:
                 self.pipeline.listeners.remove(listener)
 
     def _measure_published(self, frames: list) -> None:
-        self.published_latency.add(time.time(), [frame.t_host for frame in frames])
+        self.published_latency.add(time.time() - frames[0].t_host)  # frames come in arrival order
 
     def _received(self, data: bytes, t_host: float) -> None:
         """Readout thread: queue a chunk; wake the loop unless it is already due to drain."""

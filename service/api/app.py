@@ -226,14 +226,14 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
             return
         async def send_forever() -> None:
             while True:
-                message, notice, stamps = await subscriber.next_message()
+                message, notice, oldest_stamp = await subscriber.next_message()
                 if notice is not None:
                     await websocket.send_text(notice.decode())
                 if subscriber.binary:
                     await websocket.send_bytes(message)
                 else:
                     await websocket.send_text(message.decode())
-                service.hub.sent(subscriber, time.time(), stamps)
+                service.hub.sent(subscriber, time.time(), oldest_stamp)
 
         async def until_disconnected() -> None:
             # A client that leaves is noticed here even when nothing is being

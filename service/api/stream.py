@@ -89,19 +89,19 @@ class Subscriber:
             self.dropped_frames += len(self.queue.get_nowait())
         self.queue.put_nowait(frames)
 
-    async def next_message(self) -> tuple[bytes, bytes | None, list[float]]:
+    async def next_message(self) -> tuple[bytes, bytes | None, float]:
         """The next message, a JSON notice of frames lost before it (or None),
-        and its frames' receive stamps."""
+        and the receive stamp of its oldest frame."""
         frames = await self.queue.get()
         notice = None
         if self.dropped_frames:
             notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
             self.dropped_frames = 0
         parts = [self._encode(frame) for frame in frames]
-        stamps = [frame.t_host for frame in frames]
+        oldest = frames[0].t_host
         if self.binary:
-            return struct.pack("<H", len(parts)) + b"".join(parts), notice, stamps
-        return b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", notice, stamps
+            return struct.pack("<H", len(parts)) + b"".join(parts), notice, oldest
+        return b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", notice, oldest
 
     def _encode(self, frame: ForceFrame) -> bytes:
         cache = frame.encoded
@@ -125,8 +125,8 @@ class Hub:
         # (a batched frame also waits for its batch, by request).
         self.sent_latency = {"unbatched": LatencyMeter(), "batched": LatencyMeter()}
 
-    def sent(self, subscriber: Subscriber, now: float, stamps: list[float]) -> None:
-        self.sent_latency["unbatched" if subscriber.batch_ms is None else "batched"].add(now, stamps)
+    def sent(self, subscriber: Subscriber, now: float, oldest_stamp: float) -> None:
+        self.sent_latency["unbatched" if subscriber.batch_ms is None else "batched"].add(now - oldest_stamp)
 
     def add(self, subscriber: Subscriber) -> None:
         # Unbatched clients first: their senders wake first after each batch,
