@@ -111,6 +111,18 @@ class TactileService:
             # waits, the port's buffer fills and the board reports OVERRUN.
             self._drained.wait(1.0)
 
+    async def let_urgent_go_first(self) -> None:
+        """Called by a batched client's sender before each send. Twenty
+        batched clients flush in the same turn of the loop; a read that
+        arrives meanwhile would wait behind all their sends, and so would the
+        unbatched clients' frames of it. Instead a read waiting for the loop
+        is drained now, and the sender steps back one turn while an unbatched
+        client has a message to send."""
+        if self._inbox:
+            self._drain()
+        if self.hub.unbatched_due():
+            await asyncio.sleep(0)
+
     def _drain(self) -> None:
         """Event loop: feed everything queued, in order, as few batches as possible."""
         with self._inbox_lock:

@@ -46,6 +46,45 @@ def test_a_quad_read_later_goes_out_before_grids_still_waiting():
     assert grid_seqs == list(range(grid_seqs[0], grid_seqs[0] + 400))
 
 
+def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
+    import numpy as np
+
+    from service.api.stream import Subscriber
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    earlier = ForceFrame(SensorInfo(1, "quad", 2, 2), 0, 0, time.time(), np.zeros(3), np.ones(4), [], "full")
+    data, _ = capture(BoardConfig(sensors=[SimQuad(1)], scene="press"), 0.2)
+    service = TactileService("sim://")
+    order = []
+
+    async def scenario():
+        service._loop = asyncio.get_running_loop()
+        service.pipeline.listeners.append(service.hub.publish)
+        controller, dashboard = Subscriber(), Subscriber(batch_ms=1.0)
+        service.hub.add(controller)
+        service.hub.add(dashboard)
+
+        async def send_unbatched():
+            await controller.next_message()
+            order.append("unbatched")
+
+        async def send_batched():
+            await dashboard.next_message()
+            await service.let_urgent_go_first()
+            order.append("batched")
+
+        tasks = [asyncio.create_task(send_batched()), asyncio.create_task(send_unbatched())]
+        await asyncio.sleep(0)  # both senders wait
+        dashboard._offer([earlier])  # the batched sender is due first ...
+        service._received(data, time.time())  # ... when a read comes in
+        await asyncio.wait_for(asyncio.gather(*tasks), 1.0)
+
+    asyncio.run(scenario())
+    assert order == ["unbatched", "batched"]
+    assert service.pipeline.decoder.counters.frames > 0 and not service._inbox
+
+
 def test_reads_wait_when_the_loop_falls_behind_instead_of_piling_up():
     service = TactileService("sim://?scene=idle")
     service._loop = asyncio.new_event_loop()  # not running yet: nothing drains

@@ -227,6 +227,8 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
         async def send_forever() -> None:
             while True:
                 message, notice, oldest_stamp = await subscriber.next_message()
+                if subscriber.batch_ms is not None:
+                    await service.let_urgent_go_first()
                 if notice is not None:
                     await websocket.send_text(notice.decode())
                 if subscriber.binary:

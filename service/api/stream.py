@@ -41,6 +41,8 @@ class Subscriber:
     _next_due: dict[int, float] = field(default_factory=dict)
     _batch: list[ForceFrame] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
+    _waiting: bool = False  # its sender waits for the next message
+    woken: bool = False  # a message came while it waited; its sender has not run yet
 
     @property
     def key(self) -> tuple[frozenset[str], bool]:
@@ -88,11 +90,14 @@ class Subscriber:
         if self.queue.full():
             self.dropped_frames += len(self.queue.get_nowait())
         self.queue.put_nowait(frames)
+        self.woken = self._waiting
 
     async def next_message(self) -> tuple[bytes, bytes | None, float]:
         """The next message, a JSON notice of frames lost before it (or None),
         and the receive stamp of its oldest frame."""
+        self._waiting = True
         frames = await self.queue.get()
+        self._waiting = self.woken = False
         notice = None
         if self.dropped_frames:
             notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
@@ -133,6 +138,16 @@ class Hub:
         # so a latency-critical client does not wait behind batched ones.
         self.subscribers.append(subscriber)
         self.subscribers.sort(key=lambda s: s.batch_ms is not None)
+
+    def unbatched_due(self) -> bool:
+        """Whether an unbatched client has a message its sender has not yet
+        taken: batched senders let it go first."""
+        for subscriber in self.subscribers:
+            if subscriber.batch_ms is not None:
+                return False  # unbatched clients come first in the list
+            if subscriber.woken:
+                return True
+        return False
 
     def remove(self, subscriber: Subscriber) -> None:
         subscriber.close()
