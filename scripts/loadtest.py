@@ -36,6 +36,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+import uvloop
 import websockets
 
 SENSORS = os.environ.get("LOADTEST_SENSORS", "grid,grid,grid,grid,quad,quad,quad,quad")
@@ -167,7 +168,7 @@ def latency_client(base: str, seconds: float, sensor: int, results) -> None:
     """In its own process, so the other clients' work does not delay it."""
     tally = Tally()
     url = f"{base.replace('http', 'ws', 1)}/ws?encoding=binary&fields=force&sensors={sensor}"
-    asyncio.run(listen(url, tally, time.time() + seconds))
+    uvloop.run(listen(url, tally, time.time() + seconds))
     results.put((tally.seqs, tally.latency))
 
 
@@ -223,7 +224,7 @@ def main() -> int:
         probe_process = multiprocessing.Process(target=wakeup_probe, args=(args.seconds, probe_results))
         probe_process.start()
         service_latency: list[dict] = []
-        healthy_tallies = asyncio.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms,
+        healthy_tallies = uvloop.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms,
                                                   service_latency))
         elapsed = time.time() - t0
         cpu1, rss = proc_sample(service.pid)
