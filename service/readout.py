@@ -1,12 +1,19 @@
 """The readout thread: keeps a source open, reads bytes, survives unplugging.
 
-Reading happens in one dedicated thread so that a blocking driver never
-stalls the event loop. On any OSError the source is closed and reopened with
-exponential backoff; the decoder's partial frame is dropped and counted, its
-sequence state kept, so the scans lost while away show up as a gap.
+The thread opens the source and, on any OSError, closes it and reopens it
+with exponential backoff; the decoder's partial frame is dropped and counted,
+its sequence state kept, so the scans lost while away show up as a gap.
+
+Given an event loop, a source with a descriptor (a device, a pty,
+``socket://``) is read by the loop itself as soon as bytes arrive, and the
+thread only waits for the link to drop: a read handed from a thread to the
+loop costs two wake-ups instead of one, and under load each wake-up can come
+a couple of milliseconds late. Sources without one (``sim://``,
+``replay://``) are read by the thread, which a blocking driver cannot stall.
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 import time
@@ -40,7 +47,9 @@ class LinkState:
 
 class Readout(threading.Thread):
     """Reads ``url`` until stopped, handing each chunk to ``on_bytes(data, t)``
-    and calling ``on_disconnect()`` whenever the link drops."""
+    and calling ``on_disconnect()`` whenever the link drops. With ``loop``
+    (given or set before ``start``), ``on_bytes`` is called on the loop's
+    thread for sources it can watch."""
 
     def __init__(
         self,
@@ -50,6 +59,7 @@ class Readout(threading.Thread):
         opener: Callable[[str], Source] = open_source,
         backoff_s: tuple[float, float] = (0.05, 2.0),
         clock: Callable[[], float] = time.time,
+        loop: asyncio.AbstractEventLoop | None = None,
     ) -> None:
         super().__init__(name="tactile-readout", daemon=True)
         self.link = LinkState(url)
@@ -58,10 +68,14 @@ class Readout(threading.Thread):
         self._opener = opener
         self._backoff = backoff_s
         self._clock = clock
+        self.loop = loop
+        self._watched_fd: int | None = None
+        self._watch_lock = threading.Lock()
         self._stop_event = threading.Event()
         self._source: Source | None = None
 
     def stop(self, timeout: float = 2.0) -> None:
+        self._unwatch()  # first: called on the loop's thread, the loop cannot serve a request while we join
         self._stop_event.set()
         if self.is_alive():
             self.join(timeout)
@@ -93,9 +107,70 @@ class Readout(threading.Thread):
             self._stop_event.wait(delay)
 
     def _read_until_gone(self, source: Source) -> None:
+        fd = source.fileno() if self.loop is not None else None
+        if fd is not None:
+            self._read_on_loop(source, fd)
+            return
         while not self._stop_event.is_set():
             data = source.read(0.05)
             if data:
                 now = self._clock()
                 self.link.last_data_time = now
                 self._on_bytes(data, now)
+
+    def _read_on_loop(self, source: Source, fd: int) -> None:
+        """The loop reads ``source`` whenever ``fd`` is readable; this thread
+        waits until the link drops (raising its OSError) or the readout stops."""
+        gone = threading.Event()
+        failure: list[OSError] = []
+
+        def readable() -> None:
+            try:
+                data = source.read(0)
+            except OSError as exc:
+                self._unwatch()
+                failure.append(exc)
+                gone.set()
+                return
+            if data:
+                now = self._clock()
+                self.link.last_data_time = now
+                self._on_bytes(data, now)
+
+        def watch() -> None:
+            if self._watched_fd == fd:  # not stopped meanwhile
+                self.loop.add_reader(fd, readable)
+
+        self._watched_fd = fd
+        try:
+            self.loop.call_soon_threadsafe(watch)
+        except RuntimeError:  # the loop is closed: the service is going away
+            self._watched_fd = None
+            return
+        while not gone.wait(0.05):
+            if self._stop_event.is_set():
+                self._unwatch()
+                return
+        raise failure[0]
+
+    def _unwatch(self) -> None:
+        """Make the loop stop reading before the source is closed: at once on
+        the loop's own thread, else by asking it and waiting."""
+        with self._watch_lock:
+            fd, self._watched_fd = self._watched_fd, None
+        loop = self.loop
+        if fd is None or loop is None or loop.is_closed():
+            return
+        try:
+            on_loop = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            on_loop = False
+        if on_loop:
+            loop.remove_reader(fd)
+            return
+        done = threading.Event()
+        try:
+            loop.call_soon_threadsafe(lambda: (loop.remove_reader(fd), done.set()))
+        except RuntimeError:  # closed meanwhile: nothing is watched any more
+            return
+        done.wait(1.0)

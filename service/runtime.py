@@ -1,15 +1,16 @@
-"""The running service: readout thread → pipeline → API hub, wired once.
+"""The running service: source → pipeline → API hub, wired once.
 
-The readout thread only reads: each chunk goes into an inbox with its
-receive time, and the event loop drains the inbox, decodes, reconstructs and
-publishes. Decoding and sending then share one thread, so a frame is sent
-as soon as its batch is reconstructed; with the pipeline in the reading
-thread, every socket send of the loop (which releases the GIL) handed the
-GIL back to the reconstruction for up to a switch interval (5 ms), and
-latency piled up. Reads that arrive while the loop is busy are drained
-together, so the batches grow under load instead of the backlog; sensors
-that are cheap to reconstruct go out before any grid waiting to be
-reconstructed.
+A source with a descriptor (device, pty, ``socket://``) is read by the event
+loop itself the moment bytes arrive; others (``sim://``, ``replay://``) by
+the readout thread, which only reads: each chunk goes into an inbox with its
+receive time and the loop drains it. Either way the loop decodes,
+reconstructs and publishes, so a frame is sent as soon as its batch is
+reconstructed; with the pipeline in the reading thread, every socket send of
+the loop (which releases the GIL) handed the GIL back to the reconstruction
+for up to a switch interval (5 ms), and latency piled up. Reads that arrive
+while the loop is busy go through together, so the batches grow under load
+instead of the backlog; sensors that are cheap to reconstruct go out before
+any grid waiting to be reconstructed.
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ class TactileService:
         self.started_at = time.time()
         self.recorder: Recorder | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread: int | None = None
         self._inbox: list[tuple[bytes, float] | None] = []  # None marks a lost link
         self._inbox_lock = threading.Lock()
         self._inbox_bytes = 0
@@ -54,7 +56,8 @@ class TactileService:
         # keep it out of the collector's full passes, which would otherwise
         # stall the loop for tens of ms every few seconds at 8 kHz of frames.
         gc.freeze()
-        self._loop = asyncio.get_running_loop()
+        self._loop = self.readout.loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
         self.pipeline.listeners += [self._measure_published, self.hub.publish]
         self.readout.start()
 
@@ -88,8 +91,15 @@ class TactileService:
         self.published_latency.add(time.time() - frames[0].t_host)  # frames come in arrival order
 
     def _received(self, data: bytes, t_host: float) -> None:
-        """Readout thread: queue a chunk; wake the loop unless it is already due to drain."""
-        self._post((data, t_host))
+        """A chunk read: read by the loop itself (a source with a descriptor),
+        it is fed at once, after anything still queued; read by the readout
+        thread, it is queued and the loop woken unless already due to drain."""
+        if threading.get_ident() == self._loop_thread:
+            if self._inbox:
+                self._drain()
+            self._feed([(data, t_host)])
+        else:
+            self._post((data, t_host))
 
     def _link_lost(self) -> None:
         self._post(None)

@@ -1,4 +1,6 @@
-"""The readout thread over TCP: reading, and surviving the device going away."""
+"""The readout over TCP, by its thread or by an event loop: reading, and
+surviving the device going away."""
+import asyncio
 import threading
 import time
 
@@ -65,6 +67,53 @@ def test_reads_and_reconnects_after_the_device_goes_away():
     finally:
         readout.stop()
         device.unplug()
+
+
+def test_an_event_loop_reads_a_source_with_a_descriptor_and_survives_unplugging():
+    device = TcpBoard()
+    pipeline = Pipeline()
+    reading_threads = set()
+
+    def on_bytes(data, t_host):
+        reading_threads.add(threading.get_ident())
+        pipeline.feed(data, t_host)
+
+    def frames():
+        return pipeline.decoder.counters.sensor(0).frames
+
+    async def until(predicate, timeout=5.0):
+        deadline = time.monotonic() + timeout
+        while not predicate() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        return predicate()
+
+    async def scenario():
+        loop = asyncio.get_running_loop()
+        readout = Readout(f"socket://127.0.0.1:{device.port}", on_bytes, pipeline.link_lost, backoff_s=(0.02, 0.1),
+                          loop=loop)
+        readout.start()
+        try:
+            assert await until(lambda: frames() > 200)
+            device.unplug()
+            assert await until(lambda: not readout.link.up)
+            await asyncio.sleep(0.3)  # the board keeps scanning while unplugged
+            before = frames()
+            device.plug()
+            assert await until(lambda: frames() > before + 200)
+            assert readout.link.connects == 2 and readout.link.up
+        finally:
+            started = time.monotonic()
+            readout.stop()  # on the loop's own thread: it must not wait for the loop
+            stop_took = time.monotonic() - started
+            device.unplug()
+        return threading.get_ident(), stop_took, readout
+
+    loop_thread, stop_took, readout = asyncio.run(scenario())
+    assert reading_threads == {loop_thread}  # every read was the loop's, none the readout thread's
+    assert stop_took < 0.5 and not readout.is_alive()
+    counters = pipeline.decoder.counters.sensor(0)
+    assert counters.seq_gaps >= 1 and counters.missed_frames >= 250
+    assert pipeline.decoder.counters.crc_errors == 0
 
 
 def test_unreachable_source_keeps_retrying_and_reports_why():

@@ -1,6 +1,8 @@
 """Source over pyserial: devices, ``socket://``, pty paths and ``sim://``."""
 from __future__ import annotations
 
+import io
+
 import serial
 
 from . import Source
@@ -36,6 +38,16 @@ class SerialSource(Source):
             return first + self._port.read(READ_BYTES)
         except serial.SerialException as exc:
             raise OSError(f"{self.url}: {exc}") from None
+
+    def fileno(self) -> int | None:
+        # pyserial's socket:// handler keeps its socket private and has no fileno().
+        sock = getattr(self._port, "_socket", None)
+        if sock is not None:
+            return sock.fileno()
+        try:
+            return self._port.fileno()  # device and pty paths
+        except io.UnsupportedOperation:  # sim://, replay://: generated on read
+            return None
 
     def _set_timeout(self, timeout: float) -> None:
         if self._port.timeout != timeout:  # on hardware, setting it reconfigures the port
