@@ -39,9 +39,10 @@ class LatencyMeter:
     def summary(self) -> dict:
         """Samples in all, and p50 / p99 / max in ms over the window (None
         while nothing was measured)."""
-        kept = self._samples[: min(self.count, self._samples.size)]
+        count = self.count  # /health reads from a worker thread while the loop adds
+        kept = self._samples[: min(count, self._samples.size)].copy()
         if kept.size == 0:
             return {"samples": 0, "window": 0, "p50_ms": None, "p99_ms": None, "max_ms": None}
         p50, p99 = np.percentile(kept, [50, 99]) * 1000.0
-        return {"samples": self.count, "window": int(kept.size), "p50_ms": round(float(p50), 3),
+        return {"samples": count, "window": int(kept.size), "p50_ms": round(float(p50), 3),
                 "p99_ms": round(float(p99), 3), "max_ms": round(float(kept.max()) * 1000.0, 3)}
