@@ -31,6 +31,8 @@ class SerialSource(Source):
         pyserial's socket:// answers 0 or 1 there, not a byte count.)"""
         try:
             self._set_timeout(timeout)
+            if timeout == 0:  # the event loop saw the descriptor readable: one read takes it all
+                return self._port.read(READ_BYTES)
             first = self._port.read(1)
             if not first:
                 return b""
