@@ -10,6 +10,10 @@ thread only waits for the link to drop: a read handed from a thread to the
 loop costs two wake-ups instead of one, and under load each wake-up can come
 a couple of milliseconds late. Sources without one (``sim://``,
 ``replay://``) are read by the thread, which a blocking driver cannot stall.
+While the loop is busy, a watched source's bytes wait in the kernel's and
+the device's buffers (tens of KB: tens of ms at 8 sensors); a loop stalled
+longer makes the board drop scans and report OVERRUN, as any host that falls
+behind does — ``GET /health`` shows such stalls in its latency figures.
 """
 from __future__ import annotations
 
