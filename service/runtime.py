@@ -152,9 +152,9 @@ class TactileService:
     def _feed(self, chunks: list[tuple[bytes, float]]) -> None:
         """Sensors that are cheap to reconstruct (all but grids) are published
         at once; grids are queued and reconstructed in a later turn of the
-        loop, after the sends of what was published and ahead of nothing read
-        later: a controller on a quad waits neither for the grids of its own
-        read nor for those of earlier reads. Each sensor's frames stay in order."""
+        loop, after the sends of what was published: a controller on a quad
+        waits neither for the grids of its own read nor for those of earlier
+        reads still queued. Each sensor's frames stay in order."""
         if not chunks:
             return
         readings = self.pipeline.decode_chunks(chunks)
