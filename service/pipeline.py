@@ -56,14 +56,8 @@ class Pipeline:
         self._lock = threading.Lock()
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
-        return self.feed_chunks([(data, t_host)])
-
-    def feed_chunks(self, chunks: list[tuple[bytes, float]]) -> list[ForceFrame]:
-        """Several reads at once: each chunk is decoded with its own receive
-        time, then all are reconstructed together (one call per sensor, not
-        per read) and published as one batch."""
-        readings = self.decode_chunks(chunks)
-        return self.reconstruct(readings, chunks[-1][1]) if chunks else []
+        """One read: decoded, reconstructed and published as one batch."""
+        return self.reconstruct(self.decode_chunks([(data, t_host)]), t_host)
 
     def decode_chunks(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
         """Bytes → readings, each chunk with its own receive time (byte listeners see every chunk)."""

@@ -116,11 +116,13 @@ class Readout(threading.Thread):
             self._read_on_loop(source, fd)
             return
         while not self._stop_event.is_set():
-            data = source.read(0.05)
-            if data:
-                now = self._clock()
-                self.link.last_data_time = now
-                self._on_bytes(data, now)
+            self._deliver(source.read(0.05))
+
+    def _deliver(self, data: bytes) -> None:
+        if data:
+            now = self._clock()
+            self.link.last_data_time = now
+            self._on_bytes(data, now)
 
     def _read_on_loop(self, source: Source, fd: int) -> None:
         """The loop reads ``source`` whenever ``fd`` is readable; this thread
@@ -136,10 +138,7 @@ class Readout(threading.Thread):
                 failure.append(exc)
                 gone.set()
                 return
-            if data:
-                now = self._clock()
-                self.link.last_data_time = now
-                self._on_bytes(data, now)
+            self._deliver(data)
 
         def watch() -> None:
             if self._watched_fd == fd:  # not stopped meanwhile

@@ -157,13 +157,14 @@ class TactileService:
         reads still queued. Each sensor's frames stay in order."""
         if not chunks:
             return
-        readings = self.pipeline.decode_chunks(chunks)
         t_host = chunks[-1][1]
-        cheap = [r for r in readings if r.sensor.kind != "grid"]
+        cheap, grids = [], []
+        for reading in self.pipeline.decode_chunks(chunks):
+            (grids if reading.sensor.kind == "grid" else cheap).append(reading)
         if cheap:
             self.pipeline.reconstruct(cheap, t_host)
-        if len(cheap) < len(readings):
-            self._deferred.append(([r for r in readings if r.sensor.kind == "grid"], t_host))
+        if grids:
+            self._deferred.append((grids, t_host))
             if len(self._deferred) == 1:
                 self._loop.call_soon(self._finish_deferred)
 
