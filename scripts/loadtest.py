@@ -33,11 +33,14 @@ import subprocess
 import sys
 import time
 import urllib.request
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import uvloop
 import websockets
+
+from service.sched import request_slice
 
 SENSORS = os.environ.get("LOADTEST_SENSORS", "grid,grid,grid,grid,quad,quad,quad,quad")
 CRITICAL_SENSOR = int(os.environ.get("LOADTEST_CRITICAL", "4"))  # the first quad
@@ -69,6 +72,7 @@ class Tally:
     def __init__(self) -> None:
         self._sids: list[np.ndarray] = []
         self._seqs: list[np.ndarray] = []
+        self._stamps: list[np.ndarray] = []
         self._latency: list[np.ndarray] = []
         self.dropped_notices = 0
 
@@ -82,12 +86,16 @@ class Tally:
         headers = raw.view(HEADER)[:, 0]
         self._sids.append(headers["sid"])
         self._seqs.append(headers["seq"])
+        self._stamps.append(headers["stamp"])
         self._latency.append(now - headers["stamp"])
 
-    @property
-    def latency(self) -> np.ndarray:
-        """Seconds from the host's receive stamp to receipt, every frame."""
-        return np.concatenate(self._latency) if self._latency else np.empty(0)
+    def latency(self, start: float, end: float) -> np.ndarray:
+        """Seconds from the host's receive stamp to receipt, for every frame
+        the service received between ``start`` and ``end`` (epoch s)."""
+        if not self._latency:
+            return np.empty(0)
+        stamps = np.concatenate(self._stamps)
+        return np.concatenate(self._latency)[(stamps >= start) & (stamps < end)]
 
     @property
     def seqs(self) -> dict[int, np.ndarray]:
@@ -135,25 +143,57 @@ async def stalled(url: str, stop: float) -> None:
         await asyncio.sleep(max(stop - time.time(), 0))
 
 
-async def poll_service_latency(base: str, stop: float, windows: list[dict]) -> None:
+@dataclass(frozen=True)
+class Schedule:
+    """One clock for every client (epoch s): all connect at ``begin``, the
+    figures cover ``measured`` (after ``warmup``, while every client is
+    connected), and all leave at ``stop``. Frames stamped during the warm-up
+    are reported apart: the cost of 25 clients connecting at once."""
+
+    begin: float
+    warmup_s: float
+    seconds: float
+
+    @property
+    def warmup(self) -> tuple[float, float]:
+        return self.begin, self.begin + self.warmup_s
+
+    @property
+    def measured(self) -> tuple[float, float]:
+        return self.begin + self.warmup_s, self.stop
+
+    @property
+    def stop(self) -> float:
+        return self.begin + self.warmup_s + self.seconds
+
+
+async def sleep_until(t: float) -> None:
+    await asyncio.sleep(max(t - time.time(), 0))
+
+
+async def poll_service(base: str, schedule: Schedule, pid: int, windows: list[dict], usage: list) -> None:
     """The service's own latency figures (GET /health, each over its last
-    ~1-10 s), once a second: where the time goes before the client."""
-    while time.time() < stop - 1.0:
+    ~1-10 s) once a second, and its CPU time at both ends of the measured window."""
+    start, end = schedule.measured
+    await sleep_until(start)
+    usage.append((time.time(), *proc_sample(pid)))
+    while time.time() < end - 1.0:
         await asyncio.sleep(1.0)
         body = await asyncio.to_thread(lambda: urllib.request.urlopen(base + "/health", timeout=2).read())
         windows.append(json.loads(body)["latency"])
+    await sleep_until(end)
+    usage.append((time.time(), *proc_sample(pid)))
 
 
-async def run_clients(base: str, seconds: float, n_healthy: int, n_stalled: int, batch_ms: float,
-                      service_latency: list[dict]) -> list[Tally]:
+async def run_clients(base: str, schedule: Schedule, n_healthy: int, n_stalled: int, batch_ms: float,
+                      service_pid: int, service_latency: list[dict], usage: list) -> list[Tally]:
     url = base.replace("http", "ws", 1)
-    stop = time.time() + seconds
+    await sleep_until(schedule.begin)
     tallies = [Tally() for _ in range(n_healthy)]
     healthy = url + f"/ws?encoding=binary&batch_ms={batch_ms:g}&fields=force,flags"
-    tasks = [asyncio.create_task(listen(healthy, t, stop)) for t in tallies]
-    tasks += [asyncio.create_task(stalled(url, stop)) for _ in range(n_stalled)]
-    tasks.append(asyncio.create_task(poll_service_latency(base, stop, service_latency)))
-    tasks.append(asyncio.create_task(asyncio.sleep(seconds)))  # the test lasts as long with no clients here
+    tasks = [asyncio.create_task(listen(healthy, t, schedule.stop)) for t in tallies]
+    tasks += [asyncio.create_task(stalled(url, schedule.stop)) for _ in range(n_stalled)]
+    tasks.append(asyncio.create_task(poll_service(base, schedule, service_pid, service_latency, usage)))
     await asyncio.gather(*tasks, return_exceptions=True)
     return tallies
 
@@ -164,26 +204,40 @@ def window_p99s(windows: list[dict], stage: str) -> str:
     return f"{np.median(p99s):.3g} / {max(p99s):.3g}" if p99s else "-"
 
 
-def latency_client(base: str, seconds: float, sensor: int, results) -> None:
+def request_slice_or_say(slice_us: int) -> None:
+    if slice_us:
+        request = request_slice(slice_us)
+        if not request.applied:
+            print(f"loadtest: slice of {slice_us} us not applied: {request.error}", file=sys.stderr)
+
+
+def latency_client(base: str, schedule: Schedule, sensor: int, results, slice_us: int) -> None:
     """In its own process, so the other clients' work does not delay it."""
+    request_slice_or_say(slice_us)
     tally = Tally()
     url = f"{base.replace('http', 'ws', 1)}/ws?encoding=binary&fields=force&sensors={sensor}"
-    uvloop.run(listen(url, tally, time.time() + seconds))
-    results.put((tally.seqs, tally.latency))
+    uvloop.run(listen(url, tally, schedule.stop))
+    results.put((tally.seqs, tally.latency(*schedule.measured), tally.latency(*schedule.warmup)))
 
 
-def wakeup_probe(seconds: float, results) -> None:
-    """A process that only sleeps 1 ms at a time, at normal priority: how
-    late the OS wakes it is the floor of any wake-up on this host under this
-    load (the critical path has at least three: the service's reading
-    thread, its event loop, the client)."""
+def wakeup_probe(schedule: Schedule, results, slice_us: int) -> None:
+    """A process that only sleeps 1 ms at a time, at normal priority and
+    with the critical client's slice: how late the OS wakes it over the
+    measured window is the floor of any wake-up on this host under this
+    load (the critical path has two: the service's event loop, the client)."""
+    request_slice_or_say(slice_us)
+    start, stop = schedule.measured
+    time.sleep(max(start - time.time(), 0))
     late = []
-    stop = time.time() + seconds
     while time.time() < stop:
         t0 = time.perf_counter()
         time.sleep(0.001)
         late.append(time.perf_counter() - t0 - 0.001)
     results.put(np.percentile(np.array(late) * 1000, [50, 99]).tolist())
+
+
+def percentiles_ms(latency: np.ndarray, qs=(50, 99)) -> list[float]:
+    return np.percentile(latency * 1000, qs).tolist() if latency.size else [float("nan")] * len(qs)
 
 
 def main() -> int:
@@ -197,13 +251,19 @@ def main() -> int:
     parser.add_argument("--level", default="full", help="the service's reconstruction level (default full)")
     parser.add_argument("--nice", type=int, default=0,
                         help="run the service at this niceness (negative: higher priority, needs root; default 0)")
+    parser.add_argument("--slice-us", type=int, default=0,
+                        help="the scheduler time slice the service and the critical client ask for "
+                             "(`tactile serve --sched-slice-us`; 0: the kernel's default)")
+    parser.add_argument("--warmup", type=float, default=3.0,
+                        help="seconds after the clients connect before the measured window (default 3); "
+                             "frames of the warm-up are reported apart")
     args = parser.parse_args()
     board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
                               "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(1.0)
     source = f"socket://127.0.0.1:{args.port + 1}"
     service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", source, "--port", str(args.port),
-                                "--level", args.level],
+                                "--level", args.level, "--sched-slice-us", str(args.slice_us)],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=lambda: os.nice(args.nice))
     base = f"http://127.0.0.1:{args.port}"
     try:
@@ -215,23 +275,24 @@ def main() -> int:
             except OSError:
                 time.sleep(0.2)
         time.sleep(2.0)  # past the auto-tare
-        cpu0, _ = proc_sample(service.pid)
-        t0 = time.time()
+        schedule = Schedule(time.time() + 1.0, args.warmup, args.seconds)  # 1 s to start the client processes
         results = multiprocessing.Queue()
-        critical_process = multiprocessing.Process(target=latency_client, args=(base, args.seconds, CRITICAL_SENSOR, results))
+        critical_process = multiprocessing.Process(target=latency_client,
+                                                   args=(base, schedule, CRITICAL_SENSOR, results, args.slice_us))
         critical_process.start()
         probe_results = multiprocessing.Queue()
-        probe_process = multiprocessing.Process(target=wakeup_probe, args=(args.seconds, probe_results))
+        probe_process = multiprocessing.Process(target=wakeup_probe, args=(schedule, probe_results, args.slice_us))
         probe_process.start()
         service_latency: list[dict] = []
-        healthy_tallies = uvloop.run(run_clients(base, args.seconds, args.healthy, args.stalled, args.batch_ms,
-                                                  service_latency))
-        elapsed = time.time() - t0
-        cpu1, rss = proc_sample(service.pid)
-        critical_seqs, critical_latency = results.get(timeout=args.seconds + 30)
+        usage: list[tuple[float, float, int]] = []
+        healthy_tallies = uvloop.run(run_clients(base, schedule, args.healthy, args.stalled, args.batch_ms,
+                                                  service.pid, service_latency, usage))
+        (t0, cpu0, _), (t1, cpu1, rss) = usage
+        critical_seqs, critical_latency, critical_warmup = results.get(timeout=30)
         critical_process.join(10)
         wakeup_p50, wakeup_p99 = probe_results.get(timeout=30)
         probe_process.join(10)
+        time.sleep(0.5)  # for the service to see the last clients leave
         health = json.loads(urllib.request.urlopen(base + "/health", timeout=5).read())
     finally:
         service.terminate()
@@ -248,31 +309,37 @@ def main() -> int:
             window[sid] = (max(lo, first), min(hi, last))
     window = {sid: span for sid, span in window.items() if span[1] > span[0]}
     shares = [Tally.share(seqs, window) for seqs in healthy_seqs] or [float("nan")]
-    healthy_latency = np.concatenate([t.latency for t in healthy_tallies] + [np.full(1, np.nan)]) * 1000
-    critical_latency = critical_latency * 1000
+    healthy_latency = np.concatenate([t.latency(*schedule.measured) for t in healthy_tallies] + [np.empty(0)])
+    healthy_warmup = np.concatenate([t.latency(*schedule.warmup) for t in healthy_tallies] + [np.empty(0)])
+    healthy_p50, healthy_p99 = percentiles_ms(healthy_latency)
+    critical_p50, critical_p99 = percentiles_ms(critical_latency)
     report = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}",
-        "seconds": round(elapsed, 1),
+        "measured_seconds": round(t1 - t0, 1),
+        "warmup_seconds": args.warmup,
         "sensors": SENSORS,
         "level": args.level,
         "healthy_clients": f"{args.healthy} binary, batched {args.batch_ms:g} ms",
         "service_niceness": args.nice,
+        "slice_us (service, critical client)": health["scheduling"]["granted_us"],
         "frames_published_per_s": health["stream"]["frames"] / max(health["uptime_s"], 1e-9),
         "healthy_min_share": min(shares),
         "healthy_mean_share": float(np.mean(shares)),
         "healthy_dropped_notices": sum(t.dropped_notices for t in healthy_tallies),
-        "healthy_latency_ms_p50": float(np.nanpercentile(healthy_latency, 50)) if healthy_tallies else float("nan"),
-        "healthy_latency_ms_p99": float(np.nanpercentile(healthy_latency, 99)) if healthy_tallies else float("nan"),
+        "healthy_latency_ms_p50": healthy_p50,
+        "healthy_latency_ms_p99": healthy_p99,
         "critical_share": (Tally.share(critical_seqs, {CRITICAL_SENSOR: window[CRITICAL_SENSOR]})
                            if CRITICAL_SENSOR in window else 0.0),
-        "critical_latency_ms_p50": float(np.percentile(critical_latency, 50)),
-        "critical_latency_ms_p99": float(np.percentile(critical_latency, 99)),
+        "critical_latency_ms_p50": critical_p50,
+        "critical_latency_ms_p99": critical_p99,
+        "warmup_healthy_latency_ms_p99 / max": "{:.3g} / {:.3g}".format(*percentiles_ms(healthy_warmup, (99, 100))),
+        "warmup_critical_latency_ms_p99 / max": "{:.3g} / {:.3g}".format(*percentiles_ms(critical_warmup, (99, 100))),
         "service_p99_ms_received_to_published (median / worst window)": window_p99s(service_latency, "published"),
         "service_p99_ms_received_to_sent_unbatched (median / worst window)": window_p99s(service_latency, "sent_unbatched"),
         "service_p99_ms_received_to_sent_batched (median / worst window)": window_p99s(service_latency, "sent_batched"),
         "os_wakeup_late_ms_p50": wakeup_p50,
         "os_wakeup_late_ms_p99": wakeup_p99,
-        "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / elapsed,
+        "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / (t1 - t0),
         "service_rss_MB": rss / 1e6,
         "websocket_clients_at_end": health["websocket_clients"],
     }

@@ -31,7 +31,8 @@ def cmd_serve(args) -> int:
     token = getattr(args, "token", None) or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         token = secrets.token_urlsafe(16)
-    app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting), token=token)
+    app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting,
+                                    sched_slice_us=args.sched_slice_us or None), token=token)
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
     print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
     if token:
@@ -228,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
                                        "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
     serve.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
     serve.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
+    serve.add_argument("--sched-slice-us", type=int, default=0, metavar="US",
+                       help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
+                            "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")
     serve.set_defaults(func=cmd_serve)
 
     sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")

@@ -25,6 +25,7 @@ from .latency import LatencyMeter
 from .pipeline import Pipeline
 from .readout import Readout
 from .record.recorder import Recorder
+from .sched import current_slice_us, request_slice
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
 from .sources import DEFAULT_SOURCE
 
@@ -35,7 +36,10 @@ class TactileService:
     """Owns the data path for one source. ``start`` must be called from the
     event loop that serves the API, since the hub lives on it."""
 
-    def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat") -> None:
+    def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat",
+                 sched_slice_us: int | None = None) -> None:
+        self.sched_slice_us = sched_slice_us
+        self.scheduling: dict = {"requested_us": None, "granted_us": current_slice_us(), "applied": False, "error": None}
         self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
@@ -56,6 +60,8 @@ class TactileService:
         # keep it out of the collector's full passes, which would otherwise
         # stall the loop for tens of ms every few seconds at 8 kHz of frames.
         gc.freeze()
+        if self.sched_slice_us:  # on the loop's thread; the readout thread, started below, inherits it
+            self.scheduling = request_slice(self.sched_slice_us).as_dict()
         self._loop = self.readout.loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self.pipeline.listeners += [self._measure_published, self.hub.publish]
@@ -205,6 +211,7 @@ class TactileService:
                 "published": self.published_latency.summary(),
                 **{f"sent_{kind}": meter.summary() for kind, meter in self.hub.sent_latency.items()},
             },
+            "scheduling": self.scheduling,
             "frames_published": self.hub.frames_published,
             "replay": self.readout.link.url.startswith("replay://"),
             "recording": None if self.recorder is None else self.recorder.status(),
