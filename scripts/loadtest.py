@@ -7,17 +7,21 @@ process (`tactile sim --tcp`, as a real board is outside the service),
 `tactile serve` reading it over TCP, then, from this process: 20 healthy WebSocket clients subscribed
 to everything (binary, batched every 5 ms), 5 clients that subscribe to
 everything (JSON, unbatched) and never read, and, in its own process, one
-latency-critical client on one quad sensor, unbatched, binary. It reports,
-per client kind, the share of frames received (by sequence continuity) and
-the latency of every frame from the host's receive stamp (taken when the
-bytes are read, before decoding) to client receipt (same machine, same
-clock), the service's own latency figures (GET /health, polled each second),
+latency-critical client on one quad sensor, unbatched, binary. All clients
+connect together; after a warm-up (``--warmup``, 3 s) a window of
+``--seconds`` is measured, then all leave together. It reports, per client
+kind, the share of frames received (by sequence continuity) and the latency
+of every frame the service received in the window, from the host's receive
+stamp (taken when the bytes are read, before decoding) to client receipt
+(same machine, same clock) — the warm-up's latency apart, as the cost of 25
+clients connecting at once — the service's own latency figures (GET /health, polled each second),
 how late the OS wakes a process that only sleeps 1 ms at a time (the floor of
 every wake-up on the critical path), and the service's CPU and memory from
 /proc. A batched frame waits for its batch by design, so the batching
 interval (5 ms) is chosen below the 10 ms goal. Every loop is bounded in time and only loopback is used.
 ``--healthy/--stalled/--batch-ms`` change the clients; ``--level`` and
-``--nice`` the service; LOADTEST_SENSORS and LOADTEST_CRITICAL the board
+``--nice`` the service; ``--slice-us`` the scheduler slice the service and
+the critical client ask for (service/sched.py); LOADTEST_SENSORS and LOADTEST_CRITICAL the board
 (e.g. one quad, sensor 0).
 """
 from __future__ import annotations
