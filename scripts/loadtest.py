@@ -4,9 +4,9 @@
 
 Starts a simulated board with 4 grid and 4 quad sensors at 1 kHz in its own
 process (`tactile sim --tcp`, as a real board is outside the service),
-`tactile serve` reading it over TCP, then, from this process: 20 healthy WebSocket clients subscribed
-to everything (binary, batched every 5 ms), 5 clients that subscribe to
-everything (JSON, unbatched) and never read, and, in its own process, one
+`tactile serve` reading it over TCP, then 20 healthy WebSocket clients subscribed to everything (binary, batched
+every 5 ms; in 4 processes of 5), from this process 5 clients that subscribe
+to everything (JSON, unbatched) and never read, and, in its own process, one
 latency-critical client on one quad sensor, unbatched, binary. All clients
 connect together; after a warm-up (``--warmup``, 3 s) a window of
 ``--seconds`` is measured, then all leave together. It reports, per client
@@ -189,17 +189,30 @@ async def poll_service(base: str, schedule: Schedule, pid: int, windows: list[di
     usage.append((time.time(), *proc_sample(pid)))
 
 
-async def run_clients(base: str, schedule: Schedule, n_healthy: int, n_stalled: int, batch_ms: float,
-                      service_pid: int, service_latency: list[dict], usage: list) -> list[Tally]:
+async def run_clients(base: str, schedule: Schedule, n_stalled: int, service_pid: int,
+                      service_latency: list[dict], usage: list) -> None:
+    """This process's clients: the stalled ones, and the poll of the service's figures."""
     url = base.replace("http", "ws", 1)
     await sleep_until(schedule.begin)
-    tallies = [Tally() for _ in range(n_healthy)]
-    healthy = url + f"/ws?encoding=binary&batch_ms={batch_ms:g}&fields=force,flags"
-    tasks = [asyncio.create_task(listen(healthy, t, schedule.stop)) for t in tallies]
-    tasks += [asyncio.create_task(stalled(url, schedule.stop)) for _ in range(n_stalled)]
+    tasks = [asyncio.create_task(stalled(url, schedule.stop)) for _ in range(n_stalled)]
     tasks.append(asyncio.create_task(poll_service(base, schedule, service_pid, service_latency, usage)))
     await asyncio.gather(*tasks, return_exceptions=True)
-    return tallies
+
+
+def healthy_clients(base: str, schedule: Schedule, n: int, batch_ms: float, results) -> None:
+    """``n`` healthy clients on one event loop, in a process of their own:
+    twenty clients are twenty programs, and one process parsing all their
+    messages would delay the receipt of the last by the parsing of the others."""
+    url = base.replace("http", "ws", 1) + f"/ws?encoding=binary&batch_ms={batch_ms:g}&fields=force,flags"
+    tallies = [Tally() for _ in range(n)]
+
+    async def run() -> None:
+        await sleep_until(schedule.begin)
+        await asyncio.gather(*(listen(url, t, schedule.stop) for t in tallies), return_exceptions=True)
+
+    uvloop.run(run())
+    results.put([(t.seqs, t.latency(*schedule.measured), t.latency(*schedule.warmup), t.dropped_notices)
+                 for t in tallies])
 
 
 def window_p99s(windows: list[dict], stage: str) -> str:
@@ -215,9 +228,14 @@ def request_slice_or_say(slice_us: int) -> None:
             print(f"loadtest: slice of {slice_us} us not applied: {request.error}", file=sys.stderr)
 
 
-def latency_client(base: str, schedule: Schedule, sensor: int, results, slice_us: int) -> None:
-    """In its own process, so the other clients' work does not delay it."""
-    request_slice_or_say(slice_us)
+def latency_client(base: str, schedule: Schedule, sensor: int, results, slice_us: int, fifo_priority: int) -> None:
+    """In its own process, so the other clients' work does not delay it;
+    at real-time priority if asked, as 1 kHz control loops usually run
+    (ros2_control's at SCHED_FIFO 50)."""
+    if fifo_priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+    else:
+        request_slice_or_say(slice_us)
     tally = Tally()
     url = f"{base.replace('http', 'ws', 1)}/ws?encoding=binary&fields=force&sensors={sensor}"
     uvloop.run(listen(url, tally, schedule.stop))
@@ -250,6 +268,8 @@ def main() -> int:
     parser.add_argument("--port", type=int, default=8765)
     parser.add_argument("--out", help="also write this run's figures here as a markdown table")
     parser.add_argument("--healthy", type=int, default=20, help="healthy clients (default 20)")
+    parser.add_argument("--client-processes", type=int, default=4,
+                        help="processes the healthy clients are spread over (default 4)")
     parser.add_argument("--stalled", type=int, default=5, help="stalled clients (default 5)")
     parser.add_argument("--batch-ms", type=float, default=5.0, help="healthy clients' batching interval (default 5)")
     parser.add_argument("--level", default="full", help="the service's reconstruction level (default full)")
@@ -258,6 +278,9 @@ def main() -> int:
     parser.add_argument("--slice-us", type=int, default=0,
                         help="the scheduler time slice the service and the critical client ask for "
                              "(`tactile serve --sched-slice-us`; 0: the kernel's default)")
+    parser.add_argument("--critical-fifo", type=int, default=0, metavar="PRIORITY",
+                        help="run the critical client at this SCHED_FIFO priority (needs root or CAP_SYS_NICE; "
+                             "default 0: normal priority)")
     parser.add_argument("--warmup", type=float, default=3.0,
                         help="seconds after the clients connect before the measured window (default 3); "
                              "frames of the warm-up are reported apart")
@@ -282,16 +305,26 @@ def main() -> int:
         schedule = Schedule(time.time() + 1.0, args.warmup, args.seconds)  # 1 s to start the client processes
         results = multiprocessing.Queue()
         critical_process = multiprocessing.Process(target=latency_client,
-                                                   args=(base, schedule, CRITICAL_SENSOR, results, args.slice_us))
+                                                   args=(base, schedule, CRITICAL_SENSOR, results, args.slice_us,
+                                                         args.critical_fifo))
         critical_process.start()
         probe_results = multiprocessing.Queue()
         probe_process = multiprocessing.Process(target=wakeup_probe, args=(schedule, probe_results, args.slice_us))
         probe_process.start()
+        healthy_results = multiprocessing.Queue()
+        sizes = [len(part) for part in np.array_split(np.arange(args.healthy), min(args.client_processes, args.healthy))]
+        healthy_processes = [multiprocessing.Process(target=healthy_clients,
+                                                     args=(base, schedule, size, args.batch_ms, healthy_results))
+                             for size in sizes if size]
+        for process in healthy_processes:
+            process.start()
         service_latency: list[dict] = []
         usage: list[tuple[float, float, int]] = []
-        healthy_tallies = uvloop.run(run_clients(base, schedule, args.healthy, args.stalled, args.batch_ms,
-                                                  service.pid, service_latency, usage))
+        uvloop.run(run_clients(base, schedule, args.stalled, service.pid, service_latency, usage))
         (t0, cpu0, _), (t1, cpu1, rss) = usage
+        healthy = [client for _ in healthy_processes for client in healthy_results.get(timeout=60)]
+        for process in healthy_processes:
+            process.join(10)
         critical_seqs, critical_latency, critical_warmup = results.get(timeout=30)
         critical_process.join(10)
         wakeup_p50, wakeup_p99 = probe_results.get(timeout=30)
@@ -304,7 +337,7 @@ def main() -> int:
         board.terminate()
         board.wait(10)
 
-    healthy_seqs = [t.seqs for t in healthy_tallies]
+    healthy_seqs = [seqs for seqs, _, _, _ in healthy]
     window = {}
     for seqs_by_sensor in healthy_seqs + [critical_seqs]:
         for sid, seqs in seqs_by_sensor.items():
@@ -313,8 +346,8 @@ def main() -> int:
             window[sid] = (max(lo, first), min(hi, last))
     window = {sid: span for sid, span in window.items() if span[1] > span[0]}
     shares = [Tally.share(seqs, window) for seqs in healthy_seqs] or [float("nan")]
-    healthy_latency = np.concatenate([t.latency(*schedule.measured) for t in healthy_tallies] + [np.empty(0)])
-    healthy_warmup = np.concatenate([t.latency(*schedule.warmup) for t in healthy_tallies] + [np.empty(0)])
+    healthy_latency = np.concatenate([latency for _, latency, _, _ in healthy] + [np.empty(0)])
+    healthy_warmup = np.concatenate([warmup for _, _, warmup, _ in healthy] + [np.empty(0)])
     healthy_p50, healthy_p99 = percentiles_ms(healthy_latency)
     critical_p50, critical_p99 = percentiles_ms(critical_latency)
     report = {
@@ -323,13 +356,14 @@ def main() -> int:
         "warmup_seconds": args.warmup,
         "sensors": SENSORS,
         "level": args.level,
-        "healthy_clients": f"{args.healthy} binary, batched {args.batch_ms:g} ms",
+        "healthy_clients": f"{args.healthy} binary, batched {args.batch_ms:g} ms, in {len(healthy_processes)} processes",
         "service_niceness": args.nice,
         "slice_us (service, critical client)": health["scheduling"]["granted_us"],
+        "critical_client_fifo_priority": args.critical_fifo,
         "frames_published_per_s": health["stream"]["frames"] / max(health["uptime_s"], 1e-9),
         "healthy_min_share": min(shares),
         "healthy_mean_share": float(np.mean(shares)),
-        "healthy_dropped_notices": sum(t.dropped_notices for t in healthy_tallies),
+        "healthy_dropped_notices": sum(notices for _, _, _, notices in healthy),
         "healthy_latency_ms_p50": healthy_p50,
         "healthy_latency_ms_p99": healthy_p99,
         "critical_share": (Tally.share(critical_seqs, {CRITICAL_SENSOR: window[CRITICAL_SENSOR]})
