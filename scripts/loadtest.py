@@ -386,8 +386,8 @@ def main() -> int:
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(
-            "# Load test\n\nProduced by `python scripts/loadtest.py --seconds "
-            f"{args.seconds:g} --out {args.out}` (see the script's docstring for the set-up).\n\n"
+            "# Load test\n\nProduced by `python scripts/loadtest.py "
+            f"{' '.join(sys.argv[1:])}` (see the script's docstring for the set-up).\n\n"
             "| figure | value |\n|---|---|\n" + text + "\n"
         )
     return 0
