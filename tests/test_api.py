@@ -9,7 +9,7 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.api.messages import decode_binary
-from service.api.stream import QUEUE_MESSAGES, Hub, Subscriber
+from service.api.stream import MERGE_FRAMES, QUEUE_MESSAGES, Hub, Subscriber
 from service.runtime import TactileService
 
 
@@ -179,6 +179,36 @@ def test_a_stalled_client_loses_only_its_own_oldest_frames():
     assert first["frames"][0]["header"]["seq"] == 10
 
 
+def test_a_client_that_fell_behind_gets_what_is_queued_in_one_message():
+    from service.reconstruct import ForceFrame
+    from service.readings import SensorInfo
+
+    info = SensorInfo(1, "quad", 2, 2)
+    reads, per_read = 40, 8  # 320 frames: more than one merged message, fewer messages than the queue holds
+
+    def seqs(message):
+        return [f["header"]["seq"] for f in orjson.loads(message)["frames"]]
+
+    async def scenario():
+        hub = Hub()
+        behind, other = Subscriber(), Subscriber()
+        hub.add(behind)
+        hub.add(other)
+        for read in range(reads):
+            hub.publish([ForceFrame(info, seq, seq, float(seq), np.zeros(3), np.ones(4), [], "full")
+                         for seq in range(read * per_read, (read + 1) * per_read)])
+        first, _, _ = await behind.next_message()
+        second, _, _ = await behind.next_message()
+        others, _, _ = await other.next_message()
+        return seqs(first), seqs(second), seqs(others), behind.pending, other.pending
+
+    first, second, others, behind_left, other_left = asyncio.run(scenario())
+    assert MERGE_FRAMES == 256
+    assert first == list(range(256)) and second == list(range(256, 320)) and not behind_left
+    # Merging must not grow the list the hub handed to every client.
+    assert others == list(range(256)) and [f.seq for f in other_left[0]] == list(range(256, 264))
+
+
 def test_mutating_endpoints_need_the_token_when_one_is_set():
     service = TactileService("sim://?scene=idle")
     with TestClient(create_app(service, token="s3cret")) as client:
@@ -212,9 +242,9 @@ def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
         received = time.time()
         for seq in range(3):  # no further frames arrive to trigger the send
             subscriber.take([ForceFrame(info, seq, seq, received + seq * 1e-3, np.zeros(3), np.ones(4), [], "full")])
-        assert subscriber.queue.empty()
-        frames = await asyncio.wait_for(subscriber.queue.get(), 1.0)
-        return [f.seq for f in frames], time.time() - received
+        assert not subscriber.pending
+        message, _, _ = await asyncio.wait_for(subscriber.next_message(), 1.0)
+        return [f["header"]["seq"] for f in orjson.loads(message)["frames"]], time.time() - received
 
     seqs, waited = asyncio.run(scenario())
     assert seqs == [0, 1, 2] and 0.025 < waited < 0.2

@@ -8,13 +8,15 @@ nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
 (``batch_ms``: frames are held and sent together, at most that long after the
 oldest of them was received). A client whose queue is full loses its own
 oldest message — never blocking the pipeline or other clients — and is told
-how many frames it lost.
+how many frames it lost; a client that fell behind gets what is queued for it
+in one message.
 """
 from __future__ import annotations
 
 import asyncio
 import struct
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import orjson
@@ -24,6 +26,7 @@ from ..reconstruct import ForceFrame
 from .messages import DEFAULT_FIELDS, to_binary, to_json_dict
 
 QUEUE_MESSAGES = 64
+MERGE_FRAMES = 256  # a merged JSON message of 8x8 grids stays under 1 MiB, websockets' default limit
 _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
 
@@ -36,12 +39,12 @@ class Subscriber:
     binary: bool = False
     max_rate_hz: float | None = None
     batch_ms: float | None = None
-    queue: asyncio.Queue = field(default_factory=lambda: asyncio.Queue(QUEUE_MESSAGES))
+    pending: deque[list[ForceFrame]] = field(default_factory=deque)  # messages not yet taken, oldest first
     dropped_frames: int = 0
     _next_due: dict[int, float] = field(default_factory=dict)
     _batch: list[ForceFrame] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
-    _waiting: bool = False  # its sender waits for the next message
+    _wakeup: asyncio.Future | None = None  # set while its sender waits for a message
     woken: bool = False  # a message came while it waited; its sender has not run yet
 
     @property
@@ -87,17 +90,30 @@ class Subscriber:
     def _offer(self, frames: list[ForceFrame]) -> None:
         if not frames:
             return
-        if self.queue.full():
-            self.dropped_frames += len(self.queue.get_nowait())
-        self.queue.put_nowait(frames)
-        self.woken = self._waiting
+        if len(self.pending) >= QUEUE_MESSAGES:
+            self.dropped_frames += len(self.pending.popleft())
+        self.pending.append(frames)
+        if self._wakeup is not None and not self._wakeup.done():
+            self._wakeup.set_result(None)
+            self.woken = True
 
     async def next_message(self) -> tuple[bytes, bytes | None, float]:
         """The next message, a JSON notice of frames lost before it (or None),
-        and the receive stamp of its oldest frame."""
-        self._waiting = True
-        frames = await self.queue.get()
-        self._waiting = self.woken = False
+        and the receive stamp of its oldest frame. A client that fell behind
+        gets what is queued for it in one message (up to ``MERGE_FRAMES``):
+        those frames wait already, and one send costs less than several, so
+        it catches up sooner and the loop has more time for everyone else."""
+        if not self.pending:
+            self._wakeup = asyncio.get_running_loop().create_future()
+            try:
+                await self._wakeup
+            finally:
+                self._wakeup, self.woken = None, False
+        frames = self.pending.popleft()
+        if self.pending and len(frames) + len(self.pending[0]) <= MERGE_FRAMES:
+            frames = list(frames)  # the hub offers one list to every client that takes all frames
+            while self.pending and len(frames) + len(self.pending[0]) <= MERGE_FRAMES:
+                frames.extend(self.pending.popleft())
         notice = None
         if self.dropped_frames:
             notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
