@@ -184,7 +184,10 @@ def test_a_client_that_fell_behind_gets_what_is_queued_in_one_message():
     from service.readings import SensorInfo
 
     info = SensorInfo(1, "quad", 2, 2)
-    reads, per_read = 40, 8  # 320 frames: more than one merged message, fewer messages than the queue holds
+    per_read = 8
+    reads = MERGE_FRAMES // per_read + 2  # one merged message and the rest, fewer messages than the queue holds
+    assert MERGE_FRAMES % per_read == 0 and reads <= QUEUE_MESSAGES
+    total = reads * per_read
 
     def seqs(message):
         return [f["header"]["seq"] for f in orjson.loads(message)["frames"]]
@@ -203,10 +206,10 @@ def test_a_client_that_fell_behind_gets_what_is_queued_in_one_message():
         return seqs(first), seqs(second), seqs(others), behind.pending, other.pending
 
     first, second, others, behind_left, other_left = asyncio.run(scenario())
-    assert MERGE_FRAMES == 256
-    assert first == list(range(256)) and second == list(range(256, 320)) and not behind_left
+    assert first == list(range(MERGE_FRAMES)) and second == list(range(MERGE_FRAMES, total)) and not behind_left
     # Merging must not grow the list the hub handed to every client.
-    assert others == list(range(256)) and [f.seq for f in other_left[0]] == list(range(256, 264))
+    assert others == list(range(MERGE_FRAMES))
+    assert [f.seq for f in other_left[0]] == list(range(MERGE_FRAMES, MERGE_FRAMES + per_read))
 
 
 def test_mutating_endpoints_need_the_token_when_one_is_set():
