@@ -215,6 +215,18 @@ def cmd_model_convergence(args) -> int:
     return 0
 
 
+def _slice_us(text: str) -> int:
+    from .sched import MAX_SLICE_US, MIN_SLICE_US
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"slice {text!r} must be a whole number of microseconds") from None
+    if value and not MIN_SLICE_US <= value <= MAX_SLICE_US:
+        raise argparse.ArgumentTypeError(f"slice {value} us is outside {MIN_SLICE_US}..{MAX_SLICE_US} (or 0 for the default)")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tactile", description="Capacitive tactile sensor service")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -229,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
                                        "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
     serve.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
     serve.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
-    serve.add_argument("--sched-slice-us", type=int, default=0, metavar="US",
+    serve.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
                        help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
                             "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")
     serve.set_defaults(func=cmd_serve)

@@ -3,11 +3,12 @@
 Since Linux 6.12 the fair scheduler (EEVDF) lets a normal, unprivileged
 task ask for a shorter time slice with ``sched_setattr``: its virtual
 deadlines come sooner, so when it wakes it may preempt a task that is in
-the middle of a longer slice instead of waiting for that slice to end. On a
-loaded host that wait is what makes a 1 kHz consumer late: with the default
-slice (~1.4 ms on this 2-core VM) a process woken by a socket ran up to
-2 ms late at p99 under the load test. The process still gets only its
-fair share of the CPU; it gets it in smaller, earlier pieces.
+the middle of a longer slice instead of waiting for that slice to end. The
+process still gets only its fair share of the CPU, in smaller, earlier
+pieces. Measured under the load test (docs/load.md): a process that sleeps
+1 ms at a time is woken up to 0.4–0.65 ms late at p99 with a 100 µs slice,
+1.2–2.2 ms with the kernel's default (1.4 ms on the 2-core test VM); for the
+service itself no difference could be told from the host's noise.
 
 Python's ``os`` module has no ``sched_setattr``, so the system call is made
 through ctypes. Older kernels ignore the field and other systems lack the
@@ -46,12 +47,11 @@ class SliceRequest:
                 "applied": self.applied, "error": self.error}
 
 
-def _syscall(number: int, *args) -> int:
+def _syscall(number: int, *args) -> None:
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.syscall(number, *args) != 0:
         errno = ctypes.get_errno()
         raise OSError(errno, os.strerror(errno))
-    return 0
 
 
 def current_slice_us() -> int | None:

@@ -73,3 +73,20 @@ def test_health_reports_the_kernels_slice_when_none_is_asked_for():
         scheduling = client.get("/health").json()["scheduling"]
     assert scheduling["requested_us"] is None and scheduling["applied"] is False
     assert scheduling["granted_us"] == sched.current_slice_us()
+
+
+@pytest.mark.parametrize("text, message", [("50", "slice 50 us is outside 100..100000"),
+                                           ("fast", "slice 'fast' must be a whole number")])
+def test_serve_refuses_a_bad_slice_naming_it(capsys, text, message):
+    from service.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["serve", "--sched-slice-us", text])
+    assert message in capsys.readouterr().err
+
+
+def test_serve_takes_a_slice_in_range_or_zero():
+    from service.cli import build_parser
+
+    assert build_parser().parse_args(["serve", "--sched-slice-us", "100"]).sched_slice_us == 100
+    assert build_parser().parse_args(["serve"]).sched_slice_us == 0
