@@ -48,7 +48,6 @@ from service.sched import request_slice
 
 SENSORS = os.environ.get("LOADTEST_SENSORS", "grid,grid,grid,grid,quad,quad,quad,quad")
 CRITICAL_SENSOR = int(os.environ.get("LOADTEST_CRITICAL", "4"))  # the first quad
-RECORD = struct.Struct("<BBBBHIdIH")
 
 
 def proc_sample(pid: int) -> tuple[float, int]:
