@@ -311,7 +311,8 @@ def main() -> int:
         probe_process = multiprocessing.Process(target=wakeup_probe, args=(schedule, probe_results, args.slice_us))
         probe_process.start()
         healthy_results = multiprocessing.Queue()
-        sizes = [len(part) for part in np.array_split(np.arange(args.healthy), min(args.client_processes, args.healthy))]
+        processes = max(min(args.client_processes, args.healthy), 1)
+        sizes = [len(part) for part in np.array_split(np.arange(args.healthy), processes)]
         healthy_processes = [multiprocessing.Process(target=healthy_clients,
                                                      args=(base, schedule, size, args.batch_ms, healthy_results))
                              for size in sizes if size]
