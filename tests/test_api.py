@@ -53,6 +53,20 @@ def test_health_reports_latency_through_the_service(client):
     assert set(latency) == {"published", "sent_unbatched", "sent_batched"}
 
 
+def test_clients_lists_each_subscription_with_its_own_latency(client):
+    with client.websocket_connect("/ws?sensors=1&encoding=binary&fields=force") as ws:
+        for _ in range(30):
+            ws.receive_bytes()
+        listed = client.get("/clients").json()["clients"]
+    assert len(listed) == 1
+    mine = listed[0]
+    assert {k: mine[k] for k in ("sensors", "fields", "encoding", "max_rate_hz", "batch_ms", "dropped_frames")} == {
+        "sensors": [1], "fields": ["force"], "encoding": "binary", "max_rate_hz": None, "batch_ms": None,
+        "dropped_frames": 0}
+    assert mine["latency"]["samples"] >= 29 and 0 <= mine["latency"]["p50_ms"] <= mine["latency"]["p99_ms"] < 1000
+    assert client.get("/clients").json() == {"clients": []}
+
+
 def test_sensors_lists_what_the_board_announced(client):
     body = client.get("/sensors").json()
     assert body["board"]["board"] == "tactile-sim-8x8-quad"
@@ -171,12 +185,13 @@ def test_a_stalled_client_loses_only_its_own_oldest_frames():
             message, _, _ = await healthy.next_message()
             received.append(orjson.loads(message)["frames"][0]["header"]["seq"])
         first, notice, _ = await stalled.next_message()
-        return received, orjson.loads(first), orjson.loads(notice)
+        return received, orjson.loads(first), orjson.loads(notice), stalled.describe()
 
-    received, first, notice = asyncio.run(scenario())
+    received, first, notice, described = asyncio.run(scenario())
     assert received == list(range(QUEUE_MESSAGES + 10))
     assert notice == {"type": "dropped", "frames": 10}
     assert first["frames"][0]["header"]["seq"] == 10
+    assert described["dropped_frames"] == 10  # the total stays after the notice
 
 
 def test_a_client_that_fell_behind_gets_what_is_queued_in_one_message():

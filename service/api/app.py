@@ -119,6 +119,14 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
     def health() -> JSONResponse:
         return JSONResponse(service.health())
 
+    @app.get("/clients")
+    def clients() -> JSONResponse:
+        """Each WebSocket client's subscription, queue, losses and latency
+        (receive stamp → handed to its socket): a controller finds its own
+        stream here. Apart from /health, which is polled often, since it
+        costs a percentile per client."""
+        return JSONResponse({"clients": [subscriber.describe() for subscriber in list(service.hub.subscribers)]})
+
     @app.get("/sensors")
     def sensors() -> JSONResponse:
         interpreter = service.pipeline.interpreter

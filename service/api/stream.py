@@ -30,6 +30,7 @@ QUEUE_MESSAGES = 64
 # encoded in one go on the loop (~40 µs for an 8x8 grid in JSON), so a larger
 # merge would hold up the other clients' frames (256 gave 18 ms spikes).
 MERGE_FRAMES = 32
+CLIENT_WINDOW_SAMPLES = 2_000  # 2 s of an unbatched 1 kHz client, 10 s of 5 ms batches
 _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
 
@@ -43,7 +44,10 @@ class Subscriber:
     max_rate_hz: float | None = None
     batch_ms: float | None = None
     pending: deque[list[ForceFrame]] = field(default_factory=deque)  # messages not yet taken, oldest first
-    dropped_frames: int = 0
+    dropped_frames: int = 0  # since the last notice
+    dropped_total: int = 0
+    # Receive stamp → handed to this client's socket, per message (its oldest frame).
+    latency: LatencyMeter = field(default_factory=lambda: LatencyMeter(CLIENT_WINDOW_SAMPLES))
     _next_due: dict[int, float] = field(default_factory=dict)
     _batch: list[ForceFrame] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
@@ -82,6 +86,19 @@ class Subscriber:
             self._flush_timer = asyncio.get_running_loop().call_later(max(delay, 0.0), self._flush)
         self._batch.extend(frames)
 
+    def describe(self) -> dict:
+        """What this client asked for and how it is served (GET /clients)."""
+        return {
+            "sensors": None if self.sensors is None else sorted(self.sensors),
+            "fields": sorted(self.fields),
+            "encoding": "binary" if self.binary else "json",
+            "max_rate_hz": self.max_rate_hz,
+            "batch_ms": self.batch_ms,
+            "queued_messages": len(self.pending),
+            "dropped_frames": self.dropped_total,
+            "latency": self.latency.summary(),
+        }
+
     def close(self) -> None:
         if self._flush_timer is not None:
             self._flush_timer.cancel()
@@ -94,7 +111,9 @@ class Subscriber:
         if not frames:
             return
         if len(self.pending) >= QUEUE_MESSAGES:
-            self.dropped_frames += len(self.pending.popleft())
+            lost = len(self.pending.popleft())
+            self.dropped_frames += lost
+            self.dropped_total += lost
         self.pending.append(frames)
         if self._wakeup is not None and not self._wakeup.done():
             self._wakeup.set_result(None)
@@ -150,7 +169,9 @@ class Hub:
         self.sent_latency = {"unbatched": LatencyMeter(), "batched": LatencyMeter()}
 
     def sent(self, subscriber: Subscriber, now: float, oldest_stamp: float) -> None:
-        self.sent_latency["unbatched" if subscriber.batch_ms is None else "batched"].add(now - oldest_stamp)
+        latency = now - oldest_stamp
+        self.sent_latency["unbatched" if subscriber.batch_ms is None else "batched"].add(latency)
+        subscriber.latency.add(latency)
 
     def add(self, subscriber: Subscriber) -> None:
         # Unbatched clients first: their senders wake first after each batch,
