@@ -52,6 +52,10 @@ class TactileClient:
     def health(self) -> dict:
         return self._request("GET", "/health")
 
+    def clients(self) -> list[dict]:
+        """Every WebSocket client's subscription and its latency to its socket."""
+        return self._request("GET", "/clients")["clients"]
+
     def sensors(self) -> list[dict]:
         return self._request("GET", "/sensors")["sensors"]
 

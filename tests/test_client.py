@@ -13,7 +13,11 @@ def test_client_rest_and_subscriptions(served):
     assert len(client.latest(0)["force_N"]) == 64
     with pytest.raises(TactileError, match="404 unknown sensor id 7"):
         client.latest(7)
-    frames = list(itertools.islice(client.subscribe(sensors=[1], binary=True), 50))
+    stream = client.subscribe(sensors=[1], binary=True)
+    frames = list(itertools.islice(stream, 50))
+    mine = [c for c in client.clients() if c["sensors"] == [1]]
+    assert len(mine) == 1 and mine[0]["encoding"] == "binary" and mine[0]["latency"]["samples"] >= 50 // 32  # merged when behind
+    stream.close()
     assert {f["sensor_id"] for f in frames} == {1} and frames[0]["force_N"].shape == (3,)
     seqs = [f["seq"] for f in frames]
     assert seqs == list(range(seqs[0], seqs[0] + 50))  # unbatched, undecimated: every frame
