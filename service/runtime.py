@@ -25,8 +25,8 @@ from .latency import LatencyMeter
 from .pipeline import Pipeline
 from .readout import Readout
 from .record.recorder import Recorder
-from .sched import current_slice_us, request_slice
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
+from .sched import SliceRequest, current_slice_us, request_slice
 from .sources import DEFAULT_SOURCE
 
 INBOX_LIMIT_BYTES = 1 << 22  # ~3 s of 8 sensors at 1 kHz read but not yet decoded
@@ -39,7 +39,7 @@ class TactileService:
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat",
                  sched_slice_us: int | None = None) -> None:
         self.sched_slice_us = sched_slice_us
-        self.scheduling: dict = {"requested_us": None, "granted_us": current_slice_us(), "applied": False, "error": None}
+        self.scheduling = SliceRequest(None, current_slice_us())
         self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
@@ -61,7 +61,7 @@ class TactileService:
         # stall the loop for tens of ms every few seconds at 8 kHz of frames.
         gc.freeze()
         if self.sched_slice_us:  # on the loop's thread; the readout thread, started below, inherits it
-            self.scheduling = request_slice(self.sched_slice_us).as_dict()
+            self.scheduling = request_slice(self.sched_slice_us)
         self._loop = self.readout.loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self.pipeline.listeners += [self._measure_published, self.hub.publish]
@@ -211,7 +211,7 @@ class TactileService:
                 "published": self.published_latency.summary(),
                 **{f"sent_{kind}": meter.summary() for kind, meter in self.hub.sent_latency.items()},
             },
-            "scheduling": self.scheduling,
+            "scheduling": self.scheduling.as_dict(),
             "frames_published": self.hub.frames_published,
             "replay": self.readout.link.url.startswith("replay://"),
             "recording": None if self.recorder is None else self.recorder.status(),

@@ -32,9 +32,9 @@ MIN_SLICE_US, MAX_SLICE_US = 100, 100_000  # the kernel's clamp for a custom sli
 
 @dataclass(frozen=True)
 class SliceRequest:
-    """What ``request_slice`` asked for and what the kernel now reports."""
+    """What ``request_slice`` asked for (None: nothing) and what the kernel now reports."""
 
-    requested_us: int
+    requested_us: int | None
     granted_us: int | None  # the slice the kernel reports afterwards; None where it could not be read
     error: str | None = None
 

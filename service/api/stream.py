@@ -52,7 +52,11 @@ class Subscriber:
     _batch: list[ForceFrame] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
     _wakeup: asyncio.Future | None = None  # set while its sender waits for a message
-    woken: bool = False  # a message came while it waited; its sender has not run yet
+
+    @property
+    def woken(self) -> bool:
+        """A message came while its sender waited, and the sender has not run yet."""
+        return self._wakeup is not None and self._wakeup.done()
 
     @property
     def key(self) -> tuple[frozenset[str], bool]:
@@ -117,7 +121,6 @@ class Subscriber:
         self.pending.append(frames)
         if self._wakeup is not None and not self._wakeup.done():
             self._wakeup.set_result(None)
-            self.woken = True
 
     async def next_message(self) -> tuple[bytes, bytes | None, float]:
         """The next message, a JSON notice of frames lost before it (or None),
@@ -130,7 +133,7 @@ class Subscriber:
             try:
                 await self._wakeup
             finally:
-                self._wakeup, self.woken = None, False
+                self._wakeup = None
         frames = self.pending.popleft()
         if self.pending and len(frames) + len(self.pending[0]) <= MERGE_FRAMES:
             frames = list(frames)  # the hub offers one list to every client that takes all frames
