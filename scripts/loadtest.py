@@ -151,7 +151,7 @@ class Schedule:
     """One clock for every client (epoch s): all connect at ``begin``, the
     figures cover ``measured`` (after ``warmup``, while every client is
     connected), and all leave at ``stop``. Frames stamped during the warm-up
-    are reported apart: the cost of 25 clients connecting at once."""
+    are reported apart: the cost of 26 clients connecting at once."""
 
     begin: float
     warmup_s: float
