@@ -46,6 +46,9 @@ import websockets
 
 from service.sched import request_slice
 
+sys.path.insert(0, str(Path(__file__).parent))
+import hoststalls  # a script beside this one
+
 SENSORS = os.environ.get("LOADTEST_SENSORS", "grid,grid,grid,grid,quad,quad,quad,quad")
 CRITICAL_SENSOR = int(os.environ.get("LOADTEST_CRITICAL", "4"))  # the first quad
 
@@ -280,17 +283,35 @@ def main() -> int:
     parser.add_argument("--critical-fifo", type=int, default=0, metavar="PRIORITY",
                         help="run the critical client at this SCHED_FIFO priority (needs root or CAP_SYS_NICE; "
                              "default 0: normal priority)")
+    parser.add_argument("--service-cpu", type=int, default=None, metavar="CPU",
+                        help="give the service this CPU and keep every other process of the test off it "
+                             "(default: all share every CPU)")
+    parser.add_argument("--stall-probe", type=float, default=3.0, metavar="SECONDS",
+                        help="how long scripts/hoststalls.py measures the idle machine before and after the run "
+                             "(default 3; 0: not at all)")
     parser.add_argument("--warmup", type=float, default=3.0,
                         help="seconds after the clients connect before the measured window (default 3); "
                              "frames of the warm-up are reported apart")
     args = parser.parse_args()
+    all_cpus = os.sched_getaffinity(0)
+    stalls_before = hoststalls.measure(args.stall_probe, all_cpus) if args.stall_probe else {}
+    service_cpus = all_cpus if args.service_cpu is None else {args.service_cpu}
+    if args.service_cpu is not None:
+        if args.service_cpu not in all_cpus or len(all_cpus) < 2:
+            parser.error(f"--service-cpu {args.service_cpu}: needs another CPU besides it among {sorted(all_cpus)}")
+        os.sched_setaffinity(0, all_cpus - service_cpus)  # inherited by the board and every client process
+
+    def service_placement() -> None:
+        os.sched_setaffinity(0, service_cpus)
+        os.nice(args.nice)
+
     board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
                               "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(1.0)
     source = f"socket://127.0.0.1:{args.port + 1}"
     service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", source, "--port", str(args.port),
                                 "--level", args.level, "--sched-slice-us", str(args.slice_us)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=lambda: os.nice(args.nice))
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=service_placement)
     base = f"http://127.0.0.1:{args.port}"
     try:
         deadline = time.time() + 20
@@ -336,6 +357,7 @@ def main() -> int:
         service.wait(10)
         board.terminate()
         board.wait(10)
+    stalls_after = hoststalls.measure(args.stall_probe, all_cpus) if args.stall_probe else {}
 
     healthy_seqs = [seqs for seqs, _, _, _ in healthy]
     window = {}
@@ -358,6 +380,7 @@ def main() -> int:
         "level": args.level,
         "healthy_clients": f"{args.healthy} binary, batched {args.batch_ms:g} ms, in {len(healthy_processes)} processes",
         "service_niceness": args.nice,
+        "service_cpus / others'": f"{sorted(service_cpus)} / {sorted(os.sched_getaffinity(0))}",
         "slice_us (service, critical client)": health["scheduling"]["granted_us"],
         "critical_client_fifo_priority": args.critical_fifo,
         "frames_published_per_s": health["stream"]["frames"] / max(health["uptime_s"], 1e-9),
@@ -380,6 +403,8 @@ def main() -> int:
         "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / (t1 - t0),
         "service_rss_MB": rss / 1e6,
         "websocket_clients_at_end": health["websocket_clients"],
+        "host: CPU stopped > 1 ms, idle machine, before": hoststalls.summary(stalls_before) or "-",
+        "host: CPU stopped > 1 ms, idle machine, after": hoststalls.summary(stalls_after) or "-",
     }
     text = "\n".join(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in report.items())
     print(json.dumps(report, indent=1))

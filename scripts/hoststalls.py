@@ -1,0 +1,84 @@
+"""How often this machine's CPUs stop running a process that never sleeps.
+
+    python scripts/hoststalls.py --seconds 5
+
+One process per CPU, pinned to it, reads the clock in a tight loop; a gap
+between two reads is time the CPU ran something else. On an idle machine the
+guest's own scheduler accounts for almost none of it (the process is seldom
+switched out: ``involuntary_switches``), so the rest is the host taking the
+virtual CPU away — a floor under every latency measured on this machine that
+no program inside it can lower. The load test runs this before and after its
+window, with the machine otherwise idle.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import resource
+import sys
+import time
+
+SMALL_GAP_S = 100e-6
+LONG_GAP_S = 1e-3
+
+
+def spin(cpu: int, seconds: float, results) -> None:
+    os.sched_setaffinity(0, {cpu})
+    clock = time.perf_counter
+    switches0 = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw
+    start = last = clock()
+    end = start + seconds
+    lost = longest = 0.0
+    long_gaps = 0
+    while last < end:
+        now = clock()
+        gap = now - last
+        if gap > SMALL_GAP_S:
+            lost += gap
+            long_gaps += gap > LONG_GAP_S
+            longest = max(longest, gap)
+        last = now
+    switches = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw - switches0
+    elapsed = last - start
+    results.put((cpu, {
+        "lost_percent": round(100 * lost / elapsed, 2),
+        "gaps_over_1ms_per_s": round(long_gaps / elapsed, 2),
+        "longest_gap_ms": round(longest * 1000, 2),
+        "involuntary_switches": switches,
+    }))
+
+
+def measure(seconds: float, cpus: set[int] | None = None) -> dict[int, dict]:
+    """Per CPU (default: those this process may use): share of time lost in gaps over 100 µs,
+    gaps over 1 ms per second, the longest gap, and how often the guest's
+    scheduler switched the spinning process out."""
+    cpus = sorted(os.sched_getaffinity(0) if cpus is None else cpus)
+    results = multiprocessing.Queue()
+    spinners = [multiprocessing.Process(target=spin, args=(cpu, seconds, results)) for cpu in cpus]
+    for spinner in spinners:
+        spinner.start()
+    report = dict(results.get(timeout=seconds + 30) for _ in spinners)
+    for spinner in spinners:
+        spinner.join(10)
+    return dict(sorted(report.items()))
+
+
+def summary(report: dict[int, dict]) -> str:
+    """One line: per CPU, gaps over 1 ms per second / longest gap."""
+    return ", ".join(f"cpu{cpu} {r['gaps_over_1ms_per_s']:g}/s, max {r['longest_gap_ms']:g} ms" for cpu, r in report.items())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=5.0)
+    args = parser.parse_args()
+    if args.seconds <= 0:
+        parser.error(f"--seconds {args.seconds}: must be > 0")
+    print(json.dumps(measure(args.seconds), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
