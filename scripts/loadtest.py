@@ -16,8 +16,9 @@ stamp (taken when the bytes are read, before decoding) to client receipt
 (same machine, same clock) — the warm-up's latency apart, as the cost of 25
 clients connecting at once — the service's own latency figures (GET /health, polled each second),
 how late the OS wakes a process that only sleeps 1 ms at a time (the floor of
-every wake-up on the critical path), and the service's CPU and memory from
-/proc. A batched frame waits for its batch by design, so the batching
+every wake-up on the critical path), the service's CPU and memory from
+/proc, and, on the idle machine before and after, how often the host stops
+each CPU (scripts/hoststalls.py: a floor under any latency measured here). A batched frame waits for its batch by design, so the batching
 interval (5 ms) is chosen below the 10 ms goal. Every loop is bounded in time and only loopback is used.
 ``--healthy/--stalled/--batch-ms`` change the clients; ``--level`` and
 ``--nice`` the service; ``--slice-us`` the scheduler slice the service and
@@ -66,6 +67,7 @@ HEADER = np.dtype([("version", "u1"), ("kind", "u1"), ("sid", "u1"), ("field_bit
                    ("t_us", "<u4"), ("stamp", "<f8"), ("flag_bits", "<u4"), ("n", "<u2")])
 COUNT_AT = struct.Struct("<H").unpack_from
 HEADER_BYTES = np.arange(HEADER.itemsize)
+SEQ_WRAP = 1 << 16
 
 
 class Tally:
@@ -113,7 +115,7 @@ class Tally:
         out = {}
         for sid in np.unique(sids):
             own = seqs[sids == sid]
-            out[int(sid)] = own[0] + np.concatenate(([0], np.cumsum(np.diff(own) & 0xFFFF)))
+            out[int(sid)] = own[0] + np.concatenate(([0], np.cumsum(np.diff(own) & (SEQ_WRAP - 1))))
         return out
 
     @staticmethod
@@ -217,6 +219,18 @@ def healthy_clients(base: str, schedule: Schedule, n: int, batch_ms: float, resu
                  for t in tallies])
 
 
+def align_wraps(clients: list[dict[int, np.ndarray]]) -> None:
+    """Put every client's unwrapped seqs on one count: each client unwraps
+    from its own first frame, so one that joined just before a wrap (seq
+    65535) and one just after it (seq 0) would be 65536 apart. Clients join
+    within seconds of each other, far less than a wrap."""
+    first_seen: dict[int, int] = {}
+    for seqs_by_sensor in clients:
+        for sid, seqs in seqs_by_sensor.items():
+            reference = first_seen.setdefault(sid, int(seqs[0]))
+            seqs_by_sensor[sid] = seqs + SEQ_WRAP * round((reference - int(seqs[0])) / SEQ_WRAP)
+
+
 def window_p99s(windows: list[dict], stage: str) -> str:
     """Median and worst of the service's per-window p99 for one stage."""
     p99s = [w[stage]["p99_ms"] for w in windows if w[stage]["p99_ms"] is not None]
@@ -283,9 +297,6 @@ def main() -> int:
     parser.add_argument("--critical-fifo", type=int, default=0, metavar="PRIORITY",
                         help="run the critical client at this SCHED_FIFO priority (needs root or CAP_SYS_NICE; "
                              "default 0: normal priority)")
-    parser.add_argument("--service-cpu", type=int, default=None, metavar="CPU",
-                        help="give the service this CPU and keep every other process of the test off it "
-                             "(default: all share every CPU)")
     parser.add_argument("--stall-probe", type=float, default=3.0, metavar="SECONDS",
                         help="how long scripts/hoststalls.py measures the idle machine before and after the run "
                              "(default 3; 0: not at all)")
@@ -293,25 +304,14 @@ def main() -> int:
                         help="seconds after the clients connect before the measured window (default 3); "
                              "frames of the warm-up are reported apart")
     args = parser.parse_args()
-    all_cpus = os.sched_getaffinity(0)
-    stalls_before = hoststalls.measure(args.stall_probe, all_cpus) if args.stall_probe else {}
-    service_cpus = all_cpus if args.service_cpu is None else {args.service_cpu}
-    if args.service_cpu is not None:
-        if args.service_cpu not in all_cpus or len(all_cpus) < 2:
-            parser.error(f"--service-cpu {args.service_cpu}: needs another CPU besides it among {sorted(all_cpus)}")
-        os.sched_setaffinity(0, all_cpus - service_cpus)  # inherited by the board and every client process
-
-    def service_placement() -> None:
-        os.sched_setaffinity(0, service_cpus)
-        os.nice(args.nice)
-
+    stalls_before = hoststalls.measure(args.stall_probe) if args.stall_probe else {}
     board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
                               "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(1.0)
     source = f"socket://127.0.0.1:{args.port + 1}"
     service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", source, "--port", str(args.port),
                                 "--level", args.level, "--sched-slice-us", str(args.slice_us)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=service_placement)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=lambda: os.nice(args.nice))
     base = f"http://127.0.0.1:{args.port}"
     try:
         deadline = time.time() + 20
@@ -357,9 +357,10 @@ def main() -> int:
         service.wait(10)
         board.terminate()
         board.wait(10)
-    stalls_after = hoststalls.measure(args.stall_probe, all_cpus) if args.stall_probe else {}
+    stalls_after = hoststalls.measure(args.stall_probe) if args.stall_probe else {}
 
     healthy_seqs = [seqs for seqs, _, _, _ in healthy]
+    align_wraps(healthy_seqs + [critical_seqs])
     window = {}
     for seqs_by_sensor in healthy_seqs + [critical_seqs]:
         for sid, seqs in seqs_by_sensor.items():
@@ -380,7 +381,6 @@ def main() -> int:
         "level": args.level,
         "healthy_clients": f"{args.healthy} binary, batched {args.batch_ms:g} ms, in {len(healthy_processes)} processes",
         "service_niceness": args.nice,
-        "service_cpus / others'": f"{sorted(service_cpus)} / {sorted(os.sched_getaffinity(0))}",
         "slice_us (service, critical client)": health["scheduling"]["granted_us"],
         "critical_client_fifo_priority": args.critical_fifo,
         "frames_published_per_s": health["stream"]["frames"] / max(health["uptime_s"], 1e-9),
