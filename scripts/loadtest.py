@@ -16,9 +16,8 @@ stamp (taken when the bytes are read, before decoding) to client receipt
 (same machine, same clock) — the warm-up's latency apart, as the cost of 25
 clients connecting at once — the service's own latency figures (GET /health, polled each second),
 how late the OS wakes a process that only sleeps 1 ms at a time (the floor of
-every wake-up on the critical path), the service's CPU and memory from
-/proc, and, on the idle machine before and after, how often the host stops
-each CPU (scripts/hoststalls.py: a floor under any latency measured here). A batched frame waits for its batch by design, so the batching
+every wake-up on the critical path), and the service's CPU and memory from
+/proc. A batched frame waits for its batch by design, so the batching
 interval (5 ms) is chosen below the 10 ms goal. Every loop is bounded in time and only loopback is used.
 ``--healthy/--stalled/--batch-ms`` change the clients; ``--level`` and
 ``--nice`` the service; ``--slice-us`` the scheduler slice the service and
@@ -46,9 +45,6 @@ import uvloop
 import websockets
 
 from service.sched import request_slice
-
-sys.path.insert(0, str(Path(__file__).parent))
-import hoststalls  # a script beside this one
 
 SENSORS = os.environ.get("LOADTEST_SENSORS", "grid,grid,grid,grid,quad,quad,quad,quad")
 CRITICAL_SENSOR = int(os.environ.get("LOADTEST_CRITICAL", "4"))  # the first quad
@@ -297,14 +293,10 @@ def main() -> int:
     parser.add_argument("--critical-fifo", type=int, default=0, metavar="PRIORITY",
                         help="run the critical client at this SCHED_FIFO priority (needs root or CAP_SYS_NICE; "
                              "default 0: normal priority)")
-    parser.add_argument("--stall-probe", type=float, default=3.0, metavar="SECONDS",
-                        help="how long scripts/hoststalls.py measures the idle machine before and after the run "
-                             "(default 3; 0: not at all)")
     parser.add_argument("--warmup", type=float, default=3.0,
                         help="seconds after the clients connect before the measured window (default 3); "
                              "frames of the warm-up are reported apart")
     args = parser.parse_args()
-    stalls_before = hoststalls.measure(args.stall_probe) if args.stall_probe else {}
     board = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--tcp", str(args.port + 1), "--sensors", SENSORS,
                               "--scene", "demo"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(1.0)
@@ -357,7 +349,6 @@ def main() -> int:
         service.wait(10)
         board.terminate()
         board.wait(10)
-    stalls_after = hoststalls.measure(args.stall_probe) if args.stall_probe else {}
 
     healthy_seqs = [seqs for seqs, _, _, _ in healthy]
     align_wraps(healthy_seqs + [critical_seqs])
@@ -403,8 +394,6 @@ def main() -> int:
         "service_cpu_percent_of_one_core": 100 * (cpu1 - cpu0) / (t1 - t0),
         "service_rss_MB": rss / 1e6,
         "websocket_clients_at_end": health["websocket_clients"],
-        "host: CPU stopped > 1 ms, idle machine, before": hoststalls.summary(stalls_before) or "-",
-        "host: CPU stopped > 1 ms, idle machine, after": hoststalls.summary(stalls_after) or "-",
     }
     text = "\n".join(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in report.items())
     print(json.dumps(report, indent=1))
