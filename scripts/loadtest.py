@@ -227,6 +227,20 @@ def align_wraps(clients: list[dict[int, np.ndarray]]) -> None:
             seqs_by_sensor[sid] = seqs + SEQ_WRAP * round((reference - int(seqs[0])) / SEQ_WRAP)
 
 
+def shared_window(clients: list[dict[int, np.ndarray]]) -> dict[int, tuple[int, int]]:
+    """Per sensor, the span of seqs that every client receiving it was
+    connected for: shares are counted inside it (clients connect and leave
+    a few frames apart)."""
+    align_wraps(clients)
+    window: dict[int, tuple[int, int]] = {}
+    for seqs_by_sensor in clients:
+        for sid, seqs in seqs_by_sensor.items():
+            first, last = int(seqs.min()), int(seqs.max())
+            lo, hi = window.get(sid, (first, last))
+            window[sid] = (max(lo, first), min(hi, last))
+    return {sid: span for sid, span in window.items() if span[1] > span[0]}
+
+
 def window_p99s(windows: list[dict], stage: str) -> str:
     """Median and worst of the service's per-window p99 for one stage."""
     p99s = [w[stage]["p99_ms"] for w in windows if w[stage]["p99_ms"] is not None]
@@ -351,14 +365,7 @@ def main() -> int:
         board.wait(10)
 
     healthy_seqs = [seqs for seqs, _, _, _ in healthy]
-    align_wraps(healthy_seqs + [critical_seqs])
-    window = {}
-    for seqs_by_sensor in healthy_seqs + [critical_seqs]:
-        for sid, seqs in seqs_by_sensor.items():
-            first, last = int(seqs.min()), int(seqs.max())
-            lo, hi = window.get(sid, (first, last))
-            window[sid] = (max(lo, first), min(hi, last))
-    window = {sid: span for sid, span in window.items() if span[1] > span[0]}
+    window = shared_window(healthy_seqs + [critical_seqs])
     shares = [Tally.share(seqs, window) for seqs in healthy_seqs] or [float("nan")]
     healthy_latency = np.concatenate([latency for _, latency, _, _ in healthy] + [np.empty(0)])
     healthy_warmup = np.concatenate([warmup for _, _, warmup, _ in healthy] + [np.empty(0)])
