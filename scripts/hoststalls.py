@@ -7,10 +7,11 @@ A process pinned to a CPU reads the clock in a tight loop; a gap between two
 reads is time that CPU ran something else. It runs on each CPU alone (the
 others idle), then on every CPU together. On the development VM (2 vCPUs)
 the difference is the finding of docs/load.md: alone, gaps over 1 ms are rare
-(at most ~4 ms); with both vCPUs busy they come several times a second and
-last up to 10-40 ms, in steps of ~10 ms, and the guest's scheduler switches
-the spinner out ten times more often (``involuntary_switches``: kernel
-threads such as kdamond that otherwise run on the idle CPU). A 1 kHz
+(at most ~4 ms); with both vCPUs busy they come up to ten times a second
+and last up to 8-12 ms, at times 20-40 ms in steps of ~10 ms, and the
+guest's scheduler switches the spinner out 5-20 times more often
+(``involuntary_switches``: kernel threads such as kdamond, which otherwise
+run on the idle CPU). A 1 kHz
 pipeline on such a host meets a latency goal only while the machine has
 headroom; the load test's window runs at ~70 % of both CPUs.
 """
