@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
+import secrets
 import sys
 import threading
 
@@ -24,9 +26,6 @@ def cmd_serve(args) -> int:
 
     from .api.app import create_app
     from .runtime import TactileService
-
-    import os
-    import secrets
 
     token = getattr(args, "token", None) or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
