@@ -7,6 +7,8 @@ Mutating endpoints (tare, calibration, recording) require
 from __future__ import annotations
 
 import hmac
+import site
+import sys
 import time
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -22,7 +24,25 @@ from ..runtime import TactileService
 from .messages import DEFAULT_FIELDS, FIELDS, Contact, FrameMessage, to_json_dict
 from .stream import Subscriber
 
-WEB_DIR = Path(__file__).resolve().parents[2] / "web"
+
+def web_dir_candidates() -> list[Path]:
+    """Where the dashboard's files may be: web/ beside the package in a
+    checkout (and an editable install); share/tactile/web under the
+    environment's prefix, or the user's base after ``pip install --user``,
+    when installed from a wheel (pyproject's data-files)."""
+    return [Path(__file__).resolve().parents[2] / "web",
+            Path(sys.prefix) / "share" / "tactile" / "web",
+            Path(site.getuserbase()) / "share" / "tactile" / "web"]
+
+
+def find_web_dir(candidates: list[Path]) -> Path:
+    for candidate in candidates:
+        if (candidate / "index.html").is_file():
+            return candidate
+    raise RuntimeError(f"the dashboard's files are in none of {', '.join(map(str, candidates))}: reinstall tactile")
+
+
+WEB_DIR = find_web_dir(web_dir_candidates())
 MAX_WS_RATE_HZ = 5000.0
 ALL_FIELDS = frozenset(FIELDS)
 
