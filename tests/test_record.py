@@ -1,5 +1,6 @@
 """Recording to MCAP and replaying it: round trips, crash safety, errors, pacing."""
 import io
+import logging
 import math
 import os
 import time
@@ -72,13 +73,15 @@ def test_every_file_written_opens_in_the_mcap_reader(tmp_path):
     assert grid["column_count"] == 8 and grid["cell_stride"] == 4 and grid["fields"][0]["type"] == 7
 
 
-def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path):
+def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path, caplog):
     *_, mcap_path, _ = live_recording(tmp_path, seconds=2.0)
     whole = sum(1 for _ in iter_messages(mcap_path))
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(mcap_path.read_bytes()[: int(0.6 * mcap_path.stat().st_size)])
-    survived = sum(1 for _ in iter_messages(cut))
+    with caplog.at_level(logging.WARNING, logger="service.record.mcap_log"):
+        survived = sum(1 for _ in iter_messages(cut))
     assert 0.3 * whole < survived < whole
+    assert "cut.mcap ends early" in caplog.text  # a replay of it says it is incomplete
     chunks = list(read_raw(cut))
     assert chunks and all(isinstance(c, bytes) for _, c in chunks)
 
@@ -141,3 +144,19 @@ def test_record_from_the_api(tmp_path):
         stopped = client.post("/record/stop").json()
         assert stopped["error"] is None and stopped["messages"] > 100
     assert summary(tmp_path / "api.mcap")["/raw"] > 10
+
+
+def test_a_file_that_is_no_recording_is_refused_by_name(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(bytes(range(100)))
+    with pytest.raises(ValueError, match="junk.mcap is not an MCAP recording"):
+        list(iter_messages(junk))
+    with pytest.raises(ValueError, match="not an MCAP recording"):
+        replay(junk, io.BytesIO())
+
+
+def test_a_complete_recording_reads_without_a_warning(tmp_path, caplog):
+    *_, mcap_path, _ = live_recording(tmp_path, seconds=1.2)
+    with caplog.at_level(logging.WARNING, logger="service.record.mcap_log"):
+        assert sum(1 for _ in iter_messages(mcap_path)) > 0
+    assert "ends early" not in caplog.text

@@ -13,6 +13,7 @@ as a stream and stops cleanly at the first incomplete record.
 from __future__ import annotations
 
 import base64
+import logging
 import struct
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,10 +25,12 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from ..reconstruct import ForceFrame
 from . import schemas
+
+log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 1 << 16
 _JSON = orjson.OPT_SERIALIZE_NUMPY
@@ -105,9 +108,14 @@ def foxglove_grid(frame: ForceFrame) -> dict:
 
 def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, Message]]:
     """(topic, message) in file order, reading as a stream: a file cut short
-    by a crash yields everything up to its last complete record."""
+    by a crash yields everything up to its last complete record, and says
+    so in a warning; a file that is no MCAP at all is a ValueError."""
     channels: dict[int, str] = {}
     with open(path, "rb") as stream:
+        head = stream.read(len(MCAP0_MAGIC))
+        if head != MCAP0_MAGIC:
+            raise ValueError(f"{path} is not an MCAP recording (it starts with {head!r}, not {MCAP0_MAGIC!r})")
+        stream.seek(0)
         reader = StreamReader(stream, validate_crcs=True)
         try:
             for record in reader.records:
@@ -118,8 +126,9 @@ def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[
                     topic = channels.get(record.channel_id)
                     if topics is None or topic in topics:
                         yield topic, record
-        except (McapError, EOFError, struct.error, ValueError):
-            return
+        except (McapError, EOFError, struct.error, ValueError) as exc:
+            log.warning("%s ends early, near byte %d of %d (%s): read what was complete, as after a crash",
+                        path, stream.tell(), Path(path).stat().st_size, str(exc) or type(exc).__name__)
 
 
 def read_raw(path: str | Path) -> Iterator[tuple[float, bytes]]:
