@@ -9,7 +9,7 @@ import secrets
 import sys
 import threading
 
-from .sources import DEFAULT_SOURCE
+from .sources import DEFAULT_SOURCE, check_source
 
 
 def _sim_config(args):
@@ -27,7 +27,8 @@ def cmd_serve(args) -> int:
     from .api.app import create_app
     from .runtime import TactileService
 
-    token = getattr(args, "token", None) or os.environ.get("TACTILE_TOKEN")
+    check_source(args.source)
+    token = args.token or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         token = secrets.token_urlsafe(16)
     app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting,
@@ -90,6 +91,7 @@ def cmd_record(args) -> int:
     from .reconstruct import Reconstructor
     from .record.recorder import Recorder
 
+    check_source(args.source)
     pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting))
     recorder = Recorder(args.out, args.raw, diagnostics=pipeline.decoder.counters.as_dict)
     pipeline.byte_listeners.append(recorder.on_bytes)
@@ -226,6 +228,20 @@ def _slice_us(text: str) -> int:
     return value
 
 
+def _add_serving_options(parser: argparse.ArgumentParser) -> None:
+    """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--log-level", default="warning")
+    parser.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
+                                        "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
+    parser.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
+    parser.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
+    parser.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
+                        help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
+                             "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tactile", description="Capacitive tactile sensor service")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -233,16 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="read a board and serve the API and dashboard")
     serve.add_argument("--source", default=DEFAULT_SOURCE,
                        help="pyserial URL or device path (default: %(default)s, the built-in simulator)")
-    serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=8000)
-    serve.add_argument("--log-level", default="warning")
-    serve.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
-                                       "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
-    serve.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
-    serve.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
-    serve.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
-                       help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
-                            "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")
+    _add_serving_options(serve)
     serve.set_defaults(func=cmd_serve)
 
     sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")
@@ -274,12 +281,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--speed", type=_speed, default=None,
                         help="1 (real time), 2, … or max (default: max for --export, 1 for --serve)")
     replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
-    replay.add_argument("--host", default="127.0.0.1")
-    replay.add_argument("--port", type=int, default=8000)
-    replay.add_argument("--log-level", default="warning")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
-    replay.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
-    replay.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
+    _add_serving_options(replay)
     replay.set_defaults(func=cmd_replay)
 
     tables_cmd = sub.add_parser("tables", help="force tables of the taxel model").add_subparsers(dest="action", required=True)

@@ -106,16 +106,21 @@ def foxglove_grid(frame: ForceFrame) -> dict:
     }
 
 
+def check_mcap(path: str | Path) -> None:
+    """ValueError unless ``path`` begins as every MCAP file does."""
+    with open(path, "rb") as stream:
+        head = stream.read(len(MCAP0_MAGIC))
+    if head != MCAP0_MAGIC:
+        raise ValueError(f"{path} is not an MCAP recording (it starts with {head!r}, not {MCAP0_MAGIC!r})")
+
+
 def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, Message]]:
     """(topic, message) in file order, reading as a stream: a file cut short
     by a crash yields everything up to its last complete record, and says
     so in a warning; a file that is no MCAP at all is a ValueError."""
+    check_mcap(path)
     channels: dict[int, str] = {}
     with open(path, "rb") as stream:
-        head = stream.read(len(MCAP0_MAGIC))
-        if head != MCAP0_MAGIC:
-            raise ValueError(f"{path} is not an MCAP recording (it starts with {head!r}, not {MCAP0_MAGIC!r})")
-        stream.seek(0)
         reader = StreamReader(stream, validate_crcs=True)
         try:
             for record in reader.records:

@@ -78,6 +78,8 @@ class Serial(SerialBase):
                     t_recorded, chunk = next(self._chunks)
                 except StopIteration:
                     self.finished = True
+                except (ValueError, OSError) as exc:  # a port reports a failed read as a SerialException
+                    raise SerialException(str(exc)) from None
                 else:
                     self._pacer.wait(t_recorded)
                     self._pending += chunk

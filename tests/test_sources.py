@@ -1,0 +1,53 @@
+"""Source URLs: what is refused at start-up, what is waited for."""
+import re
+
+import pytest
+
+from service import cli
+from service.sources import check_source
+
+
+@pytest.mark.parametrize("url, named", [
+    ("sim://?scene=bogus", "unknown scene 'bogus'"),
+    ("sim://?colour=red", "unknown option 'colour'"),
+    ("replay://no-such-run.mcap", "no such recording: no-such-run.mcap"),
+    ("bogus://x", "no handler for bogus://"),
+    ("a.b://x", "'a.b' is no URL scheme"),
+])
+def test_a_source_that_can_never_open_is_refused_before_the_service_starts(url, named):
+    with pytest.raises(ValueError, match=re.escape(named)):
+        check_source(url)
+
+
+@pytest.mark.parametrize("url", ["/dev/ttyACM_not_plugged_in", "socket://127.0.0.1:9", "sim://?scene=press&rate=500"])
+def test_a_source_that_may_appear_later_or_opens_now_passes(url):
+    check_source(url)
+
+
+def test_tactile_serve_exits_naming_a_bad_source(capsys):
+    assert cli.main(["serve", "--source", "sim://?scene=bogus"]) == 2
+    assert "unknown scene 'bogus'" in capsys.readouterr().err
+
+
+def test_a_file_that_is_no_recording_is_refused_as_a_replay_source(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(bytes(range(64)))
+    with pytest.raises(ValueError, match="not an MCAP recording"):
+        check_source(f"replay://{junk}")
+
+
+def test_tactile_replay_serve_serves_the_recording_through_the_live_service(tmp_path, monkeypatch):
+    import uvicorn
+    from fastapi.testclient import TestClient
+
+    from firmware_sim.board import BoardConfig, capture
+
+    run = tmp_path / "run.bin"
+    run.write_bytes(capture(BoardConfig(scene="press"), 0.5)[0])
+    served = {}
+    monkeypatch.setattr(uvicorn, "run", lambda app, **options: served.update(app=app, **options))
+    assert cli.main(["replay", str(run), "--serve", "--port", "8123", "--speed", "max"]) == 0
+    assert served["port"] == 8123
+    with TestClient(served["app"]) as client:
+        health = client.get("/health").json()
+    assert health["replay"] is True and health["link"]["source"].startswith("replay://")
