@@ -11,6 +11,13 @@ Every byte that does not end up inside a good frame is counted in
 ``bytes_discarded``; CRC errors are attributed to the sensor id the bad header
 claims (it may itself be corrupt, so the per-sensor figure is indicative and
 the stream total is exact).
+
+Sequence bookkeeping per sensor: a data frame that repeats the sensor's last
+one (same seq and board time) is no new scan — dropped and counted in
+``duplicates`` — and a board clock that steps back marks a board that
+restarted (``board_restarts``; its seq starts again at 0), not 65 000 scans
+missed. Neither case is in the protocol's text; both are what a link or a
+board can do.
 """
 from __future__ import annotations
 
@@ -52,7 +59,9 @@ class Frame:
 
     ``gap`` is the number of scans of this sensor missing just before this
     frame according to ``seq`` (0 when the sequence is continuous or this is
-    the sensor's first frame).
+    the sensor's first frame). ``board_restart`` marks the first frame after
+    the board's clock went back: it restarted, counting from seq 0 again,
+    and nothing was missed.
     """
 
     type: FrameType
@@ -62,6 +71,7 @@ class Frame:
     t_us: int
     payload: bytes
     gap: int = 0
+    board_restart: bool = False
 
 
 @dataclass(slots=True)
@@ -70,6 +80,8 @@ class SensorCounters:
     crc_errors: int = 0
     seq_gaps: int = 0
     missed_frames: int = 0
+    duplicates: int = 0
+    board_restarts: int = 0
 
 
 @dataclass(slots=True)
@@ -102,6 +114,8 @@ class StreamCounters:
                     "crc_errors": c.crc_errors,
                     "seq_gaps": c.seq_gaps,
                     "missed_frames": c.missed_frames,
+                    "duplicates": c.duplicates,
+                    "board_restarts": c.board_restarts,
                 }
                 for sid, c in sorted(self.sensors.items())
             },
@@ -123,7 +137,7 @@ class Decoder:
 
     def __init__(self) -> None:
         self._buffer = bytearray()
-        self._last_seq: dict[int, int] = {}
+        self._last: dict[int, tuple[int, int]] = {}  # per sensor: seq and t_us of its last frame
         self.counters = StreamCounters()
 
     def feed(self, data: bytes) -> list[Frame]:
@@ -190,26 +204,44 @@ class Decoder:
                 counters.bytes_discarded += 1
                 pos += 1
                 continue
-            frames.append(self._accept(ftype, sensor, flags, seq, t_us, bytes(buf[pos + HEADER_SIZE : end - CRC_SIZE])))
+            frame = self._accept(ftype, sensor, flags, seq, t_us, bytes(buf[pos + HEADER_SIZE : end - CRC_SIZE]))
+            if frame is None:
+                counters.bytes_discarded += end - pos
+            else:
+                frames.append(frame)
             pos = end
         del buf[:pos]
         return frames
 
-    def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, payload: bytes) -> Frame:
-        self.counters.frames += 1
+    def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, payload: bytes) -> Frame | None:
+        """A good frame, with its place in its sensor's sequence; None for a
+        repeat of the sensor's last scan (same seq and board time), which
+        would otherwise count as 65 535 scans missed."""
         frame_type = FrameType(ftype)
         gap = 0
+        restart = False
         if frame_type in DATA_TYPES:
             sensor_counters = self.counters.sensor(sensor)
+            last = self._last.get(sensor)
+            if last == (seq, t_us):
+                sensor_counters.duplicates += 1
+                return None
             sensor_counters.frames += 1
-            last = self._last_seq.get(sensor)
             if last is not None:
-                gap = (seq - last - 1) % SEQ_MODULUS
-                if gap:
-                    sensor_counters.seq_gaps += 1
-                    sensor_counters.missed_frames += gap
-            self._last_seq[sensor] = seq
-        return Frame(frame_type, sensor, flags, seq, t_us, payload, gap)
+                last_seq, last_t_us = last
+                # The board clock only runs forward (wrapping every 71.6 min): a
+                # step back by less than half its range is a board that restarted.
+                if (t_us - last_t_us) % T_US_MODULUS > T_US_MODULUS // 2:
+                    restart = True
+                    sensor_counters.board_restarts += 1
+                else:
+                    gap = (seq - last_seq - 1) % SEQ_MODULUS
+                    if gap:
+                        sensor_counters.seq_gaps += 1
+                        sensor_counters.missed_frames += gap
+            self._last[sensor] = (seq, t_us)
+        self.counters.frames += 1
+        return Frame(frame_type, sensor, flags, seq, t_us, payload, gap, restart)
 
 
 def encode_frame(

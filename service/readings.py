@@ -57,6 +57,7 @@ class Reading:
     capacitance_pF: np.ndarray
     open_channel: bool
     shorted_channel: bool
+    board_restart: bool = False
 
     def frame_flags(self) -> list[str]:
         flags = []
@@ -66,6 +67,8 @@ class Reading:
             flags.append("overrun")
         if self.gap:
             flags.append("seq_gap")
+        if self.board_restart:
+            flags.append("board_restart")
         if self.open_channel:
             flags.append("open_channel")
         if self.shorted_channel:
@@ -152,7 +155,8 @@ class Interpreter:
             capacitance[sentinel] = np.nan
             opened = bool((raw == OPEN_SENTINEL).any())
             shorted = bool((raw == SHORT_SENTINEL).any())
-        return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted)
+        return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted,
+                       frame.board_restart)
 
     def _on_info(self, payload: bytes) -> None:
         try:

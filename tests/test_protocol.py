@@ -167,3 +167,40 @@ def test_reset_keeps_sequence_state_so_reconnect_gaps_count():
 def test_encode_rejects_oversize_payload():
     with pytest.raises(ValueError, match="1025 bytes"):
         encode_frame(FrameType.GRID, 0, 0, 0, bytes(1025))
+
+
+def test_a_repeated_scan_is_dropped_and_counted_not_taken_for_65535_missed():
+    decoder = Decoder()
+    scan = encode_frame(FrameType.QUAD, 1, 7, 7000, bytes(16))
+    stream = encode_frame(FrameType.QUAD, 1, 6, 6000, bytes(16)) + scan + scan + encode_frame(FrameType.QUAD, 1, 8, 8000, bytes(16))
+    frames = decoder.feed(stream)
+    assert [f.seq for f in frames] == [6, 7, 8]
+    counters = decoder.counters.as_dict()["sensors"]["1"]
+    assert counters["duplicates"] == 1 and counters["seq_gaps"] == 0 and counters["missed_frames"] == 0
+    assert decoder.counters.bytes_discarded == len(scan)  # every byte is in a frame or discarded
+
+
+def test_a_board_that_restarts_is_no_gap():
+    decoder = Decoder()
+    before = b"".join(encode_frame(FrameType.QUAD, 1, seq, 5_000_000 + 1000 * seq, bytes(16)) for seq in range(100, 110))
+    after = b"".join(encode_frame(FrameType.QUAD, 1, seq, 900 + 1000 * seq, bytes(16)) for seq in range(0, 5))
+    frames = decoder.feed(before + after)
+    counters = decoder.counters.as_dict()["sensors"]["1"]
+    assert counters["board_restarts"] == 1 and counters["missed_frames"] == 0 and counters["seq_gaps"] == 0
+    assert [f.board_restart for f in frames].index(True) == 10 and sum(f.board_restart for f in frames) == 1
+
+
+def test_the_board_clock_wrapping_is_no_restart():
+    decoder = Decoder()
+    t0 = (1 << 32) - 2500
+    frames = decoder.feed(b"".join(encode_frame(FrameType.QUAD, 1, seq, (t0 + 1000 * seq) % (1 << 32), bytes(16))
+                                   for seq in range(6)))
+    assert not any(f.board_restart for f in frames)
+    assert decoder.counters.as_dict()["sensors"]["1"]["board_restarts"] == 0
+
+
+def test_a_gap_while_the_clock_runs_on_is_counted():
+    decoder = Decoder()
+    decoder.feed(encode_frame(FrameType.QUAD, 1, 65530, 1000, bytes(16)) + encode_frame(FrameType.QUAD, 1, 4, 12000, bytes(16)))
+    counters = decoder.counters.as_dict()["sensors"]["1"]
+    assert counters["seq_gaps"] == 1 and counters["missed_frames"] == 9 and counters["board_restarts"] == 0

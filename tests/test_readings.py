@@ -84,3 +84,18 @@ def test_error_frames_are_kept_as_text():
     interpreter = Interpreter()
     feed(interpreter, encode_frame(FrameType.ERROR, 255, 0, 0, b"mux settle timeout"))
     assert [text for _, text in interpreter.board_errors] == ["mux settle timeout"]
+
+
+def test_the_first_frame_after_a_board_restart_says_so_through_to_the_binary_stream():
+    from service.api.messages import decode_binary, to_binary
+    from service.pipeline import Pipeline
+
+    quad = bytes(np.array([5_000_000, 5_100_000, 4_900_000, 5_050_000], "<u4"))
+    before = b"".join(encode_frame(FrameType.QUAD, 1, seq, 10_000_000 + 1000 * seq, quad) for seq in range(200))
+    after = b"".join(encode_frame(FrameType.QUAD, 1, seq, 1000 * seq, quad) for seq in range(3))
+    pipeline = Pipeline()
+    frames = pipeline.feed(before + after, 0.0)
+    restarted = [f for f in frames if "board_restart" in f.flags]
+    assert [f.seq for f in restarted] == [0] and "seq_gap" not in restarted[0].flags
+    record = decode_binary(len([restarted[0]]).to_bytes(2, "little") + to_binary(restarted[0]))[0]
+    assert "board_restart" in record["flags"]
