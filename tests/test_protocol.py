@@ -183,7 +183,7 @@ def test_a_repeated_scan_is_dropped_and_counted_not_taken_for_65535_missed():
 def test_a_board_that_restarts_is_no_gap():
     decoder = Decoder()
     before = b"".join(encode_frame(FrameType.QUAD, 1, seq, 5_000_000 + 1000 * seq, bytes(16)) for seq in range(100, 110))
-    after = b"".join(encode_frame(FrameType.QUAD, 1, seq, 900 + 1000 * seq, bytes(16)) for seq in range(0, 5))
+    after = b"".join(encode_frame(FrameType.QUAD, 1, seq, 900 + 1000 * seq, bytes(16)) for seq in range(5))
     frames = decoder.feed(before + after)
     counters = decoder.counters.as_dict()["sensors"]["1"]
     assert counters["board_restarts"] == 1 and counters["missed_frames"] == 0 and counters["seq_gaps"] == 0
