@@ -12,17 +12,18 @@ Every byte that does not end up inside a good frame is counted in
 claims (it may itself be corrupt, so the per-sensor figure is indicative and
 the stream total is exact).
 
-Sequence bookkeeping per sensor: a data frame that repeats the sensor's last
-one (same seq and board time) is no new scan — dropped and counted in
-``duplicates`` — and a board clock that steps back marks a board that
-restarted (``board_restarts``; its seq starts again at 0), not 65 000 scans
-missed. Neither case is in the protocol's text; both are what a link or a
+Sequence bookkeeping per sensor: a data frame whose board clock does not
+advance either repeats one of the sensor's last 256 scans (same seq and board
+time: no new scan, dropped and counted in ``duplicates``) or, stepping back,
+comes from a board that restarted (``board_restarts``; its seq starts again
+at 0) — not 65 000 scans missed. Neither case is in the protocol's text; both are what a link or a
 board can do.
 """
 from __future__ import annotations
 
 import struct
 from binascii import crc_hqx
+from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -34,6 +35,7 @@ MAX_PAYLOAD = 1024
 BOARD_SENSOR_ID = 255
 SEQ_MODULUS = 1 << 16
 T_US_MODULUS = 1 << 32
+RECENT_SCANS = 256  # per sensor, remembered to recognise a repeated scan
 
 FLAG_SATURATED = 0x01
 FLAG_OVERRUN = 0x02
@@ -137,7 +139,7 @@ class Decoder:
 
     def __init__(self) -> None:
         self._buffer = bytearray()
-        self._last: dict[int, tuple[int, int]] = {}  # per sensor: seq and t_us of its last frame
+        self._recent: dict[int, deque[tuple[int, int]]] = {}  # per sensor: (seq, t_us) of its last scans
         self.counters = StreamCounters()
 
     def feed(self, data: bytes) -> list[Frame]:
@@ -215,31 +217,36 @@ class Decoder:
 
     def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, payload: bytes) -> Frame | None:
         """A good frame, with its place in its sensor's sequence; None for a
-        repeat of the sensor's last scan (same seq and board time), which
-        would otherwise count as 65 535 scans missed."""
+        repeat of one of the sensor's recent scans (same seq and board time),
+        which would otherwise count as 65 535 scans missed or a restart."""
         frame_type = FrameType(ftype)
         gap = 0
         restart = False
         if frame_type in DATA_TYPES:
             sensor_counters = self.counters.sensor(sensor)
-            last = self._last.get(sensor)
-            if last == (seq, t_us):
-                sensor_counters.duplicates += 1
-                return None
-            sensor_counters.frames += 1
-            if last is not None:
-                last_seq, last_t_us = last
-                # The board clock only runs forward (wrapping every 71.6 min): a
-                # step back by less than half its range is a board that restarted.
-                if (t_us - last_t_us) % T_US_MODULUS > T_US_MODULUS // 2:
-                    restart = True
+            recent = self._recent.get(sensor)
+            if recent is None:
+                recent = self._recent[sensor] = deque(maxlen=RECENT_SCANS)
+            else:
+                last_seq, last_t_us = recent[-1]
+                # The board clock only runs forward (wrapping every 71.6 min).
+                # When it did not advance, the frame repeats a recent scan or
+                # the board restarted; the search runs only then.
+                stepped_back = (t_us - last_t_us) % T_US_MODULUS > T_US_MODULUS // 2
+                if stepped_back or t_us == last_t_us:
+                    if (seq, t_us) in recent:
+                        sensor_counters.duplicates += 1
+                        return None
+                    restart = stepped_back
+                if restart:
                     sensor_counters.board_restarts += 1
                 else:
                     gap = (seq - last_seq - 1) % SEQ_MODULUS
                     if gap:
                         sensor_counters.seq_gaps += 1
                         sensor_counters.missed_frames += gap
-            self._last[sensor] = (seq, t_us)
+            recent.append((seq, t_us))
+            sensor_counters.frames += 1
         self.counters.frames += 1
         return Frame(frame_type, sensor, flags, seq, t_us, payload, gap, restart)
 

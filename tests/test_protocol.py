@@ -204,3 +204,12 @@ def test_a_gap_while_the_clock_runs_on_is_counted():
     decoder.feed(encode_frame(FrameType.QUAD, 1, 65530, 1000, bytes(16)) + encode_frame(FrameType.QUAD, 1, 4, 12000, bytes(16)))
     counters = decoder.counters.as_dict()["sensors"]["1"]
     assert counters["seq_gaps"] == 1 and counters["missed_frames"] == 9 and counters["board_restarts"] == 0
+
+
+def test_an_older_scan_sent_again_is_a_repeat_not_a_restart():
+    decoder = Decoder()
+    a, b, c = (encode_frame(FrameType.QUAD, 1, seq, 1000 * seq, bytes(16)) for seq in (40, 41, 42))
+    frames = decoder.feed(a + b + a + c)
+    assert [f.seq for f in frames] == [40, 41, 42] and not any(f.board_restart for f in frames)
+    counters = decoder.counters.as_dict()["sensors"]["1"]
+    assert counters["duplicates"] == 1 and counters["board_restarts"] == 0 and counters["missed_frames"] == 0

@@ -37,14 +37,18 @@ def key(frame):
 
 
 def without_repeats(expected):
-    """The frames a decoder passes on: a data frame with the same seq and
-    board time as its sensor's previous one is a repeat, dropped."""
-    last, kept = {}, []
+    """The frames a decoder passes on: a data frame whose board clock does
+    not advance past its sensor's last one and that repeats one of the
+    sensor's recent scans (same seq and board time) is dropped."""
+    recent, kept = {}, []
     for ftype, sensor, flags, seq, t_us, payload in expected:
         if ftype in (FrameType.GRID, FrameType.QUAD):
-            if last.get(sensor) == (seq, t_us):
-                continue
-            last[sensor] = (seq, t_us)
+            scans = recent.setdefault(sensor, [])
+            if scans:
+                step = (t_us - scans[-1][1]) % 2**32
+                if (step == 0 or step > 2**31) and (seq, t_us) in scans[-256:]:
+                    continue
+            scans.append((seq, t_us))
         kept.append((ftype, sensor, flags, seq, t_us, payload))
     return kept
 
