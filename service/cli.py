@@ -125,11 +125,18 @@ def cmd_replay(args) -> int:
         args.source = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if speed == float('inf') else speed}"
         return cmd_serve(args)
     speed = args.speed if args.speed is not None else float("inf")
-    out = open(args.export, "wb") if args.export else None
+    to_stdout = args.export == "-"
+    out = sys.stdout.buffer if to_stdout else open(args.export, "wb") if args.export else None
     try:
         pipeline = replay(path, out, level=args.level, mounting=args.mounting, pacer=Pacer(speed))
+    except BrokenPipeError:
+        if not to_stdout:
+            raise
+        # The reader stopped (`| head`): end quietly, as a pipeline's tools do.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     finally:
-        if out is not None:
+        if out is not None and not to_stdout:
             out.close()
     counters = pipeline.decoder.counters.as_dict()
     summary = {"stream": {k: v for k, v in counters.items() if k != "sensors"}, "sensors": counters["sensors"],
@@ -281,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--speed", type=_speed, default=None,
                         help="1 (real time), 2, … or max (default: max for --export, 1 for --serve)")
     replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
-    replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame")
+    replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout)")
     _add_serving_options(replay)
     replay.set_defaults(func=cmd_replay)
 

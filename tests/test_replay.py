@@ -110,3 +110,13 @@ def test_bench_scenario_reports_every_level_against_truth():
     # The linear level misses the gap nonlinearity on the pressed taxel; the table does not.
     assert by_level["level0"]["rms_loaded_N"] > 5 * by_level["table"]["rms_loaded_N"]
     assert by_level["full"]["rms_loaded_N"] < 0.02
+
+
+def test_a_dash_exports_to_stdout(tmp_path, capsysbinary, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "run.bin"
+    run.write_bytes(capture(BoardConfig(scene="press"), 0.3)[0])
+    assert main(["replay", str(run), "--export", "-"]) == 0
+    lines = capsysbinary.readouterr().out.splitlines()
+    assert len(lines) == 600 and orjson.loads(lines[0])["seq"] == 0  # 0.3 s of a grid and a quad
+    assert not (tmp_path / "-").exists()
