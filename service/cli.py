@@ -235,6 +235,11 @@ def _slice_us(text: str) -> int:
     return value
 
 
+def _add_reconstruction_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
+    parser.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
+
+
 def _add_serving_options(parser: argparse.ArgumentParser) -> None:
     """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
     parser.add_argument("--host", default="127.0.0.1")
@@ -242,8 +247,7 @@ def _add_serving_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="warning")
     parser.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
                                         "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
-    parser.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"], help="fidelity level (default: %(default)s)")
-    parser.add_argument("--mounting", default="flat", choices=["flat", "curved"], help="grid mounting: picks the load-shape table")
+    _add_reconstruction_options(parser)
     parser.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
                         help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
                              "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")
@@ -278,8 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--out", required=True, metavar="RUN.mcap")
     record.add_argument("--raw", metavar="RUN.bin", help="also write the raw bytes, exactly as received")
     record.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
-    record.add_argument("--level", default="full", choices=["level0", "table", "full", "auto"])
-    record.add_argument("--mounting", default="flat", choices=["flat", "curved"])
+    _add_reconstruction_options(record)
     record.set_defaults(func=cmd_record)
 
     replay = sub.add_parser("replay", help="replay a recording (.mcap) or raw capture through the pipeline")

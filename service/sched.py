@@ -47,6 +47,11 @@ class SliceRequest:
                 "applied": self.applied, "error": self.error}
 
 
+def _syscall_numbers() -> tuple[int, int] | None:
+    """(sched_setattr, sched_getattr) here, or None where there are none."""
+    return _SYSCALLS.get(platform.machine()) if platform.system() == "Linux" else None
+
+
 def _syscall(number: int, *args) -> None:
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.syscall(number, *args) != 0:
@@ -57,8 +62,8 @@ def _syscall(number: int, *args) -> None:
 def current_slice_us() -> int | None:
     """The calling thread's time slice in µs (``sched_getattr``), or None
     where the call does not exist or the thread is not SCHED_OTHER."""
-    numbers = _SYSCALLS.get(platform.machine())
-    if numbers is None or platform.system() != "Linux":
+    numbers = _syscall_numbers()
+    if numbers is None:
         return None
     buffer = ctypes.create_string_buffer(_SCHED_ATTR.size)
     try:
@@ -80,8 +85,8 @@ def request_slice(slice_us: int) -> SliceRequest:
     """
     if not MIN_SLICE_US <= slice_us <= MAX_SLICE_US:
         raise ValueError(f"slice_us={slice_us} is outside {MIN_SLICE_US}..{MAX_SLICE_US}")
-    numbers = _SYSCALLS.get(platform.machine())
-    if numbers is None or platform.system() != "Linux":
+    numbers = _syscall_numbers()
+    if numbers is None:
         return SliceRequest(slice_us, None, f"sched_setattr is not available on {platform.system()} {platform.machine()}")
     attr = ctypes.create_string_buffer(_SCHED_ATTR.pack(_SCHED_ATTR.size, SCHED_OTHER, 0, os.nice(0), 0,
                                                         slice_us * 1000, 0, 0))

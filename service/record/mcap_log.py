@@ -117,8 +117,13 @@ def check_mcap(path: str | Path) -> None:
 def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, Message]]:
     """(topic, message) in file order, reading as a stream: a file cut short
     by a crash yields everything up to its last complete record, and says
-    so in a warning; a file that is no MCAP at all is a ValueError."""
+    so in a warning; a file that is no MCAP at all is a ValueError, raised
+    here rather than at the first read."""
     check_mcap(path)
+    return _messages(path, topics)
+
+
+def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, Message]]:
     channels: dict[int, str] = {}
     with open(path, "rb") as stream:
         reader = StreamReader(stream, validate_crcs=True)
@@ -138,9 +143,12 @@ def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[
 
 def read_raw(path: str | Path) -> Iterator[tuple[float, bytes]]:
     """(host receive time s, bytes) of every read the recording holds."""
-    for _, message in iter_messages(path, {"/raw"}):
-        doc = orjson.loads(message.data)
-        yield doc["t_host"], base64.b64decode(doc["data"])
+    return (_raw_chunk(message) for _, message in iter_messages(path, {"/raw"}))
+
+
+def _raw_chunk(message: Message) -> tuple[float, bytes]:
+    doc = orjson.loads(message.data)
+    return doc["t_host"], base64.b64decode(doc["data"])
 
 
 def summary(path: str | Path) -> dict:
