@@ -1,7 +1,7 @@
 """Forward physics of the simulated sensors: force → capacitance (pF).
 
 Grid: each taxel follows the layered model's ΔC/C0(F) table scaled to its
-table-1 sensitivity (service.reconstruct.taxel), its neighbours feel the
+table-1 sensitivity (service.physics.taxel_response), its neighbours feel the
 mechanical crosstalk measured in paper 000, an optional common-mode drift
 (temperature) scales every channel, and the multiplexer may leak a fraction
 of each channel into the next one scanned. Quad: the calibrated curves of
@@ -16,11 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.calibration import grid_calibration
-from service.reconstruct import taxel_response
-from service.reconstruct.contact import PITCH_MM, taxel_centres_mm
-from service.reconstruct.crosstalk import PAPER_MECHANICAL_COUPLING, Crosstalk
-from service.reconstruct.quad import QuadModel
+from service.physics.crosstalk_model import PAPER_MECHANICAL_COUPLING, CrosstalkModel
+from service.physics.paper_data import PITCH_MM, grid_calibration, taxel_centres_mm
+from service.physics.quad_model import QuadModel
+from service.physics.taxel_response import taxel_response
 
 GRID_PITCH_MM = PITCH_MM
 QUAD_C0_PF = (2.21, 2.18, 2.24, 2.20)
@@ -53,7 +52,7 @@ class SimGrid:
         calibration = grid_calibration(self.rows, self.cols)
         self.c0_pF = np.array(calibration.c0_pF)
         self.response = taxel_response(calibration, self.mounting)
-        self.crosstalk = Crosstalk(self.rows, self.cols, self.mechanical_coupling, self.electrical_leakage)
+        self.crosstalk = CrosstalkModel(self.rows, self.cols, self.mechanical_coupling, self.electrical_leakage)
 
     @property
     def channels(self) -> int:

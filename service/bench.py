@@ -67,7 +67,7 @@ def _capture(scenario: Scenario, seconds: float):
 
 def _noise_floor_N(noise_fF: float = 1.0) -> float:
     """RMS force of 1 fF of noise over the table-1 taxels (σ_C / (C0 · s))."""
-    from .calibration import table1
+    from .physics.paper_data import table1
 
     cal = table1()
     return float(np.sqrt(np.mean((noise_fF * 1e-3 / (cal.c0_pF * cal.sensitivity_per_N)) ** 2)))

@@ -9,7 +9,7 @@ from service.bench import _noise_floor_N
 from service.pipeline import Pipeline
 from service.protocol import FLAG_SATURATED, FrameType, encode_frame
 from service.reconstruct import Reconstructor
-from service.reconstruct.select import SceneConfig
+from service.reconstruct.levels import SceneConfig
 
 NOISE_FLOOR = _noise_floor_N()
 PRESSED = 27  # row 4, col 4

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from service.physics import calibrate, shear, yeoh
+from service.physics import paper_data, quad_fits, shear, yeoh
 
 
 def yeoh_energy(lam, c10, c20):
@@ -48,29 +48,29 @@ def test_shear_outside_its_domain_is_flagged_never_nan():
 
 @pytest.mark.parametrize(
     "coefficients, top, inside, beyond",
-    [(calibrate.FIT34, 0.330, 0.2, 0.331), (calibrate.FIT35, 0.0382, 0.03, 0.0383)],
+    [(paper_data.FIT34, 0.330, 0.2, 0.331), (paper_data.FIT35, 0.0382, 0.03, 0.0383)],
 )
 def test_fit_inverses_hold_at_the_turn_and_flag(coefficients, top, inside, beyond):
     c2, c1, c0 = coefficients
     assert c0 - c1 * c1 / (4 * c2) == pytest.approx(top, abs=1e-3)
-    force, out = calibrate.invert_fit(coefficients, np.array([inside, beyond, c0, c0 - 0.001, 0.0]))
+    force, out = quad_fits.invert_fit(coefficients, np.array([inside, beyond, c0, c0 - 0.001, 0.0]))
     assert np.polyval(coefficients, force[0]) == pytest.approx(inside)
-    assert force[1] == pytest.approx(calibrate.fit_turning_force(coefficients))
+    assert force[1] == pytest.approx(quad_fits.fit_turning_force(coefficients))
     assert force[2] == 0 and force[3] == 0 and force[4] == 0
     assert out.tolist() == [False, True, False, True, True]
 
 
 def test_yeoh_fit_recovers_known_parameters():
     forces = np.linspace(0.5, 15, 30)
-    relative = np.array([calibrate.QuadCalibration(3.0, 5.0, 0.01, 0.0, 20, 8).normal_relative(f) for f in forces])
-    report = calibrate.fit_yeoh(forces, relative, 15.0)
+    relative = np.array([quad_fits.QuadCalibration(3.0, 5.0, 0.01, 0.0, 20, 8).normal_relative(f) for f in forces])
+    report = quad_fits.fit_yeoh(forces, relative, 15.0)
     assert report.parameters["c10_area_N"] == pytest.approx(3.0, rel=1e-6)
     assert report.parameters["c20_area_N"] == pytest.approx(5.0, rel=1e-6)
     assert report.residual_rms_N < 1e-6
 
 
 def test_default_calibration_figures():
-    calibration, reports = calibrate.default_quad_calibration()
+    calibration, reports = quad_fits.default_quad_calibration()
     assert calibration.normal_usable_N == pytest.approx(0.9 * 0.0343 / 0.0018)  # 17.15 N, before the 19.06 N turn
     assert calibration.shear_usable_N == pytest.approx(0.9 * 0.0077 / 0.0008)  # 8.66 N, before 9.625 N
     assert reports["normal_yeoh"].residual_rms_N < 0.5
@@ -82,6 +82,6 @@ def test_default_calibration_figures():
 
 
 def test_paper_yeoh_parameters_do_not_reproduce_fit_34():
-    mismatch = calibrate.paper_parameters_mismatch()
+    mismatch = quad_fits.paper_parameters_mismatch()
     assert mismatch["area_matching_slope_mm2"] == pytest.approx(162.0, abs=0.5)
     assert mismatch["paper_model_force_N"] > 2 * mismatch["force_at_fit_end_N"]

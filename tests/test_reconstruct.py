@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from service.calibration import table1
+from service.physics.paper_data import table1
 from service.readings import Reading, SensorInfo
 from service.reconstruct import Reconstructor
 from service.reconstruct.baseline import Baseline

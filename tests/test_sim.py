@@ -11,7 +11,7 @@ import serial
 from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig, capture
 from firmware_sim.sensors import Drift, SimGrid, SimQuad
-from service.calibration import table1
+from service.physics.paper_data import table1
 from service.protocol import FLAG_OVERRUN, Decoder, FrameType
 from service.sources import open_source
 

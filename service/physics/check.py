@@ -14,7 +14,7 @@ from importlib import resources
 import numpy as np
 import orjson
 
-from . import calibrate
+from . import quad_fits as calibrate
 from .capacitance import c0_pF, gap_field, sensitivity_per_N
 from .ritz import RitzOptions, RitzSystem, Taxel, paper_stack, patch_load
 from .tables import Q0_MPA

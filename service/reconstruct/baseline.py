@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 DEFAULT_TARE_FRAMES = 100
+NOISE_FLOOR_PF = 2e-4  # never trust a tare's noise estimate below 0.2 fF
 
 
 class Baseline:

@@ -7,19 +7,11 @@ contacts are 4-connected regions of such taxels.
 """
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 
-PITCH_MM = 4.0
+from ..physics.paper_data import PITCH_MM, taxel_centres_mm
+
 DEFAULT_THRESHOLD_N = 0.05
-
-
-@lru_cache(maxsize=16)
-def taxel_centres_mm(rows: int, cols: int, pitch_mm: float = PITCH_MM) -> tuple[np.ndarray, np.ndarray]:
-    """(x, y) of each taxel centre, shape (rows*cols,) each (cached: do not modify)."""
-    r, c = np.divmod(np.arange(rows * cols), cols)
-    return (c - (cols - 1) / 2) * pitch_mm, (r - (rows - 1) / 2) * pitch_mm
 
 
 def _regions(cells: list[int], cols: int) -> int:

@@ -1,19 +1,13 @@
-"""Crosstalk of a grid: mechanical coupling and multiplexer leakage.
+"""Crosstalk of a grid, compensated and estimated.
 
-Mechanical. A loaded taxel pulls its eight neighbours' capacitance down:
-paper 000 measured −0.015 … −0.019 % on the neighbours of U44 while it rose
-6.1 % at 5.21 N, i.e. about −0.28 % of the loaded taxel's ΔC/C0 each. In
-ΔC/C0 space the measured image is r_meas = (I + K) r_true with K the
-neighbour coupling; compensation multiplies by (I + K)⁻¹ (precomputed).
-
-Electrical. The multiplexer does not settle fully, so a channel reads a
-fraction α of the channel scanned just before it (row-major order within a
-frame): m_k = (1 − α) C_k + α C_(k−1). This is an FIR filter along the scan;
-compensation is its inverse IIR, applied to the raw capacitances and to the
-baseline alike. The IIR over one 64-channel frame is applied as its
-(n, n) impulse-response matrix: one call whatever the batch, and the same
-summation order for every row.
-
+The forward model (mechanical coupling r_meas = (I + K) r_true and the
+multiplexer's leakage m_k = (1 − α) C_k + α C_(k−1)) is physics, in
+physics/crosstalk_model.py. Mechanical compensation multiplies ΔC/C0 by
+(I + K)⁻¹ (precomputed). The leakage is an FIR filter along the scan
+(row-major order within a frame); compensation is its inverse IIR, applied
+to the raw capacitances and to the baseline alike. The IIR over one
+64-channel frame is applied as its (n, n) impulse-response matrix: one call
+whatever the batch, and the same summation order for every row.
 Detection (``CrosstalkEstimator``): isolated single-taxel loads — one taxel
 well above noise, every taxel beyond its 3×3 neighbourhood at noise level,
 its neighbours below a few % of it. The mechanical coefficient is the mean
@@ -29,15 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-PAPER_MECHANICAL_COUPLING = -0.0028  # neighbour ΔC/C0 per unit ΔC/C0 of the loaded taxel
+from ..physics.crosstalk_model import PAPER_MECHANICAL_COUPLING, check_coefficients, neighbour_matrix
 
-
-def neighbour_matrix(rows: int, cols: int) -> np.ndarray:
-    """(n, n) 0/1 matrix of the eight-neighbourhood, row-major taxels."""
-    r, c = np.divmod(np.arange(rows * cols), cols)
-    dr = np.abs(r[:, None] - r[None, :])
-    dc = np.abs(c[:, None] - c[None, :])
-    return ((dr <= 1) & (dc <= 1) & ~((dr == 0) & (dc == 0))).astype(float)
 
 
 @dataclass
@@ -53,10 +40,7 @@ class Crosstalk:
     _unleak_for: tuple | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if not -0.05 < self.mechanical <= 0.05:
-            raise ValueError(f"mechanical coupling {self.mechanical} is outside (-0.05, 0.05]")
-        if not 0.0 <= self.electrical < 0.5:
-            raise ValueError(f"electrical leakage fraction {self.electrical} is outside [0, 0.5)")
+        check_coefficients(self.mechanical, self.electrical)
         self._neighbours = neighbour_matrix(self.rows, self.cols)
         self.set_mechanical(self.mechanical)
 
@@ -64,10 +48,6 @@ class Crosstalk:
         self.mechanical = coupling
         mixing = np.eye(self.rows * self.cols) + coupling * self._neighbours
         self._unmix = np.linalg.inv(mixing).T  # row vectors: r_true = r_meas @ unmix
-
-    def mix_mechanical(self, relative: np.ndarray) -> np.ndarray:
-        """Forward model (for the simulator): (..., n) true → measured ΔC/C0."""
-        return relative + self.mechanical * relative @ self._neighbours
 
     def unmix_mechanical(self, relative: np.ndarray) -> np.ndarray:
         """(..., n) measured → compensated ΔC/C0 (NaN channels count as 0)."""
@@ -79,12 +59,6 @@ class Crosstalk:
             return np.einsum("...j,jk->...k", relative, self._unmix)
         out = np.einsum("...j,jk->...k", np.where(missing, 0.0, relative), self._unmix)
         return np.where(missing, np.nan, out)
-
-    def leak(self, capacitance: np.ndarray) -> np.ndarray:
-        """Forward model: what the multiplexer reads, (..., n) pF."""
-        if self.electrical == 0.0:
-            return capacitance
-        return lfilter([1.0 - self.electrical, self.electrical], [1.0], capacitance, axis=-1)
 
     def unleak(self, capacitance: np.ndarray, fill: np.ndarray) -> np.ndarray:
         """Undo the leakage, (..., n) pF. A channel with no reading is taken

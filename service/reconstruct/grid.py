@@ -21,11 +21,12 @@ from itertools import accumulate
 
 import numpy as np
 
-from ..calibration import GridCalibration
+from ..physics.paper_data import GridCalibration
+from ..physics.taxel_response import TaxelResponse
 from . import level0
+from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
 from .drift import DriftTracker, quiet_medians
-from .taxel import TaxelResponse
 
 NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE = (1 << i for i in range(6))
 TAXEL_FLAG_NAMES = {
@@ -38,7 +39,6 @@ TAXEL_FLAG_NAMES = {
 }
 GRID_LEVELS = ("level0", "table", "full")
 STUCK_FRAMES = 50
-NOISE_FLOOR_PF = 2e-4  # never trust a noise estimate below 0.2 fF
 CORRECTION_SIGMAS = 3.0
 ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior
 ADOPT_PERIOD_FRAMES = 256  # estimates are adopted only at multiples of this frame count

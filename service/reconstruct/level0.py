@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..calibration import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, GridCalibration
+from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, GridCalibration
 
 
 def relative_change(capacitance_pF: np.ndarray, baseline_pF: np.ndarray) -> np.ndarray:

@@ -22,13 +22,17 @@ top and flagged saturated; a compressive sensor cannot pull, so a negative
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from .paper_data import GridCalibration
+
 DENSE_POINTS = 4096
 OUT_OF_RANGE_SIGMAS = 5.0  # 3σ would flag ~1 taxel-frame in 700 on noise alone
 SENSITIVITY_FORCES_N = np.arange(0.0, 11.0)
+MOUNTINGS = {"flat": "uniform", "curved": "uneven"}  # mounting → the load-shape table it needs
 
 
 def _ls_slope(forces: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -104,3 +108,18 @@ class TaxelResponse:
             cached = (dense_r, dense_f)
             object.__setattr__(self, "_dense_cache", cached)
         return cached
+
+
+@lru_cache(maxsize=8)
+def _table(shape: str):
+    from .tables import TableSpec, load
+
+    return load(TableSpec(shape))
+
+
+def taxel_response(calibration: GridCalibration, mounting: str = "flat") -> TaxelResponse:
+    """The per-taxel response of a grid from the shipped model table."""
+    if mounting not in MOUNTINGS:
+        raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
+    table = _table(MOUNTINGS[mounting])
+    return TaxelResponse.from_table(table.force_N, table.relative_change, calibration.sensitivity_per_N)

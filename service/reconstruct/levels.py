@@ -1,4 +1,4 @@
-"""The cheapest fidelity level that meets a scene's error budget.
+"""Fidelity levels, and the cheapest one that meets a scene's error budget.
 
 A configuration names its scene; the choice follows the measured figures of
 ``tactile bench`` (docs/bench.md, 1 fF noise, noise floor σ ≈ 0.0076 N per
@@ -21,6 +21,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..physics.taxel_response import MOUNTINGS
+from .grid import GRID_LEVELS
+
+LEVELS = GRID_LEVELS + ("auto",)
+DEFAULT_LEVEL = "full"
+
 
 @dataclass(frozen=True)
 class SceneConfig:
@@ -30,8 +36,8 @@ class SceneConfig:
     clean_board: bool = False  # known free of multiplexer leakage and drift
 
     def __post_init__(self) -> None:
-        if self.mounting not in ("flat", "curved"):
-            raise ValueError(f"mounting must be 'flat' or 'curved', got {self.mounting!r}")
+        if self.mounting not in MOUNTINGS:
+            raise ValueError(f"mounting must be one of {', '.join(MOUNTINGS)}, got {self.mounting!r}")
         if self.contacts not in ("single", "multi"):
             raise ValueError(f"contacts must be 'single' or 'multi', got {self.contacts!r}")
 

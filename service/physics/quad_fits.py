@@ -1,4 +1,4 @@
-"""Calibration of the quad sensor's models from (force, ΔC/C0) pairs.
+"""Fits of the quad sensor's models from (force, ΔC/C0) pairs.
 
 Least squares (scipy) in force: the residual of each pair is the model's
 force at the measured ΔC/C0 minus the applied force. Parameter standard
@@ -29,14 +29,9 @@ import numpy as np
 from scipy.optimize import brentq, least_squares
 
 from . import shear, yeoh
+from .paper_data import FIT34, FIT35, NORMAL_RANGE_N, QUAD_DIELECTRIC_MM, QUAD_ELECTRODE_AREA_MM2, SHEAR_RANGE_N
 
-FIT34 = (-0.0009, 0.0343, 0.0032)  # normal: ΔC/C0 = c2 F² + c1 F + c0, 0–20 N
-FIT35 = (-0.0004, 0.0077, 0.0011)  # tangential, 0–10 N
-NORMAL_RANGE_N = 20.0
-SHEAR_RANGE_N = 10.0
 USABLE_SLOPE_FRACTION = 0.1
-QUAD_DIELECTRIC_MM = 2.0
-QUAD_ELECTRODE_AREA_MM2 = 100.0
 
 
 def fit_curve(coefficients: tuple[float, float, float], force_N: np.ndarray) -> np.ndarray:

@@ -1,12 +1,13 @@
-"""Calibration data the service carries with it.
+"""What the two papers measured, as the service carries it.
 
 Table 1 of the 8x8 array paper (Liang et al. 2015): per-taxel initial
 capacitance C0 and measured sensitivity (%/N over 0–10 N), copied into
-``service/data`` so the service never reads anything outside its package.
+``service/data`` so the service never reads anything outside its package;
+the array's 4 mm pitch and taxel centres.
 
-Quad sensor (Carbon black/PDMS paper, 2022): the small-force slopes of the
-paper's least-squares fits, eq (34) normal ΔC/C0 = −0.0009 F² + 0.0343 F +
-0.0032 and eq (35) tangential ΔC/C0 = −0.0004 F² + 0.0077 F + 0.0011. The
+Quad sensor (Carbon black/PDMS paper, 2022): the paper's least-squares
+fits, eq (34) normal ΔC/C0 = −0.0009 F² + 0.0343 F + 0.0032 over 0–20 N and
+eq (35) tangential ΔC/C0 = −0.0004 F² + 0.0077 F + 0.0011 over 0–10 N. The
 constant terms are fit offsets (a tared sensor reads ΔC = 0 at zero force),
 so the level-0 slopes are the linear coefficients, 0.0343 /N and 0.0077 /N.
 """
@@ -23,8 +24,16 @@ TABLE1_ROWS = 8
 TABLE1_COLS = 8
 MEAN_SENSITIVITY_PER_N = 0.01247  # table 1 mean, used for grids of other shapes
 
-QUAD_NORMAL_SLOPE_PER_N = 0.0343
-QUAD_SHEAR_SLOPE_PER_N = 0.0077
+FIT34 = (-0.0009, 0.0343, 0.0032)  # normal: ΔC/C0 = c2 F² + c1 F + c0, 0–20 N
+FIT35 = (-0.0004, 0.0077, 0.0011)  # tangential, 0–10 N
+NORMAL_RANGE_N = 20.0
+SHEAR_RANGE_N = 10.0
+QUAD_NORMAL_SLOPE_PER_N = FIT34[1]
+QUAD_SHEAR_SLOPE_PER_N = FIT35[1]
+QUAD_DIELECTRIC_MM = 2.0
+QUAD_ELECTRODE_AREA_MM2 = 100.0
+
+PITCH_MM = 4.0
 
 
 @dataclass(frozen=True)
@@ -61,3 +70,12 @@ def grid_calibration(rows: int, cols: int) -> GridCalibration:
         return table1()
     n = rows * cols
     return GridCalibration(rows, cols, np.full(n, float(table1().c0_pF.mean())), np.full(n, MEAN_SENSITIVITY_PER_N))
+
+
+@lru_cache(maxsize=16)
+def taxel_centres_mm(rows: int, cols: int, pitch_mm: float = PITCH_MM) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of each taxel centre, shape (rows*cols,) each, in the array
+    frame: origin at the centre, x along columns, y along rows (cached: do
+    not modify)."""
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    return (c - (cols - 1) / 2) * pitch_mm, (r - (rows - 1) / 2) * pitch_mm
