@@ -1,12 +1,17 @@
 """The data path in one line: bytes → frames → readings → forces → listeners.
 
-Byte listeners (the recorder's raw channel) see every chunk as received,
-before decoding; frame listeners (API hub, recorder) see each batch of
-ForceFrames."""
+One ``Pipeline`` serves everyone — the live service, replay, ``record``,
+the bench and the tests — and owns the order of work: decode, interpret,
+reconstruct, keep history and rates, publish. Byte listeners (the
+recorder's raw channel) see every chunk as received, before decoding;
+frame listeners (the fan-out hub, the recorder) see each batch of
+ForceFrames.
+"""
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import Callable
 
 from .history import History
@@ -16,6 +21,7 @@ from .reconstruct import ForceFrame, Reconstructor
 
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
+Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
 HISTORY_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5 MB for an 8x8 grid)
@@ -41,8 +47,9 @@ class RateMeter:
 
 class Pipeline:
     """Decodes and reconstructs everything fed to it and hands each batch of
-    ForceFrames to the listeners. ``feed`` is called from one thread (the
-    readout or a replay); ``tare`` may come from any other."""
+    ForceFrames to the listeners. Feeding is done from one thread at a time
+    (the readout's, the event loop's or a replay's); ``tare`` and
+    ``set_calibration`` may come from any other."""
 
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time) -> None:
         self.decoder = Decoder()
@@ -54,27 +61,31 @@ class Pipeline:
         self.listeners: list[Listener] = []
         self.byte_listeners: list[ByteListener] = []
         self._lock = threading.Lock()
+        self._deferred: deque[tuple[list[Reading], float]] = deque()
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
-        """One read: decoded, reconstructed and published as one batch."""
-        return self.reconstruct(self.decode_chunks([(data, t_host)]), t_host)
+        """One read: decoded, reconstructed and published as one batch, in arrival order."""
+        return self._reconstruct(self._decode([(data, t_host)]), t_host)
 
-    def decode_chunks(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
-        """Bytes → readings, each chunk with its own receive time (byte listeners see every chunk)."""
-        readings = []
-        for data, t_host in chunks:
-            for listener in self.byte_listeners:
-                listener(data, t_host)
-            with self._lock:
-                readings += self._interpret(self.decoder.feed(data), t_host)
-        return readings
-
-    def reconstruct(self, readings: list[Reading], t_host: float) -> list[ForceFrame]:
-        """Readings → forces, published as one batch to the listeners."""
-        with self._lock:
-            frames = self.reconstructor.process_many(readings) if readings else []
-        self._publish(frames, t_host)
-        return frames
+    def feed_reads(self, chunks: list[tuple[bytes, float]], defer: Defer) -> None:
+        """Reads that waited together, each with its receive time. Sensors
+        that are cheap to reconstruct (all but grids) are published at once;
+        grids wait for ``defer`` (the event loop's ``call_soon``), so that a
+        controller on a quad waits neither for the grids of its own read nor
+        for those of earlier reads still queued, which all go through
+        together. Each sensor's frames stay in order."""
+        if not chunks:
+            return
+        t_host = chunks[-1][1]
+        cheap, grids = [], []
+        for reading in self._decode(chunks):
+            (grids if reading.sensor.kind == "grid" else cheap).append(reading)
+        if cheap:
+            self._reconstruct(cheap, t_host)
+        if grids:
+            self._deferred.append((grids, t_host))
+            if len(self._deferred) == 1:
+                defer(self._reconstruct_deferred)
 
     def finish(self, t_host: float) -> list[ForceFrame]:
         """End of a finite stream: decode what is left, release held frames."""
@@ -85,6 +96,8 @@ class Pipeline:
         return frames
 
     def link_lost(self) -> None:
+        """The partial frame is dropped and counted; sequence state is kept,
+        so the scans lost while away show up as a gap."""
         with self._lock:
             self.decoder.reset()
 
@@ -95,6 +108,32 @@ class Pipeline:
     def set_calibration(self, info, upload: dict) -> dict:
         with self._lock:
             return self.reconstructor.set_calibration(info, upload)
+
+    def diagnostics(self) -> dict:
+        """The decoder's counters and the interpreter's rejections (a recording's /diagnostics)."""
+        return {"counters": self.decoder.counters.as_dict(), "rejected": dict(self.interpreter.rejected)}
+
+    def _decode(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
+        readings = []
+        for data, t_host in chunks:
+            for listener in self.byte_listeners:
+                listener(data, t_host)
+            with self._lock:
+                readings += self._interpret(self.decoder.feed(data), t_host)
+        return readings
+
+    def _reconstruct(self, readings: list[Reading], t_host: float) -> list[ForceFrame]:
+        with self._lock:
+            frames = self.reconstructor.process_many(readings) if readings else []
+        self._publish(frames, t_host)
+        return frames
+
+    def _reconstruct_deferred(self) -> None:
+        """All grids deferred so far in one batch: reads that piled up while
+        the loop was busy cost one call per step, not one per read."""
+        batches, self._deferred = self._deferred, deque()
+        if batches:
+            self._reconstruct([r for readings, _ in batches for r in readings], batches[-1][1])
 
     def _interpret(self, frames, t_host: float) -> list[Reading]:
         return [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]

@@ -1,15 +1,17 @@
-"""The readout thread: keeps a source open, reads bytes, survives unplugging.
+"""The readout: keeps a source open, reads bytes, survives unplugging.
 
-The thread opens the source and, on any OSError, closes it and reopens it
-with exponential backoff; the decoder's partial frame is dropped and counted,
-its sequence state kept, so the scans lost while away show up as a gap.
+Its thread opens the source and, on any OSError, closes it and reopens it
+with exponential backoff, telling the sink ``link_lost()``.
 
-Given an event loop, a source with a descriptor (a device, a pty,
-``socket://``) is read by the loop itself as soon as bytes arrive, and the
+Where the bytes are read is decided once per connection, here
+(``_read_until_gone``), as python-can's ``Notifier.add_bus`` does: given an
+event loop, a source with a descriptor (a device, a pty, ``socket://``) is
+read by the loop itself as soon as bytes arrive (``sink.on_loop``), and the
 thread only waits for the link to drop: a read handed from a thread to the
 loop costs two wake-ups instead of one, and under load each wake-up can come
 a couple of milliseconds late. Sources without one (``sim://``,
-``replay://``) are read by the thread, which a blocking driver cannot stall.
+``replay://``), or any source without a loop, are read by the thread
+(``sink.from_thread``), which a blocking driver cannot stall.
 While the loop is busy, a watched source's bytes wait in the kernel's and
 the device's buffers (tens of KB: tens of ms at 8 sensors); a loop stalled
 longer makes the board drop scans and report OVERRUN, as any host that falls
@@ -21,7 +23,7 @@ import asyncio
 import logging
 import threading
 import time
-from typing import Callable
+from typing import Callable, Protocol
 
 from .sources import Source, open_source
 
@@ -49,42 +51,55 @@ class LinkState:
         }
 
 
-class Readout(threading.Thread):
-    """Reads ``url`` until stopped, handing each chunk to ``on_bytes(data, t)``
-    and calling ``on_disconnect()`` whenever the link drops. With ``loop``
-    (given or set before ``start``), ``on_bytes`` is called on the loop's
-    thread for sources it can watch."""
+class ByteSink(Protocol):
+    """Where the readout hands its bytes (handover.py has both kinds)."""
+
+    def on_loop(self, data: bytes, t_host: float) -> None: ...
+
+    def from_thread(self, data: bytes, t_host: float) -> None: ...
+
+    def link_lost(self) -> None: ...
+
+
+class Readout:
+    """Reads ``url`` from ``start`` until ``stop``, handing each chunk with
+    its receive time to ``sink`` and telling it whenever the link drops."""
 
     def __init__(
         self,
         url: str,
-        on_bytes: Callable[[bytes, float], None],
-        on_disconnect: Callable[[], None],
+        sink: ByteSink,
         opener: Callable[[str], Source] = open_source,
         backoff_s: tuple[float, float] = (0.05, 2.0),
         clock: Callable[[], float] = time.time,
-        loop: asyncio.AbstractEventLoop | None = None,
     ) -> None:
-        super().__init__(name="tactile-readout", daemon=True)
         self.link = LinkState(url)
-        self._on_bytes = on_bytes
-        self._on_disconnect = on_disconnect
+        self._sink = sink
         self._opener = opener
         self._backoff = backoff_s
         self._clock = clock
-        self.loop = loop
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread = threading.Thread(target=self._run, name="tactile-readout", daemon=True)
         self._watched_fd: int | None = None
         self._watch_lock = threading.Lock()
         self._stop_event = threading.Event()
         self._source: Source | None = None
 
+    def start(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """Start reading; with ``loop``, sources it can watch are read on it."""
+        self._loop = loop
+        self._thread.start()
+
+    def is_alive(self) -> bool:
+        return self._thread.is_alive()
+
     def stop(self, timeout: float = 2.0) -> None:
         self._unwatch()  # first: called on the loop's thread, the loop cannot serve a request while we join
         self._stop_event.set()
-        if self.is_alive():
-            self.join(timeout)
+        if self._thread.is_alive():
+            self._thread.join(timeout)
 
-    def run(self) -> None:
+    def _run(self) -> None:
         delay = self._backoff[0]
         while not self._stop_event.is_set():
             try:
@@ -107,22 +122,24 @@ class Readout(threading.Thread):
             finally:
                 self.link.up = False
                 self._source.close()
-                self._on_disconnect()
+                self._sink.link_lost()
             self._stop_event.wait(delay)
 
     def _read_until_gone(self, source: Source) -> None:
-        fd = source.fileno() if self.loop is not None else None
+        """The one place that decides who reads: the loop, or this thread."""
+        fd = source.fileno() if self._loop is not None else None
         if fd is not None:
             self._read_on_loop(source, fd)
             return
         while not self._stop_event.is_set():
-            self._deliver(source.read(0.05))
+            data = source.read(0.05)
+            if data:
+                self._sink.from_thread(data, self._received(data))
 
-    def _deliver(self, data: bytes) -> None:
-        if data:
-            now = self._clock()
-            self.link.last_data_time = now
-            self._on_bytes(data, now)
+    def _received(self, data: bytes) -> float:
+        now = self._clock()
+        self.link.last_data_time = now
+        return now
 
     def _read_on_loop(self, source: Source, fd: int) -> None:
         """The loop reads ``source`` whenever ``fd`` is readable; this thread
@@ -138,15 +155,16 @@ class Readout(threading.Thread):
                 failure.append(exc)
                 gone.set()
                 return
-            self._deliver(data)
+            if data:
+                self._sink.on_loop(data, self._received(data))
 
         def watch() -> None:
             if self._watched_fd == fd:  # not stopped meanwhile
-                self.loop.add_reader(fd, readable)
+                self._loop.add_reader(fd, readable)
 
         self._watched_fd = fd
         try:
-            self.loop.call_soon_threadsafe(watch)
+            self._loop.call_soon_threadsafe(watch)
         except RuntimeError:  # the loop is closed: the service is going away
             self._watched_fd = None
             return
@@ -161,7 +179,7 @@ class Readout(threading.Thread):
         the loop's own thread, else by asking it and waiting."""
         with self._watch_lock:
             fd, self._watched_fd = self._watched_fd, None
-        loop = self.loop
+        loop = self._loop
         if fd is None or loop is None or loop.is_closed():
             return
         try:

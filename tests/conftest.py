@@ -7,7 +7,7 @@ import pytest
 import uvicorn
 
 from service.api.app import create_app
-from service.runtime import TactileService
+from service.live_service import TactileService
 
 
 def free_port() -> int:

@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 from service.api.app import create_app
 from service.api.messages import decode_binary
 from service.api.stream import MERGE_FRAMES, QUEUE_MESSAGES, Hub, Subscriber
-from service.runtime import TactileService
+from service.live_service import TactileService
 
 
 def wait_for_frames(service, sensors=2, seconds=5.0):

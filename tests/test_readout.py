@@ -7,6 +7,7 @@ import time
 from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig
 from service.pipeline import Pipeline
+from service.handover import ThreadSink
 from service.readout import Readout
 
 
@@ -47,7 +48,7 @@ class TcpBoard:
 def test_reads_and_reconnects_after_the_device_goes_away():
     device = TcpBoard()
     pipeline = Pipeline()
-    readout = Readout(f"socket://127.0.0.1:{device.port}", pipeline.feed, pipeline.link_lost, backoff_s=(0.02, 0.1))
+    readout = Readout(f"socket://127.0.0.1:{device.port}", ThreadSink(pipeline.feed, pipeline.link_lost), backoff_s=(0.02, 0.1))
     readout.start()
     try:
         assert wait_for(lambda: pipeline.decoder.counters.sensor(0).frames > 200)
@@ -74,9 +75,19 @@ def test_an_event_loop_reads_a_source_with_a_descriptor_and_survives_unplugging(
     pipeline = Pipeline()
     reading_threads = set()
 
-    def on_bytes(data, t_host):
-        reading_threads.add(threading.get_ident())
-        pipeline.feed(data, t_host)
+    class Sink:
+        """Tells which way each chunk came, and on which thread."""
+
+        def on_loop(self, data, t_host):
+            reading_threads.add(("on_loop", threading.get_ident()))
+            pipeline.feed(data, t_host)
+
+        def from_thread(self, data, t_host):
+            reading_threads.add(("from_thread", threading.get_ident()))
+            pipeline.feed(data, t_host)
+
+        def link_lost(self):
+            pipeline.link_lost()
 
     def frames():
         return pipeline.decoder.counters.sensor(0).frames
@@ -89,9 +100,8 @@ def test_an_event_loop_reads_a_source_with_a_descriptor_and_survives_unplugging(
 
     async def scenario():
         loop = asyncio.get_running_loop()
-        readout = Readout(f"socket://127.0.0.1:{device.port}", on_bytes, pipeline.link_lost, backoff_s=(0.02, 0.1),
-                          loop=loop)
-        readout.start()
+        readout = Readout(f"socket://127.0.0.1:{device.port}", Sink(), backoff_s=(0.02, 0.1))
+        readout.start(loop)
         try:
             assert await until(lambda: frames() > 200)
             device.unplug()
@@ -109,7 +119,7 @@ def test_an_event_loop_reads_a_source_with_a_descriptor_and_survives_unplugging(
         return threading.get_ident(), stop_took, readout
 
     loop_thread, stop_took, readout = asyncio.run(scenario())
-    assert reading_threads == {loop_thread}  # every read was the loop's, none the readout thread's
+    assert reading_threads == {("on_loop", loop_thread)}  # every read was the loop's, none the readout thread's
     assert stop_took < 0.5 and not readout.is_alive()
     counters = pipeline.decoder.counters.sensor(0)
     assert counters.seq_gaps >= 1 and counters.missed_frames >= 250
@@ -118,7 +128,7 @@ def test_an_event_loop_reads_a_source_with_a_descriptor_and_survives_unplugging(
 
 def test_unreachable_source_keeps_retrying_and_reports_why():
     pipeline = Pipeline()
-    readout = Readout("socket://127.0.0.1:1", pipeline.feed, pipeline.link_lost, backoff_s=(0.01, 0.02))
+    readout = Readout("socket://127.0.0.1:1", ThreadSink(pipeline.feed, pipeline.link_lost), backoff_s=(0.01, 0.02))
     readout.start()
     try:
         assert wait_for(lambda: readout.link.last_error is not None)

@@ -14,19 +14,18 @@ from service.api.app import create_app
 from service.pipeline import Pipeline
 from service.protocol import Decoder
 from service.reconstruct import Reconstructor
-from service.record.mcap_log import iter_messages, read_raw, summary
+from service.record.mcap_reader import iter_messages, read_raw, summary
 from service.record.recorder import Recorder
 from service.replay import Pacer, replay
-from service.runtime import TactileService
+from service.live_service import TactileService
 
 
 def live_recording(tmp_path, seconds=1.5, scene="press"):
     """Feed a capture through a live pipeline in irregular reads, recording it."""
     data, _ = capture(BoardConfig(scene=scene, seed=4), seconds)
     pipeline = Pipeline(Reconstructor())
-    recorder = Recorder(tmp_path / "run.mcap", tmp_path / "run.bin", diagnostics=pipeline.decoder.counters.as_dict)
-    pipeline.byte_listeners.append(recorder.on_bytes)
-    pipeline.listeners.append(recorder.on_frames)
+    recorder = Recorder(tmp_path / "run.mcap", tmp_path / "run.bin")
+    recorder.attach(pipeline)
     live, pos, t = [], 0, 1000.0
     sizes = [1, 700, 3000, 31, 4096, 17]
     i = 0
@@ -78,7 +77,7 @@ def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path, caplog)
     whole = sum(1 for _ in iter_messages(mcap_path))
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(mcap_path.read_bytes()[: int(0.6 * mcap_path.stat().st_size)])
-    with caplog.at_level(logging.WARNING, logger="service.record.mcap_log"):
+    with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
         survived = sum(1 for _ in iter_messages(cut))
     assert 0.3 * whole < survived < whole
     assert "cut.mcap ends early" in caplog.text  # a replay of it says it is incomplete
@@ -157,6 +156,6 @@ def test_a_file_that_is_no_recording_is_refused_by_name(tmp_path):
 
 def test_a_complete_recording_reads_without_a_warning(tmp_path, caplog):
     *_, mcap_path, _ = live_recording(tmp_path, seconds=1.2)
-    with caplog.at_level(logging.WARNING, logger="service.record.mcap_log"):
+    with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
         assert sum(1 for _ in iter_messages(mcap_path)) > 0
     assert "ends early" not in caplog.text

@@ -8,7 +8,7 @@ from fastapi.testclient import TestClient
 
 from service import sched
 from service.api.app import create_app
-from service.runtime import TactileService
+from service.live_service import TactileService
 
 
 def kernel_version() -> tuple[int, int]:

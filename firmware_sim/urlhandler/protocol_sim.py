@@ -50,6 +50,11 @@ def parse_sensors(spec: str, **grid_options) -> list:
     return sensors
 
 
+def check_url(url: str) -> None:
+    """ValueError naming a bad option (service.sources.check_source asks every handler)."""
+    config_from_url(url)
+
+
 def config_from_url(url: str) -> BoardConfig:
     """BoardConfig from a ``sim://`` URL; ValueError names a bad option."""
     parts = urllib.parse.urlsplit(url)

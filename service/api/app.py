@@ -20,7 +20,7 @@ from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
-from ..runtime import TactileService
+from ..live_service import TactileService
 from .messages import DEFAULT_FIELDS, FIELDS, Contact, FrameMessage, to_json_dict
 from .stream import Subscriber
 

@@ -27,12 +27,12 @@ from functools import lru_cache
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from .mountings import MOUNTINGS
 from .paper_data import GridCalibration
 
 DENSE_POINTS = 4096
 OUT_OF_RANGE_SIGMAS = 5.0  # 3σ would flag ~1 taxel-frame in 700 on noise alone
 SENSITIVITY_FORCES_N = np.arange(0.0, 11.0)
-MOUNTINGS = {"flat": "uniform", "curved": "uneven"}  # mounting → the load-shape table it needs
 
 
 def _ls_slope(forces: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ from . import level0
 from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
 from .drift import DriftTracker, quiet_medians
+from .levels import GRID_LEVELS
 
 NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE = (1 << i for i in range(6))
 TAXEL_FLAG_NAMES = {
@@ -37,7 +38,6 @@ TAXEL_FLAG_NAMES = {
     DRIFT_SUSPECT: "drift_suspect",
     STALE: "stale",
 }
-GRID_LEVELS = ("level0", "table", "full")
 STUCK_FRAMES = 50
 CORRECTION_SIGMAS = 3.0
 ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..physics.taxel_response import MOUNTINGS
-from .grid import GRID_LEVELS
+from ..physics.mountings import MOUNTINGS
 
+GRID_LEVELS = ("level0", "table", "full")
 LEVELS = GRID_LEVELS + ("auto",)
 DEFAULT_LEVEL = "full"
 

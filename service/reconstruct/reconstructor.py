@@ -8,7 +8,8 @@ import numpy as np
 
 from ..physics.paper_data import GridCalibration, grid_calibration
 from ..physics.quad_model import QuadModel
-from ..physics.taxel_response import MOUNTINGS, taxel_response
+from ..physics.mountings import MOUNTINGS
+from ..physics.taxel_response import taxel_response
 from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES, Baseline
 from .force_frame import ForceFrame

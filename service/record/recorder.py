@@ -1,8 +1,9 @@
 """The recorder: a listener of the pipeline that writes off the hot path.
 
-The pipeline's thread only puts references on a queue (bytes, frame
-batches, a diagnostics snapshot per second); a writer thread serialises and
-writes them. Nothing is dropped: the queue is unbounded and its depth is
+``attach(pipeline)`` makes it listen to the pipeline's bytes and frames,
+``detach()`` stops that. The pipeline's thread only puts references on a
+queue (bytes, frame batches, a diagnostics snapshot per second); a writer
+thread serialises and writes them. Nothing is dropped: the queue is unbounded and its depth is
 reported. A write error (disk full, permission, a vanished directory) stops
 the recording, is kept in ``error`` and logged, never swallowed.
 """
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..reconstruct import ForceFrame
-from .mcap_log import McapLog
+from .mcap_writer import McapLog
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +32,7 @@ class Recorder:
     Files are opened at construction so that a bad path fails at once, in
     the caller's thread."""
 
-    def __init__(self, out: str | Path, raw_out: str | Path | None = None,
-                 diagnostics: Callable[[], dict] | None = None) -> None:
+    def __init__(self, out: str | Path, raw_out: str | Path | None = None) -> None:
         self.path = Path(out)
         if self.path.suffix != ".mcap":
             raise ValueError(f"recording file {str(out)!r} must end in .mcap")
@@ -44,7 +44,8 @@ class Recorder:
             self._stream.close()
             raise
         self._log = McapLog(self._stream)
-        self._diagnostics = diagnostics
+        self._diagnostics: Callable[[], dict] | None = None
+        self._pipeline = None
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._last_diag = 0.0
         self.error: str | None = None
@@ -54,6 +55,21 @@ class Recorder:
         self.stopped_at: float | None = None
         self._thread = threading.Thread(target=self._run, name="tactile-recorder", daemon=True)
         self._thread.start()
+
+    def attach(self, pipeline) -> None:
+        """Listen to ``pipeline``'s bytes and frames, with its diagnostics
+        (``pipeline.diagnostics()``) once per second of frames."""
+        self._pipeline = pipeline
+        self._diagnostics = pipeline.diagnostics
+        pipeline.byte_listeners.append(self.on_bytes)
+        pipeline.listeners.append(self.on_frames)
+
+    def detach(self) -> None:
+        pipeline, self._pipeline = self._pipeline, None
+        if pipeline is None:
+            return
+        pipeline.byte_listeners.remove(self.on_bytes)
+        pipeline.listeners.remove(self.on_frames)
 
     @property
     def active(self) -> bool:
@@ -73,7 +89,8 @@ class Recorder:
             self._queue.put(("diag", self._diagnostics(), t_host))
 
     def stop(self, timeout: float = 10.0) -> dict:
-        """Write what is queued, finish the file, return the status."""
+        """Detach, write what is queued, finish the file, return the status."""
+        self.detach()
         if self.stopped_at is None:
             self.stopped_at = time.time()
             self._queue.put((_STOP, None, None))
@@ -126,8 +143,7 @@ class Recorder:
             self.messages += 1
         elif kind == "frames":
             for frame in payload:
-                self._log.frame(frame)
-            self.messages += 3 * len(payload)
+                self.messages += self._log.frame(frame)
         else:
             self._log.diagnostics(t_host, payload)
             self.messages += 1

@@ -9,8 +9,6 @@ code path. Backends are imported when first used.
 from __future__ import annotations
 
 import abc
-import importlib.util
-from pathlib import Path
 
 DEFAULT_SOURCE = "sim://"
 
@@ -54,29 +52,21 @@ def open_source(url: str, baudrate: int = 2_000_000) -> Source:
 
 def check_source(url: str) -> None:
     """Raise ValueError, naming what is wrong, for a source that can never
-    open: a scheme no handler knows, a sim:// or replay:// URL with a bad
-    option, a recording that is not there. A device or a socket:// peer
-    that is missing now is no error: the readout waits for it to appear."""
+    open: a scheme no handler knows, a URL its handler refuses (a bad
+    sim:// option, a replay:// recording that is not there). A device or a
+    socket:// peer that is missing now is no error: the readout waits for
+    it to appear."""
     if "://" not in url:
         return
-    from . import serial_source  # registers sim:// and replay:// with pyserial
+    from . import handlers
 
     scheme = url.split("://", 1)[0]
     if not scheme.isidentifier():
         raise ValueError(f"{url!r}: {scheme!r} is no URL scheme")
-    if scheme == "sim":
-        from firmware_sim.urlhandler.protocol_sim import config_from_url
-
-        config_from_url(url)
-    elif scheme == "replay":
-        from ..replay import timed_chunks
-        from .protocol_replay import parse_replay_url
-
-        path, _ = parse_replay_url(url)
-        if not Path(path).is_file():
-            raise ValueError(f"{url!r}: no such recording: {path}")
-        timed_chunks(path)  # refuses a .mcap that is none
-    elif not any(importlib.util.find_spec(f"{package}.protocol_{scheme}")
-                 for package in serial_source.serial.protocol_handler_packages):
+    module = handlers.handler_module(scheme)
+    if module is None:
         raise ValueError(f"{url!r}: no handler for {scheme}:// (pyserial knows socket://, rfc2217://, loop://, "
                          f"spy://, hwgrep://, alt://; this service adds sim:// and replay://)")
+    check = getattr(module, "check_url", None)
+    if check is not None:
+        check(url)

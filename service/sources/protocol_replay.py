@@ -8,14 +8,14 @@ that stopped), and ``/health`` shows the replay:// source.
 """
 from __future__ import annotations
 
-import math
 import threading
 import time
 import urllib.parse
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from ..replay import Pacer, timed_chunks
+from ..record.pacing import Pacer, parse_speed
+from ..record.readers import timed_chunks
 
 
 def parse_replay_url(url: str) -> tuple[str, float]:
@@ -27,14 +27,21 @@ def parse_replay_url(url: str) -> tuple[str, float]:
     unknown = set(options) - {"speed"}
     if unknown:
         raise ValueError(f"replay:// takes only 'speed', not {sorted(unknown)}")
-    speed_text = options.get("speed", ["1"])[-1]
     try:
-        speed = math.inf if speed_text == "max" else float(speed_text)
-    except ValueError:
-        raise ValueError(f"replay:// speed={speed_text!r} must be a number or 'max'") from None
-    if not speed > 0:
-        raise ValueError(f"replay:// speed={speed_text!r} must be > 0")
+        speed = parse_speed(options.get("speed", ["1"])[-1])
+    except ValueError as exc:
+        raise ValueError(f"replay:// {exc}") from None
     return path, speed
+
+
+def check_url(url: str) -> None:
+    """ValueError for a bad option, a missing recording or one that is not
+    what its suffix says."""
+    path, _ = parse_replay_url(url)
+    try:
+        timed_chunks(path)
+    except FileNotFoundError:
+        raise ValueError(f"{url!r}: no such recording: {path}") from None
 
 
 class Serial(SerialBase):

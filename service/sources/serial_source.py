@@ -5,11 +5,7 @@ import io
 
 import serial
 
-from . import Source
-
-for _handlers in ("firmware_sim.urlhandler", "service.sources"):  # sim://, replay://
-    if _handlers not in serial.protocol_handler_packages:
-        serial.protocol_handler_packages.append(_handlers)
+from . import Source, handlers
 
 
 READ_BYTES = 1 << 16
@@ -18,6 +14,7 @@ READ_BYTES = 1 << 16
 class SerialSource(Source):
     def __init__(self, url: str, baudrate: int = 2_000_000) -> None:
         self.url = url
+        handlers.register()
         try:
             self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=0)
         except ValueError as exc:  # pyserial's word for an unknown URL scheme

@@ -1,4 +1,4 @@
-"""MCAP logs: the writer the recorder uses, and a reader that survives a crash.
+"""MCAP recordings, written: the log the recorder's thread writes.
 
 Channels: ``/raw`` (tactile.RawBytes, every read of the port), per sensor
 ``/sensor/{id}/raw`` (tactile.RawFrame), ``/sensor/{id}/forces``
@@ -7,30 +7,20 @@ Channels: ``/raw`` (tactile.RawBytes, every read of the port), per sensor
 board time of the frame where there is one.
 
 Chunks are small (64 KiB, ~0.2 s at 1 kHz) and the file is flushed after
-each, so a crash loses at most the open chunk: ``read_raw`` reads the file
-as a stream and stops cleanly at the first incomplete record.
+each, so a crash loses at most the open chunk (mcap_reader.py reads such a
+file up to its last complete record).
 """
 from __future__ import annotations
 
 import base64
-import logging
-import struct
-from collections.abc import Iterator
-from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 import orjson
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Message
-from mcap.stream_reader import StreamReader
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from mcap.writer import CompressionType, Writer
 
 from ..reconstruct import ForceFrame
 from . import schemas
-
-log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 1 << 16
 _JSON = orjson.OPT_SERIALIZE_NUMPY
@@ -73,7 +63,8 @@ class McapLog:
     def raw(self, data: bytes, t_host: float) -> None:
         self._add("/raw", "raw", t_host, {"t_host": t_host, "data": base64.b64encode(data).decode()})
 
-    def frame(self, frame: ForceFrame) -> None:
+    def frame(self, frame: ForceFrame) -> int:
+        """Write one frame's messages; returns how many (a grid has a foxglove.Grid too)."""
         sid = frame.sensor.id
         publish = frame.t_us * 1000
         self._add(f"/sensor/{sid}/raw", "frame", frame.t_host,
@@ -81,9 +72,12 @@ class McapLog:
         self._add(f"/sensor/{sid}/forces", "forces", frame.t_host, frame.export_dict(), publish)
         if frame.sensor.kind == "grid":
             self._add(f"/sensor/{sid}/grid", "grid", frame.t_host, foxglove_grid(frame), publish)
+            return 3
+        return 2
 
-    def diagnostics(self, t_host: float, counters: dict) -> None:
-        self._add("/diagnostics", "diag", t_host, counters)
+    def diagnostics(self, t_host: float, diagnostics: dict) -> None:
+        """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""
+        self._add("/diagnostics", "diag", t_host, diagnostics)
 
     def close(self) -> None:
         self._writer.finish()
@@ -104,57 +98,3 @@ def foxglove_grid(frame: ForceFrame) -> dict:
         "fields": [{"name": "force_N", "offset": 0, "type": schemas.FOXGLOVE_FLOAT32}],
         "data": base64.b64encode(np.asarray(frame.forces_N, dtype="<f4").tobytes()).decode(),
     }
-
-
-def check_mcap(path: str | Path) -> None:
-    """ValueError unless ``path`` begins as every MCAP file does."""
-    with open(path, "rb") as stream:
-        head = stream.read(len(MCAP0_MAGIC))
-    if head != MCAP0_MAGIC:
-        raise ValueError(f"{path} is not an MCAP recording (it starts with {head!r}, not {MCAP0_MAGIC!r})")
-
-
-def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, Message]]:
-    """(topic, message) in file order, reading as a stream: a file cut short
-    by a crash yields everything up to its last complete record, and says
-    so in a warning; a file that is no MCAP at all is a ValueError, raised
-    here rather than at the first read."""
-    check_mcap(path)
-    return _messages(path, topics)
-
-
-def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, Message]]:
-    channels: dict[int, str] = {}
-    with open(path, "rb") as stream:
-        reader = StreamReader(stream, validate_crcs=True)
-        try:
-            for record in reader.records:
-                kind = type(record).__name__
-                if kind == "Channel":
-                    channels[record.id] = record.topic
-                elif kind == "Message":
-                    topic = channels.get(record.channel_id)
-                    if topics is None or topic in topics:
-                        yield topic, record
-        except (McapError, EOFError, struct.error, ValueError) as exc:
-            log.warning("%s ends early, near byte %d of %d (%s): read what was complete, as after a crash",
-                        path, stream.tell(), Path(path).stat().st_size, str(exc) or type(exc).__name__)
-
-
-def read_raw(path: str | Path) -> Iterator[tuple[float, bytes]]:
-    """(host receive time s, bytes) of every read the recording holds."""
-    return (_raw_chunk(message) for _, message in iter_messages(path, {"/raw"}))
-
-
-def _raw_chunk(message: Message) -> tuple[float, bytes]:
-    doc = orjson.loads(message.data)
-    return doc["t_host"], base64.b64decode(doc["data"])
-
-
-def summary(path: str | Path) -> dict:
-    """Message counts per topic, through mcap's indexed reader (checks the
-    file is complete and well-formed)."""
-    with open(path, "rb") as stream:
-        stats = make_reader(stream).get_summary()
-    topics = {c.id: c.topic for c in stats.channels.values()}
-    return {topics[cid]: n for cid, n in stats.statistics.channel_message_counts.items()}

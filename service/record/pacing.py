@@ -1,0 +1,46 @@
+"""Playback pacing: recorded times released at a speed, on an injectable clock."""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable
+
+
+def parse_speed(text: str) -> float:
+    """'1', '2.5', … or 'max' (as fast as possible: math.inf); ValueError naming the text otherwise."""
+    if text == "max":
+        return math.inf
+    try:
+        speed = float(text)
+    except ValueError:
+        raise ValueError(f"speed {text!r} must be a number or 'max'") from None
+    if not speed > 0:
+        raise ValueError(f"speed {text!r} must be > 0")
+    return speed
+
+
+class Pacer:
+    """Releases recorded times at ``speed`` × real time (math.inf: no waiting).
+
+    The first call anchors recorded time to the clock; ``clock`` and
+    ``sleep`` are injectable so tests run on a virtual clock."""
+
+    def __init__(self, speed: float = 1.0, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        if not speed > 0:
+            raise ValueError(f"replay speed must be > 0, got {speed}")
+        self.speed = speed
+        self._clock = clock
+        self._sleep = sleep
+        self._anchor: tuple[float, float] | None = None
+
+    def wait(self, t_recorded: float) -> None:
+        if math.isinf(self.speed):
+            return
+        if self._anchor is None:
+            self._anchor = (t_recorded, self._clock())
+            return
+        due = self._anchor[1] + (t_recorded - self._anchor[0]) / self.speed
+        delay = due - self._clock()
+        if delay > 0:
+            self._sleep(delay)

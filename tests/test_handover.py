@@ -1,0 +1,142 @@
+"""The live order of work: reads handed from the reading thread to the event
+loop, cheap sensors published before the grids of the same reads."""
+import asyncio
+import threading
+import time
+
+import numpy as np
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.sensors import SimGrid, SimQuad
+from service.api.stream import Subscriber
+from service.handover import LoopHandover
+from service.live_service import TactileService
+from service.pipeline import Pipeline
+from service.readings import SensorInfo
+from service.reconstruct import ForceFrame
+
+
+def published_batches(pipeline: Pipeline) -> list[list[tuple[int, int]]]:
+    batches = []
+    pipeline.listeners.append(lambda frames: batches.append([(f.sensor.id, f.seq) for f in frames]))
+    return batches
+
+
+def test_cheap_sensors_are_published_first_and_every_sensor_stays_in_order():
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1), SimGrid(2)], scene="press"), 0.4)
+    pipeline = Pipeline()
+    batches = published_batches(pipeline)
+    loop = asyncio.new_event_loop()
+    handover = LoopHandover(pipeline.feed_reads, pipeline.link_lost, loop)
+    half = len(data) // 2
+    for part in (data[:half], data[half:]):  # two reads, each drained on its own
+        handover.from_thread(part, time.time())
+        loop.run_until_complete(asyncio.sleep(0.01))
+    loop.close()
+    kinds = [{"grid" if sid != 1 else "quad" for sid, _ in batch} for batch in batches]
+    assert kinds == [{"quad"}, {"grid"}, {"quad"}, {"grid"}]  # per read: the quad, then the grids
+    published = [key for batch in batches for key in batch]
+    assert len(published) == 3 * 400
+    for sid in (0, 1, 2):
+        seqs = [seq for s, seq in published if s == sid]
+        assert seqs == list(range(seqs[0], seqs[0] + 400))
+
+
+def test_a_quad_read_later_goes_out_before_grids_still_waiting():
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="press"), 0.4)
+    pipeline = Pipeline()
+    batches = published_batches(pipeline)
+    loop = asyncio.new_event_loop()
+    half = len(data) // 2
+    for part in (data[:half], data[half:]):  # the second read comes before the loop turns
+        pipeline.feed_reads([(part, time.time())], loop.call_soon)
+    loop.run_until_complete(asyncio.sleep(0.01))
+    loop.close()
+    assert [{sid for sid, _ in batch} for batch in batches] == [{1}, {1}, {0}]  # both quads, then all grids at once
+    grid_seqs = [seq for sid, seq in batches[2]]
+    assert grid_seqs == list(range(grid_seqs[0], grid_seqs[0] + 400))
+
+
+def test_without_deferral_a_read_is_published_in_arrival_order_as_one_batch():
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="press"), 0.1)
+    pipeline = Pipeline()
+    batches = published_batches(pipeline)
+    frames = pipeline.feed(data, 0.0)
+    assert len(batches) == 1 and batches[0] == [(f.sensor.id, f.seq) for f in frames]
+    assert [sid for sid, _ in batches[0][:4]] == [0, 1, 0, 1]  # the board's scan order, grids not held back
+
+
+def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
+    # Received long ago: its batch is due at once.
+    earlier = ForceFrame(SensorInfo(1, "quad", 2, 2), 0, 0, time.time() - 1.0, np.zeros(3), np.ones(4), [], "full")
+    data, _ = capture(BoardConfig(sensors=[SimQuad(1)], scene="press"), 0.2)
+    service = TactileService("sim://")
+    order = []
+
+    async def scenario():
+        loop = asyncio.get_running_loop()
+        service.handover = LoopHandover(service.pipeline.feed_reads, service.pipeline.link_lost, loop)
+        service.pipeline.listeners.append(service.hub.publish)
+        controller, dashboard = Subscriber(), Subscriber(batch_ms=1.0)
+        service.hub.add(controller)
+        service.hub.add(dashboard)
+
+        async def send_unbatched():
+            await controller.next_message()
+            order.append("unbatched")
+
+        async def send_batched():
+            await dashboard.next_message()
+            await service.let_urgent_go_first()
+            order.append("batched")
+
+        tasks = [asyncio.create_task(send_batched()), asyncio.create_task(send_unbatched())]
+        await asyncio.sleep(0)  # both senders wait
+        dashboard.take([earlier])
+        await asyncio.sleep(0)  # the batch flushes: the batched sender is due first ...
+        service.handover.from_thread(data, time.time())  # ... when a read comes in
+        await asyncio.wait_for(asyncio.gather(*tasks), 1.0)
+
+    asyncio.run(scenario())
+    assert order == ["unbatched", "batched"]
+    assert service.pipeline.decoder.counters.sensor(1).frames == 200 and not service.handover.pending
+
+
+def test_reads_wait_when_the_loop_falls_behind_instead_of_piling_up():
+    pipeline = Pipeline()
+    loop = asyncio.new_event_loop()  # not running yet: nothing drains
+    limit = 1 << 20
+    handover = LoopHandover(pipeline.feed_reads, pipeline.link_lost, loop, limit_bytes=limit)
+    chunk = bytes(1 << 16)
+    posted = []
+
+    def reader():
+        for _ in range(2 * limit // len(chunk)):
+            handover.from_thread(chunk, time.time())
+            posted.append(1)
+
+    thread = threading.Thread(target=reader, daemon=True)
+    thread.start()
+    time.sleep(0.3)
+    assert thread.is_alive() and handover.queued_bytes <= limit + len(chunk)
+    held = len(posted)
+    loop.run_until_complete(asyncio.sleep(0.05))  # the loop drains: the reader goes on
+    thread.join(5)
+    assert not thread.is_alive() and len(posted) > held
+    loop.run_until_complete(asyncio.sleep(0.05))  # and the rest
+    loop.close()
+    assert handover.queued_bytes == 0  # nothing lost on the way: every byte reached the decoder
+    assert pipeline.decoder.counters.bytes_discarded == 2 * limit  # zeros are no frames
+
+
+def test_a_link_lost_between_reads_resets_the_decoder_at_that_point():
+    data, _ = capture(BoardConfig(sensors=[SimQuad(0)], scene="idle"), 0.05)
+    pipeline = Pipeline()
+    loop = asyncio.new_event_loop()
+    handover = LoopHandover(pipeline.feed_reads, pipeline.link_lost, loop)
+    handover.from_thread(data[:-10], time.time())  # the last frame is cut by the unplug ...
+    handover.link_lost()
+    handover.from_thread(data[-10:], time.time())  # ... and its tail, alone, is no frame
+    loop.run_until_complete(asyncio.sleep(0.01))
+    loop.close()
+    assert pipeline.decoder.counters.sensor(0).frames == 49
