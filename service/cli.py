@@ -148,7 +148,7 @@ def cmd_replay(args) -> int:
 def cmd_bench(args) -> int:
     from pathlib import Path
 
-    from .bench import run, write_docs
+    from .reports.bench import run, write_docs
 
     report = run(seconds=args.seconds)
     print(json.dumps(report, indent=1) if args.json else report["text"])
@@ -199,7 +199,7 @@ def cmd_tables_list(args) -> int:
 
 
 def cmd_model_check(args) -> int:
-    from .physics import check
+    from .reports import model_check as check
 
     checks = check.run()
     if args.json:
@@ -216,7 +216,7 @@ def cmd_model_check(args) -> int:
 def cmd_model_convergence(args) -> int:
     from pathlib import Path
 
-    from .physics import study
+    from .reports import convergence as study
 
     for path in study.write_docs(study.run(), Path(args.out)):
         print(f"wrote {path}")

@@ -5,7 +5,7 @@ import pytest
 
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import Drift, SimGrid, SimQuad
-from service.bench import _noise_floor_N
+from service.reports.bench import _noise_floor_N
 from service.pipeline import Pipeline
 from service.protocol import FLAG_SATURATED, FrameType, encode_frame
 from service.reconstruct import Reconstructor

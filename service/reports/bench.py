@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .protocol import Decoder
-from .readings import Interpreter
-from .reconstruct import Reconstructor
-from .reconstruct.grid import GRID_LEVELS
-from .reconstruct.baseline import DEFAULT_TARE_FRAMES
+from ..protocol import Decoder
+from ..readings import Interpreter
+from ..reconstruct import Reconstructor
+from ..reconstruct.grid import GRID_LEVELS
+from ..reconstruct.baseline import DEFAULT_TARE_FRAMES
 
 REPEATS = 3
 LOADED_N = 0.05
@@ -67,7 +67,7 @@ def _capture(scenario: Scenario, seconds: float):
 
 def _noise_floor_N(noise_fF: float = 1.0) -> float:
     """RMS force of 1 fF of noise over the table-1 taxels (σ_C / (C0 · s))."""
-    from .calibration import table1
+    from ..calibration import table1
 
     cal = table1()
     return float(np.sqrt(np.mean((noise_fF * 1e-3 / (cal.c0_pF * cal.sensitivity_per_N)) ** 2)))
@@ -164,7 +164,7 @@ def live_path_figures(seconds: float, level: str = "full") -> dict:
     from firmware_sim.board import BoardConfig, capture
     from firmware_sim.sensors import SimGrid, SimQuad
 
-    from .pipeline import Pipeline
+    from ..pipeline import Pipeline
 
     config = BoardConfig(sensors=[SimGrid(i) for i in range(4)] + [SimQuad(i) for i in range(4, 8)], scene="demo")
     data, _ = capture(config, seconds)
@@ -223,7 +223,7 @@ def write_docs(report: dict, out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     md = out_dir / "bench.md"
     md.write_text(
-        "# Speed against error\n\nProduced by `tactile bench --out docs` (see service/bench.py for what is measured).\n"
+        "# Speed against error\n\nProduced by `tactile bench --out docs` (see service/reports/bench.py for what is measured).\n"
         f"Target: full fidelity at ≥ {TARGET_GRID_FRAMES_PER_S:,} grid frames/s in batch on one core, "
         "error within 2× the noise floor.\n\n" + report["text"] + "\n"
     )

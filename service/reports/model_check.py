@@ -3,8 +3,8 @@
 Each check computes a figure, compares it with a reference and a tolerance,
 and passes or fails; the command exits non-zero when any fails. The FEM
 reference figures come from tests/fem_reference.py (scikit-fem, a test
-dependency) and are stored in ``data/fem_reference.json``; the test suite
-recomputes them.
+dependency) and are stored in ``service/physics/data/fem_reference.json``
+(package data of service.physics); the test suite recomputes them.
 """
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from importlib import resources
 import numpy as np
 import orjson
 
-from . import calibrate
-from .capacitance import c0_pF, gap_field, sensitivity_per_N
-from .ritz import RitzOptions, RitzSystem, Taxel, paper_stack, patch_load
-from .tables import Q0_MPA
+from ..physics import calibrate
+from ..physics.capacitance import c0_pF, gap_field, sensitivity_per_N
+from ..physics.ritz import RitzOptions, RitzSystem, Taxel, paper_stack, patch_load
+from ..physics.tables import Q0_MPA
 
 PAPER_SENSITIVITY_PREDICTED = 0.0125
 PAPER_SENSITIVITY_MEASURED = 0.01247

@@ -17,9 +17,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .capacitance import gap_field, sensitivity_per_N
-from .ritz import ConditioningError, RitzOptions, RitzSystem, Taxel, patch_load
-from .tables import Q0_MPA
+from ..physics.capacitance import gap_field, sensitivity_per_N
+from ..physics.ritz import ConditioningError, RitzOptions, RitzSystem, Taxel, patch_load
+from ..physics.tables import Q0_MPA
 
 REFERENCE = RitzOptions(p=6, pz=4)
 SPLIT_ONLY = (0.0, 1500.0, 2000.0)
