@@ -134,8 +134,11 @@ def cmd_replay(args) -> int:
 def cmd_bench(args) -> int:
     from pathlib import Path
 
-    from .bench import run, write_docs
+    from .reports import plotting
+    from .reports.bench import run, write_docs
 
+    if args.out:
+        plotting.require("bench.png")  # before minutes of measuring, not after
     report = run(seconds=args.seconds)
     print(json.dumps(report, indent=1) if args.json else report["text"])
     if args.out:
@@ -185,7 +188,7 @@ def cmd_tables_list(args) -> int:
 
 
 def cmd_model_check(args) -> int:
-    from .physics import check
+    from .reports import model_check as check
 
     checks = check.run()
     if args.json:
@@ -202,7 +205,7 @@ def cmd_model_check(args) -> int:
 def cmd_model_convergence(args) -> int:
     from pathlib import Path
 
-    from .physics import study
+    from .reports import convergence as study
 
     for path in study.write_docs(study.run(), Path(args.out)):
         print(f"wrote {path}")

@@ -1,7 +1,7 @@
 """The Ritz model against the independent scikit-fem reference."""
 import pytest
 
-from service.physics.check import confined_compression, fem_reference
+from service.reports.model_check import confined_compression, fem_reference
 from service.physics.capacitance import gap_field, sensitivity_per_N
 from service.physics.ritz import RitzOptions, RitzSystem, Taxel, patch_load
 from tests import fem_reference as fem

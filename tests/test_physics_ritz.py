@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.physics.capacitance import MAX_GAP_CLOSURE, GapField, c0_pF, gap_field, sensitivity_per_N
-from service.physics.check import confined_compression
+from service.reports.model_check import confined_compression
 from service.physics.ritz import (
     ConditioningError,
     Layer,

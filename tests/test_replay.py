@@ -102,7 +102,7 @@ def test_cli_replay_of_missing_file_is_a_clear_error(tmp_path, capsys):
 
 
 def test_bench_scenario_reports_every_level_against_truth():
-    from service.bench import SCENARIOS, run_scenario
+    from service.reports.bench import SCENARIOS, run_scenario
 
     rows = run_scenario(SCENARIOS[0], seconds=2.0)
     assert [r["level"] for r in rows] == ["level0", "table", "full"]

@@ -17,9 +17,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .capacitance import gap_field, sensitivity_per_N
-from .ritz import ConditioningError, RitzOptions, RitzSystem, Taxel, patch_load
-from .tables import Q0_MPA
+from ..physics.capacitance import gap_field, sensitivity_per_N
+from ..physics.ritz import ConditioningError, RitzOptions, RitzSystem, Taxel, patch_load
+from ..physics.tables import Q0_MPA
+from . import plotting
 
 REFERENCE = RitzOptions(p=6, pz=4)
 SPLIT_ONLY = (0.0, 1500.0, 2000.0)
@@ -69,6 +70,9 @@ def run(progress=print) -> dict:
 
 
 def write_docs(result: dict, out_dir: Path) -> list[Path]:
+    """Write convergence.md and convergence.png to ``out_dir`` (matplotlib
+    required: plotting.PlottingUnavailable, nothing written, without it)."""
+    plotting.require("convergence.png")
     out_dir.mkdir(parents=True, exist_ok=True)
     ref = result["reference"]
     lines = [
@@ -93,29 +97,20 @@ def write_docs(result: dict, out_dir: Path) -> list[Path]:
         lines.append("")
     md = out_dir / "convergence.md"
     md.write_text("\n".join(lines))
-    written = [md]
-    try:
-        import matplotlib
+    return [md, plot(result, out_dir / "convergence.png")]
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return written
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+
+def plot(result: dict, path: Path) -> Path:
+    """Left: relative error of ΔC/C0 against degree; right: time against dofs."""
+    fig, (ax1, ax2) = plotting.figure(
+        plotting.Panel("polynomial degree (p, or pz for the pz series)", "relative error of ΔC/C0 at 100 kPa", yscale="log"),
+        plotting.Panel("dofs", "time (s)", xscale="log", yscale="log"),
+        size_in=(10, 4),
+    )
     for name, rows in result["series"].items():
         ok = [r for r in rows if "dC_C0" in r and r["error_dC_C0"] > 0]
         key = "pz" if name == "pz" else "p"
-        ax1.semilogy([r[key] for r in ok], [r["error_dC_C0"] for r in ok], "o-", label=name)
-        ax2.loglog([r["dofs"] for r in ok], [r["seconds"] for r in ok], "o-", label=name)
-    ax1.set_xlabel("polynomial degree (p, or pz for the pz series)")
-    ax1.set_ylabel("relative error of ΔC/C0 at 100 kPa")
-    ax1.grid(True, which="both", alpha=0.3)
+        ax1.plot([r[key] for r in ok], [r["error_dC_C0"] for r in ok], "o-", label=name)
+        ax2.plot([r["dofs"] for r in ok], [r["seconds"] for r in ok], "o-", label=name)
     ax1.legend()
-    ax2.set_xlabel("dofs")
-    ax2.set_ylabel("time (s)")
-    ax2.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    png = out_dir / "convergence.png"
-    fig.savefig(png, dpi=110)
-    written.append(png)
-    return written
+    return plotting.save_png(fig, path)

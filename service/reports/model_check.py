@@ -3,8 +3,8 @@
 Each check computes a figure, compares it with a reference and a tolerance,
 and passes or fails; the command exits non-zero when any fails. The FEM
 reference figures come from tests/fem_reference.py (scikit-fem, a test
-dependency) and are stored in ``data/fem_reference.json``; the test suite
-recomputes them.
+dependency) and are stored in ``service/physics/data/fem_reference.json``
+(package data of service.physics); the test suite recomputes them.
 """
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from importlib import resources
 import numpy as np
 import orjson
 
-from . import quad_fits as calibrate
-from .capacitance import c0_pF, gap_field, sensitivity_per_N
-from .ritz import RitzOptions, RitzSystem, Taxel, paper_stack, patch_load
-from .tables import Q0_MPA
+from ..physics import quad_fits
+from ..physics.capacitance import c0_pF, gap_field, sensitivity_per_N
+from ..physics.ritz import RitzOptions, RitzSystem, Taxel, paper_stack, patch_load
+from ..physics.tables import Q0_MPA
 
 PAPER_SENSITIVITY_PREDICTED = 0.0125
 PAPER_SENSITIVITY_MEASURED = 0.01247
@@ -99,7 +99,7 @@ def run() -> list[Check]:
     checks.append(Check("Paper: sensitivity measured mean 1.247 %/N", sensitivity, PAPER_SENSITIVITY_MEASURED, 0.1))
     checks.append(Check("Paper: maximum deflection 0.22 µm at 100 kPa", deflection, PAPER_MAX_DEFLECTION_UM, 0.15))
 
-    _, reports = calibrate.default_quad_calibration()
+    _, reports = quad_fits.default_quad_calibration()
     normal, shear = reports["normal_yeoh"], reports["shear"]
     checks.append(Check("Quad Yeoh fit to (34): residual RMS (N)", normal.residual_rms_N, 0.0, 0.5, "abs",
                         note=f"S·C10 {normal.parameters['c10_area_N']:.3f}±{normal.std_errors['c10_area_N']:.3f} N, "

@@ -1,0 +1,1 @@
+"""Report generators above the runtime: `tactile bench`, `tactile model check`, `tactile model convergence`."""
