@@ -72,6 +72,23 @@ def test_every_file_written_opens_in_the_mcap_reader(tmp_path):
     assert grid["column_count"] == 8 and grid["cell_stride"] == 4 and grid["fields"][0]["type"] == 7
 
 
+def test_the_recorder_counts_the_messages_the_file_holds(tmp_path):
+    *_, status, mcap_path, _ = live_recording(tmp_path, seconds=1.0)
+    assert status["messages"] == sum(summary(mcap_path).values())  # a quad frame is 2 messages, a grid frame 3
+
+
+def test_diagnostics_carry_what_their_schema_declares(tmp_path):
+    from service.record import schemas
+
+    *_, mcap_path, _ = live_recording(tmp_path, seconds=2.5)  # reads 2 ms apart: one snapshot per 500 reads
+    docs = [orjson.loads(m.data) for t, m in iter_messages(mcap_path) if t == "/diagnostics"]
+    declared = set(schemas.DIAGNOSTICS["properties"])
+    assert docs and all(set(doc) == declared for doc in docs)
+    last = docs[-1]
+    assert last["counters"]["crc_errors"] == 0 and last["counters"]["sensors"]["0"]["frames"] > 900
+    assert last["rejected"] == {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
+
+
 def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path, caplog):
     *_, mcap_path, _ = live_recording(tmp_path, seconds=2.0)
     whole = sum(1 for _ in iter_messages(mcap_path))
