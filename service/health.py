@@ -3,18 +3,32 @@ from __future__ import annotations
 
 import time
 
-from .readout import LinkState
+from .readout import MIN_STALE_S, LinkState
+
+STALE_SCAN_PERIODS = 20
 
 
-def _sensors(pipeline, now: float, counters: dict) -> dict:
+def stale_after_s(board: dict) -> float:
+    """Silence that makes the link or a sensor stale: max(0.5 s, 20 scan
+    periods at the rate the board announced in INFO)."""
+    rate = board.get("rate_hz")
+    if isinstance(rate, (int, float)) and not isinstance(rate, bool) and rate > 0:
+        return max(MIN_STALE_S, STALE_SCAN_PERIODS / rate)
+    return MIN_STALE_S
+
+
+def _sensors(pipeline, now: float, counters: dict, stale_after: float) -> dict:
     sensors = {}
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
+        age = None if latest is None else now - latest.t_host
+        stale = age is None or age > stale_after
         sensors[str(sid)] = {
             "kind": info.kind,
-            "rate_hz": round(meter.rate_hz, 1) if meter else 0.0,
-            "last_frame_age_s": None if latest is None else round(now - latest.t_host, 3),
+            "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
+            "stale": stale,
+            "last_frame_age_s": None if age is None else round(age, 3),
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors
@@ -37,15 +51,19 @@ def health_report(service) -> dict:
     pipeline = service.pipeline
     counters = pipeline.decoder.counters.as_dict()
     link = service.readout.link if service.readout is not None else LinkState(service.source)
+    stale_after = stale_after_s(pipeline.interpreter.board)
+    link_state = link.as_dict(now, stale_after)
+    sensors = _sensors(pipeline, now, counters, stale_after)
+    healthy = link_state["state"] == "up" and not any(s["stale"] for s in sensors.values())
     return {
-        "status": "ok" if link.up else "degraded",
+        "status": "ok" if healthy else "degraded",
         "uptime_s": round(now - service.started_at, 1),
-        "link": link.as_dict(now),
+        "link": link_state,
         "level": pipeline.reconstructor.level,
         "stream": {k: v for k, v in counters.items() if k != "sensors"},
         "rejected": dict(pipeline.interpreter.rejected),
         "board_errors": [{"t_host": t, "text": text} for t, text in pipeline.interpreter.board_errors],
-        "sensors": _sensors(pipeline, now, counters),
+        "sensors": sensors,
         "websocket_clients": len(service.hub.subscribers),
         "latency": {
             "published": service.published_latency.summary(),

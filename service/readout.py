@@ -1,7 +1,13 @@
 """The readout: keeps a source open, reads bytes, survives unplugging.
 
 Its thread opens the source and, on any OSError, closes it and reopens it
-with exponential backoff, telling the sink ``link_lost()``.
+with exponential backoff (50 ms doubling to 0.5 s: a replugged device is
+read again within a fraction of a second, at a few cheap attempts a second
+while it is away), telling the sink ``link_lost()``. A link that goes
+silent — a board that hangs, a socket whose peer stopped without closing —
+is asked ``INFO?`` after ``silence_s`` and reopened if still silent half a
+second later. A finite source (a recording) that has delivered everything
+is ``finished``: it stays open and is not reopened.
 
 Where the bytes are read is decided once per connection, here
 (``_read_until_gone``), as python-can's ``Notifier.add_bus`` does: given an
@@ -30,24 +36,47 @@ from .sources import Source, open_source
 log = logging.getLogger(__name__)
 
 ON_CONNECT_COMMANDS = b"START\nINFO?\n"
+DEFAULT_SILENCE_S = 2.0
+REOPEN_AFTER_ASKING_S = 0.5
+MIN_STALE_S = 0.5
 
 
 class LinkState:
     def __init__(self, url: str) -> None:
         self.url = url
         self.up = False
+        self.finished = False
         self.connects = 0
+        self.connected_at: float | None = None
         self.last_error: str | None = None
         self.last_data_time: float | None = None
 
-    def as_dict(self, now: float) -> dict:
+    def silent_s(self, now: float) -> float | None:
+        """Seconds since the last byte (or since connecting, before the first); None while down."""
+        if not self.up or self.connected_at is None:
+            return None
+        return now - max(self.last_data_time or self.connected_at, self.connected_at)
+
+    def state(self, now: float, stale_after_s: float = MIN_STALE_S) -> str:
+        """up | stale (connected, no bytes for ``stale_after_s``) | down | finished (a recording's end)."""
+        if self.finished:
+            return "finished"
+        if not self.up:
+            return "down"
+        return "stale" if self.silent_s(now) > stale_after_s else "up"
+
+    def as_dict(self, now: float, stale_after_s: float = MIN_STALE_S) -> dict:
+        silent = self.silent_s(now)
         return {
             "source": self.url,
+            "state": self.state(now, stale_after_s),
             "up": self.up,
             "connects": self.connects,
             "reconnects": max(self.connects - 1, 0),
             "last_error": self.last_error,
             "last_data_age_s": None if self.last_data_time is None else round(now - self.last_data_time, 3),
+            "silent_s": None if silent is None else round(silent, 3),
+            "stale_after_s": stale_after_s,
         }
 
 
@@ -70,10 +99,15 @@ class Readout:
         url: str,
         sink: ByteSink,
         opener: Callable[[str], Source] = open_source,
-        backoff_s: tuple[float, float] = (0.05, 2.0),
+        backoff_s: tuple[float, float] = (0.05, 0.5),
         clock: Callable[[], float] = time.time,
+        silence_s: float = DEFAULT_SILENCE_S,
     ) -> None:
+        if not silence_s > 0:
+            raise ValueError(f"silence_s must be > 0, got {silence_s}")
         self.link = LinkState(url)
+        self._silence_s = silence_s
+        self._asked_at: float | None = None
         self._sink = sink
         self._opener = opener
         self._backoff = backoff_s
@@ -111,6 +145,8 @@ class Readout:
                 continue
             self.link.up = True
             self.link.connects += 1
+            self.link.connected_at = self._clock()
+            self._asked_at = None
             delay = self._backoff[0]
             log.info("connected to %s", self.link.url)
             try:
@@ -135,6 +171,24 @@ class Readout:
             data = source.read(0.05)
             if data:
                 self._sink.from_thread(data, self._received(data))
+            elif source.finished():
+                self.link.finished = True
+                self._stop_event.wait()
+            else:
+                self._check_silence(source)
+
+    def _check_silence(self, source: Source) -> None:
+        """Ask a silent board ``INFO?``; raise OSError (reopen) if that brings nothing."""
+        now = self._clock()
+        silent = self.link.silent_s(now)
+        if silent is None or silent < self._silence_s:
+            return
+        if self._asked_at is None or self._asked_at < now - silent:  # not yet asked in this silence
+            self._asked_at = now
+            log.warning("no bytes from %s for %.1f s: asking INFO?", self.link.url, silent)
+            source.write(b"INFO?\n")
+        elif now - self._asked_at >= REOPEN_AFTER_ASKING_S:
+            raise OSError(f"no bytes for {silent:.1f} s, not even after INFO?")
 
     def _received(self, data: bytes) -> float:
         now = self._clock()
@@ -172,6 +226,11 @@ class Readout:
             if self._stop_event.is_set():
                 self._unwatch()
                 return
+            try:
+                self._check_silence(source)
+            except OSError:
+                self._unwatch()
+                raise
         raise failure[0]
 
     def _unwatch(self) -> None:

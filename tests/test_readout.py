@@ -4,6 +4,8 @@ import asyncio
 import threading
 import time
 
+import pytest
+
 from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig
 from service.pipeline import Pipeline
@@ -136,3 +138,98 @@ def test_unreachable_source_keeps_retrying_and_reports_why():
         assert not readout.link.up and readout.is_alive()
     finally:
         readout.stop()
+
+
+class MuteBoard:
+    """Accepts connections, records what the host sends, and sends nothing."""
+
+    def __init__(self):
+        import socket
+
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.received = b""
+        self.accepted = 0
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        self.server.settimeout(0.05)
+        connections = []
+        while self.server.fileno() != -1:
+            try:
+                conn, _ = self.server.accept()
+                conn.setblocking(False)
+                connections.append(conn)
+                self.accepted += 1
+            except OSError:
+                pass
+            for conn in connections:
+                try:
+                    self.received += conn.recv(4096)
+                except OSError:
+                    pass
+        for conn in connections:
+            conn.close()
+
+    def close(self):
+        self.server.close()
+        self.thread.join(1.0)
+
+
+@pytest.mark.parametrize("on_loop", [False, True])
+def test_a_board_that_connects_and_says_nothing_is_stale_then_asked_then_reopened(on_loop):
+    board = MuteBoard()
+    pipeline = Pipeline()
+    sink = ThreadSink(pipeline.feed, pipeline.link_lost)
+    readout = Readout(f"socket://127.0.0.1:{board.port}", sink, backoff_s=(0.02, 0.1), silence_s=0.6)
+
+    def scenario():
+        started = time.monotonic()
+        assert wait_for(lambda: readout.link.up)
+        assert readout.link.state(time.time()) == "up"
+        assert wait_for(lambda: readout.link.state(time.time()) == "stale", 2.0)
+        stale_after = time.monotonic() - started
+        assert wait_for(lambda: board.received.count(b"INFO?\n") >= 2, 2.0)  # on connect, then asked again
+        assert wait_for(lambda: readout.link.connects >= 2, 2.0)  # and reopened
+        return stale_after, time.monotonic() - started
+
+    try:
+        if on_loop:
+            async def run():
+                readout.start(asyncio.get_running_loop())
+                return await asyncio.to_thread(scenario)
+
+            stale_after, reopened_after = asyncio.run(run())
+        else:
+            readout.start()
+            stale_after, reopened_after = scenario()
+    finally:
+        readout.stop()
+        board.close()
+    assert 0.45 < stale_after < 1.0  # stale after 0.5 s of silence
+    assert 0.6 + 0.5 <= reopened_after < 2.0  # INFO? at 0.6 s of silence, reopened 0.5 s later
+    assert "no bytes for" in readout.link.last_error
+
+
+def test_a_replugged_device_is_read_again_within_half_a_second():
+    device = TcpBoard()
+    pipeline = Pipeline()
+    readout = Readout(f"socket://127.0.0.1:{device.port}", ThreadSink(pipeline.feed, pipeline.link_lost))
+    readout.start()
+    took = []
+    try:
+        for away_s in (0.3, 1.1, 2.3):  # at different points of the backoff
+            assert wait_for(lambda: readout.link.up)
+            device.unplug()
+            assert wait_for(lambda: not readout.link.up)
+            time.sleep(away_s)
+            connects = readout.link.connects
+            device.plug()
+            replugged = time.monotonic()
+            assert wait_for(lambda: readout.link.connects > connects)
+            took.append(time.monotonic() - replugged)
+    finally:
+        readout.stop()
+        device.unplug()
+    assert max(took) < 0.6  # backoff capped at 0.5 s

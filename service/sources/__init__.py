@@ -28,6 +28,11 @@ class Source(abc.ABC):
     @abc.abstractmethod
     def write(self, data: bytes) -> None: ...
 
+    def finished(self) -> bool:
+        """Whether a finite source (a recording) has delivered everything it
+        holds; a device or a socket never is."""
+        return False
+
     def fileno(self) -> int | None:
         """A descriptor that selects readable when bytes arrive, so an event
         loop can read the source without a thread; None when there is none."""

@@ -38,6 +38,9 @@ class SerialSource(Source):
         except serial.SerialException as exc:
             raise OSError(f"{self.url}: {exc}") from None
 
+    def finished(self) -> bool:
+        return bool(getattr(self._port, "finished", False))  # replay:// says so
+
     def fileno(self) -> int | None:
         # pyserial's socket:// handler keeps its socket private and has no fileno().
         sock = getattr(self._port, "_socket", None)

@@ -1,0 +1,53 @@
+"""What /health says of a link and of each sensor: up, stale, finished."""
+import asyncio
+import time
+
+import orjson
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.sensors import SimGrid, SimQuad
+from service.health import health_report, stale_after_s
+from service.live_service import TactileService
+from service.protocol import FrameType, encode_frame
+
+
+def test_the_stale_threshold_follows_the_announced_rate():
+    assert stale_after_s({"rate_hz": 1000}) == 0.5
+    assert stale_after_s({"rate_hz": 10}) == 2.0  # 20 scan periods
+    assert stale_after_s({"rate_hz": "fast"}) == stale_after_s({"rate_hz": True}) == stale_after_s({}) == 0.5
+
+
+def test_a_sensor_that_stops_while_another_streams_is_stale_on_its_own():
+    service = TactileService("sim://")
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="idle"), 0.3)
+    now = time.time()
+    service.pipeline.feed(data, now - 1.0)  # both sensors, a second ago
+    grid_only = b"".join(encode_frame(FrameType.GRID, 0, 1000 + i, 10**6 + i * 1000, bytes(range(256)))
+                         for i in range(3))
+    service.pipeline.feed(grid_only, now)
+    report = health_report(service)
+    assert report["sensors"]["0"]["stale"] is False
+    assert report["sensors"]["1"]["stale"] is True and report["sensors"]["1"]["rate_hz"] == 0.0
+    assert report["sensors"]["1"]["last_frame_age_s"] >= 1.0
+    assert report["status"] == "degraded"
+
+
+def test_the_end_of_a_replay_is_finished_not_ok(tmp_path):
+    run = tmp_path / "run.bin"
+    run.write_bytes(capture(BoardConfig(scene="press"), 0.3)[0])
+    service = TactileService(f"replay://{run}?speed=max")
+
+    async def scenario():
+        service.start()
+        try:
+            deadline = time.monotonic() + 5
+            while service.health()["link"]["state"] != "finished" and time.monotonic() < deadline:
+                await asyncio.sleep(0.02)
+            return service.health()
+        finally:
+            service.stop()
+
+    report = asyncio.run(scenario())
+    assert report["link"]["state"] == "finished" and report["replay"] is True
+    assert report["status"] == "degraded" and report["link"]["connects"] == 1  # not reopened from the start
+    assert orjson.dumps(report)
