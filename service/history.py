@@ -15,6 +15,9 @@ import numpy as np
 from .readings import SensorInfo
 from .reconstruct import ForceFrame
 
+DEFAULT_BUDGET_BYTES = 256 << 20
+DEFAULT_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5.5 MB for an 8x8 grid)
+
 
 class History:
     """Ring of the last ``capacity`` frames of one sensor.
@@ -43,6 +46,27 @@ class History:
 
     def __len__(self) -> int:
         return min(self._count, self.capacity)
+
+    @staticmethod
+    def bytes_per_frame(info: SensorInfo, outputs: int) -> int:
+        """What one kept frame costs: stamps, forces, raw channels, flags."""
+        return 3 * 8 + 8 * outputs + 8 * info.channels + (outputs if info.kind == "grid" else 0) + 2 * 8
+
+    def shrink(self, capacity: int) -> None:
+        """Keep only the newest ``capacity`` frames (and room for no more)."""
+        if not 1 <= capacity < self.capacity:
+            return
+        kept = min(len(self), capacity)
+        order = (self._count - kept + np.arange(kept)) % self.capacity  # oldest first
+        arrays = ("_t_host", "_seq", "_t_us", "_forces", "_raw") + (("_taxel_flags",) if self._taxel_flags is not None else ())
+        for name in arrays:
+            old = getattr(self, name)
+            new = np.zeros((capacity,) + old.shape[1:], dtype=old.dtype)
+            new[:kept] = old[order]
+            setattr(self, name, new)
+        self._flags = [self._flags[i] for i in order.tolist()] + [()] * (capacity - kept)
+        self._levels = [self._levels[i] for i in order.tolist()] + [""] * (capacity - kept)
+        self.capacity, self._count = capacity, kept
 
     def append(self, frame: ForceFrame) -> None:
         """Store the sensor's next frame."""
@@ -77,3 +101,37 @@ class History:
             self._raw[i].copy(), list(self._flags[i]), self._levels[i],
             None if self._taxel_flags is None else self._taxel_flags[i].copy(),
         )
+
+
+class Histories(dict):
+    """Every sensor's History by id, all within one memory budget.
+
+    Each sensor may keep up to ``frames`` frames; when the sensors together
+    would exceed ``budget_bytes``, each gets an equal share of the budget
+    (fewer frames for a larger sensor), and the histories already kept
+    shrink to their share, newest frames kept."""
+
+    def __init__(self, budget_bytes: int = DEFAULT_BUDGET_BYTES, frames: int = DEFAULT_FRAMES) -> None:
+        super().__init__()
+        if budget_bytes < 1 or frames < 1:
+            raise ValueError(f"a history budget needs budget_bytes >= 1 and frames >= 1, got {budget_bytes}, {frames}")
+        self.budget_bytes = budget_bytes
+        self.frames = frames
+
+    def for_frame(self, frame: ForceFrame) -> History:
+        """The history that takes ``frame`` (a new one for a new or changed sensor)."""
+        history = self.get(frame.sensor.id)
+        if history is None or (history.info is not frame.sensor and history.info != frame.sensor):
+            share = self.budget_bytes // (len(self) + (history is None))
+            outputs = frame.forces_N.size
+            history = self[frame.sensor.id] = History(frame.sensor, self._capacity(share, frame.sensor, outputs), outputs)
+            for other in self.values():
+                other.shrink(self._capacity(share, other.info, other._forces.shape[1]))
+        return history
+
+    @property
+    def bytes(self) -> int:
+        return sum(h.capacity * History.bytes_per_frame(h.info, h._forces.shape[1]) for h in self.values())
+
+    def _capacity(self, share: int, info: SensorInfo, outputs: int) -> int:
+        return max(1, min(self.frames, share // History.bytes_per_frame(info, outputs)))

@@ -14,7 +14,7 @@ import time
 from collections import deque
 from typing import Callable
 
-from .history import History
+from .history import Histories
 from .protocol import Decoder
 from .readings import Interpreter, Reading
 from .reconstruct import ForceFrame, Reconstructor
@@ -24,7 +24,6 @@ ByteListener = Callable[[bytes, float], None]
 Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
-HISTORY_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5 MB for an 8x8 grid)
 
 
 class RateMeter:
@@ -51,12 +50,13 @@ class Pipeline:
     (the readout's, the event loop's or a replay's); ``tare`` and
     ``set_calibration`` may come from any other."""
 
-    def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
+                 histories: Histories | None = None) -> None:
         self.decoder = Decoder()
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
         self.latest: dict[int, ForceFrame] = {}
-        self.history: dict[int, History] = {}
+        self.history = histories if histories is not None else Histories()
         self.rates: dict[int, RateMeter] = {}
         self.listeners: list[Listener] = []
         self.byte_listeners: list[ByteListener] = []
@@ -143,10 +143,7 @@ class Pipeline:
             return
         for frame in frames:
             self.latest[frame.sensor.id] = frame
-            history = self.history.get(frame.sensor.id)
-            if history is None or (history.info is not frame.sensor and history.info != frame.sensor):
-                history = self.history[frame.sensor.id] = History(frame.sensor, HISTORY_FRAMES, frame.forces_N.size)
-            history.append(frame)
+            self.history.for_frame(frame).append(frame)
             meter = self.rates.get(frame.sensor.id)
             if meter is None:
                 meter = self.rates[frame.sensor.id] = RateMeter()

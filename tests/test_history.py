@@ -47,3 +47,28 @@ def test_frames_of_another_sensor_are_refused():
     with pytest.raises(ValueError, match="sensor 0 was given a frame of sensor 5"):
         history.append(frame(1, SensorInfo(5, "grid", 2, 2)))
     assert history.window(1.0, 10) == []
+
+
+def test_histories_share_one_budget_and_keep_the_newest_frames():
+    from service.history import Histories
+
+    sensors = [SensorInfo(sid, "grid", 2, 2) for sid in range(4)]
+    per_frame = History.bytes_per_frame(sensors[0], 4)
+    assert per_frame == 24 + 32 + 32 + 4 + 16
+    histories = Histories(budget_bytes=40 * per_frame, frames=30)
+    for seq in range(25):  # sensor 0 alone: 30 frames fit, 25 kept
+        histories.for_frame(frame(seq)).append(frame(seq))
+    assert histories[0].capacity == 30 and len(histories[0]) == 25
+    for info in sensors[1:]:  # four sensors: 10 frames each
+        histories.for_frame(frame(0, info)).append(frame(0, info))
+    assert [h.capacity for h in histories.values()] == [10, 10, 10, 10]
+    assert histories.bytes <= 40 * per_frame
+    kept = histories[0].window(100.0, 100)
+    assert [f.seq for f in kept] == list(range(15, 25))  # the newest ten, oldest first, values intact
+    for got in kept:
+        np.testing.assert_array_equal(got.forces_N, frame(got.seq).forces_N)
+        np.testing.assert_array_equal(got.taxel_flags, frame(got.seq).taxel_flags)
+        assert got.flags == frame(got.seq).flags
+    for seq in range(25, 40):  # the shrunk ring goes on from where it was
+        histories.for_frame(frame(seq)).append(frame(seq))
+    assert [f.seq for f in histories[0].window(100.0, 100)] == list(range(30, 40))

@@ -176,3 +176,21 @@ def test_a_complete_recording_reads_without_a_warning(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
         assert sum(1 for _ in iter_messages(mcap_path)) > 0
     assert "ends early" not in caplog.text
+
+
+def test_a_recording_is_synced_to_disk_when_it_stops_and_every_few_seconds(tmp_path, monkeypatch):
+    import os
+
+    from service.record import recorder as recorder_module
+
+    synced = []
+    monkeypatch.setattr(recorder_module.os, "fsync", lambda fd: synced.append(os.readlink(f"/proc/self/fd/{fd}")))
+    monkeypatch.setattr(recorder_module, "FLUSH_PERIOD_S", 0.0)
+    monkeypatch.setattr(recorder_module, "FSYNC_PERIOD_S", 0.2)
+    recorder = Recorder(tmp_path / "run.mcap", tmp_path / "run.bin")
+    for i in range(30):
+        recorder.on_bytes(b"x", float(i))
+        time.sleep(0.02)
+    status = recorder.stop()
+    assert status["fsyncs"] >= 3  # ~0.6 s of writing at one sync per 0.2 s, and one at the stop
+    assert synced[-2:] == [str(tmp_path / "run.mcap"), str(tmp_path / "run.bin")]  # both files, last thing done

@@ -10,6 +10,7 @@ the recording, is kept in ``error`` and logged, never swallowed.
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
@@ -23,6 +24,7 @@ log = logging.getLogger(__name__)
 
 DIAGNOSTICS_PERIOD_S = 1.0
 FLUSH_PERIOD_S = 0.5
+FSYNC_PERIOD_S = 5.0  # a power cut loses at most this much of a recording
 _STOP = object()
 
 
@@ -51,6 +53,8 @@ class Recorder:
         self.error: str | None = None
         self.messages = 0
         self.bytes_in = 0
+        self.fsyncs = 0
+        self.fsync_s = 0.0  # time spent in fsync, on the writer thread
         self.started_at = time.time()
         self.stopped_at: float | None = None
         self._thread = threading.Thread(target=self._run, name="tactile-recorder", daemon=True)
@@ -107,22 +111,28 @@ class Recorder:
             "queued": self._queue.qsize(),
             "started_at": self.started_at,
             "stopped_at": self.stopped_at,
+            "fsyncs": self.fsyncs,
+            "fsync_s": round(self.fsync_s, 4),
             "error": self.error,
         }
 
     def _run(self) -> None:
-        last_flush = time.monotonic()
+        last_flush = last_sync = time.monotonic()
         try:
             while True:
                 kind, payload, t_host = self._queue.get()
                 if kind is _STOP:
                     break
                 self._write(kind, payload, t_host)
-                if time.monotonic() - last_flush >= FLUSH_PERIOD_S:
-                    self._flush()
-                    last_flush = time.monotonic()
+                now = time.monotonic()
+                if now - last_flush >= FLUSH_PERIOD_S:
+                    sync = now - last_sync >= FSYNC_PERIOD_S
+                    self._flush(sync)
+                    last_flush = now
+                    if sync:
+                        last_sync = now
             self._log.close()
-            self._flush()
+            self._flush(sync=True)
         except OSError as exc:
             self.error = f"recording to {self.path} failed: {exc}"
             log.error(self.error)
@@ -148,7 +158,14 @@ class Recorder:
             self._log.diagnostics(t_host, payload)
             self.messages += 1
 
-    def _flush(self) -> None:
-        self._stream.flush()
-        if self._raw is not None:
-            self._raw.flush()
+    def _flush(self, sync: bool = False) -> None:
+        """Hand what is written to the OS; with ``sync``, to the disk."""
+        streams = [self._stream] + ([self._raw] if self._raw is not None else [])
+        for stream in streams:
+            stream.flush()
+        if sync:
+            started = time.monotonic()
+            for stream in streams:
+                os.fsync(stream.fileno())
+            self.fsync_s += time.monotonic() - started
+            self.fsyncs += 1
