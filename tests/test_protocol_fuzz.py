@@ -5,8 +5,8 @@ from hypothesis import strategies as st
 from service.protocol import Decoder, FrameType, encode_frame
 
 frame_specs = st.one_of(
-    st.tuples(st.just(FrameType.QUAD), st.integers(0, 254), st.binary(min_size=16, max_size=16)),
-    st.tuples(st.just(FrameType.GRID), st.integers(0, 254), st.binary(min_size=4, max_size=64).filter(lambda b: len(b) % 4 == 0)),
+    st.tuples(st.just(FrameType.QUAD), st.integers(0, 255), st.binary(min_size=16, max_size=16)),
+    st.tuples(st.just(FrameType.GRID), st.integers(0, 255), st.binary(min_size=4, max_size=64).filter(lambda b: len(b) % 4 == 0)),
     st.tuples(st.just(FrameType.INFO), st.just(255), st.binary(max_size=40)),
     st.tuples(st.just(FrameType.ERROR), st.just(255), st.binary(max_size=40)),
 )
@@ -33,23 +33,39 @@ def decode_in_chunks(data, cuts):
 
 
 def key(frame):
-    return (frame.type, frame.sensor, frame.flags, frame.seq, frame.t_us, frame.payload)
+    return (frame.type, frame.sensor, frame.flags, frame.seq, frame.t_us, frame.payload, frame.gap, frame.board_restart)
 
 
-def without_repeats(expected):
-    """The frames a decoder passes on: a data frame whose board clock does
-    not advance past its sensor's last one and that repeats one of the
-    sensor's recent scans (same seq and board time) is dropped."""
-    recent, kept = {}, []
-    for ftype, sensor, flags, seq, t_us, payload in expected:
+def passed_on(expected):
+    """The frames a decoder passes on, with their gap and restart flag, per
+    protocol.md "Restarts and repeats". A data frame from id 255 (the board)
+    is dropped. One whose board clock does not run forward from its sensor's
+    last one is the first after a restart when an INFO the board sent before
+    it came since that last frame; otherwise it is a repeat, dropped, when it
+    equals one of the sensor's last 256 frames, and a restart when the clock
+    went back."""
+    last, recent, kept = {}, {}, []
+    for spec in expected:
+        ftype, sensor, flags, seq, t_us, payload = spec
+        gap, restart = 0, False
         if ftype in (FrameType.GRID, FrameType.QUAD):
-            scans = recent.setdefault(sensor, [])
-            if scans:
-                step = (t_us - scans[-1][1]) % 2**32
-                if (step == 0 or step > 2**31) and (seq, t_us) in scans[-256:]:
-                    continue
-            scans.append((seq, t_us))
-        kept.append((ftype, sensor, flags, seq, t_us, payload))
+            if sensor == 255:
+                continue
+            if sensor in last:
+                last_seq, last_t_us, info_t_us = last[sensor]
+                step = (t_us - last_t_us) % 2**32
+                if step == 0 or step > 2**31:
+                    restart = info_t_us is not None and 0 < (t_us - info_t_us) % 2**32 < 2**31
+                    if not restart and spec in recent[sensor][-256:]:
+                        continue
+                    restart = restart or step != 0
+                if not restart:
+                    gap = (seq - last_seq - 1) % 2**16
+            last[sensor] = (seq, t_us, None)
+            recent.setdefault(sensor, []).append(spec)
+        elif ftype == FrameType.INFO:
+            last = {sid: (s, t, t_us) for sid, (s, t, _) in last.items()}
+        kept.append(spec + (gap, restart))
     return kept
 
 
@@ -68,7 +84,7 @@ def test_frames_survive_any_garbage_and_any_chunking(specs, garbage, cuts):
     encoded = encode_all(specs)
     stream = b"".join(junk + data for junk, (data, _) in zip(garbage, encoded + [(b"", None)]))
     frames, _ = decode_in_chunks(stream, cuts)
-    assert [key(f) for f in frames] == without_repeats([expected for _, expected in encoded])
+    assert [key(f) for f in frames] == passed_on([expected for _, expected in encoded])
 
 
 @settings(max_examples=200, deadline=None)
@@ -84,4 +100,30 @@ def test_a_damaged_frame_never_becomes_a_different_frame(specs, data):
     stream = b"".join(bytes(raw) if i == victim else d for i, (d, _) in enumerate(encoded))
     frames, _ = decode_in_chunks(stream, [])
     expected = [k for i, (_, k) in enumerate(encoded) if i != victim]
-    assert [key(f) for f in frames] == without_repeats(expected)
+    assert [key(f) for f in frames] == passed_on(expected)
+
+
+# Few distinct values, so that clocks collide, step back and repeat often.
+clashing_specs = st.lists(
+    st.tuples(
+        st.one_of(
+            st.tuples(st.just(FrameType.QUAD), st.sampled_from([1, 2, 255]), st.sampled_from([bytes(16), b"\x01" * 16])),
+            st.tuples(st.just(FrameType.INFO), st.just(255), st.just(b"{}")),
+        ),
+        st.integers(0, 1), st.integers(0, 3), st.sampled_from([0, 1000, 2000, 3000, 2**32 - 1000]),
+    ),
+    max_size=30,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(clashing_specs, st.lists(st.tuples(st.integers(0, 29), st.integers(0, 30)), max_size=10))
+def test_repeats_and_restarts_follow_the_protocols_rule(specs, copies):
+    # Copies of earlier frames put later in the stream are the link's repeats.
+    specs = list(specs)
+    for source, target in copies:
+        if source < len(specs):
+            specs.insert(max(target, source + 1), specs[source])
+    encoded = encode_all(specs)
+    frames, _ = decode_in_chunks(b"".join(data for data, _ in encoded), [])
+    assert [key(f) for f in frames] == passed_on([expected for _, expected in encoded])
