@@ -18,8 +18,9 @@ an INFO that the board sent before this scan (a power-up INFO; a reply to
 INFO? or PING comes after the scans it follows), it is the first scan of a
 board that restarted (``board_restarts``; however soon, even if its bytes
 equal an older scan's). Otherwise, when its bytes equal one of the sensor's
-last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else it
-is a restart whose INFO was lost. None of these is a gap of 65 000 scans.
+last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else,
+if the clock went back, it is a restart whose INFO was lost (at the same board
+time it is sequenced like any scan). None of these is a gap of 65 000 scans.
 Data frames from id 255, the board's own, are dropped (``board_id_data``).
 """
 from __future__ import annotations
@@ -65,9 +66,9 @@ class Frame:
 
     ``gap`` is the number of scans of this sensor missing just before this
     frame according to ``seq`` (0 when the sequence is continuous or this is
-    the sensor's first frame). ``board_restart`` marks the first frame after
-    the board's clock went back: it restarted, counting from seq 0 again,
-    and nothing was missed.
+    the sensor's first frame). ``board_restart`` marks the sensor's first
+    frame from a board that restarted (after its power-up INFO, or with its
+    clock gone back), counting from seq 0 again: nothing was missed.
     """
 
     type: FrameType
