@@ -283,3 +283,17 @@ def test_a_repeat_after_an_info_reply_is_still_a_repeat():
     assert [f.seq for f in frames if f.type == FrameType.QUAD] == [40, 41, 42]
     counters = decoder.counters.sensor(1)
     assert (counters.duplicates, counters.board_restarts, counters.missed_frames) == (2, 0, 0)
+
+
+def test_the_simulator_powering_up_twice_in_a_row_is_one_restart_per_sensor():
+    from firmware_sim.board import BoardConfig, capture
+
+    run, board = capture(BoardConfig(), 0.05)  # one seed: both power-ups send the same bytes
+    decoder = Decoder()
+    frames = decoder.feed(run + run)
+    per_run = 1 + 50 * len(board.config.sensors)  # INFO + 50 scans of each sensor at 1 kHz
+    assert len(frames) == 2 * per_run
+    assert [i for i, f in enumerate(frames) if f.board_restart] == [per_run + 1, per_run + 2]
+    for sensor in (0, 1):
+        counters = decoder.counters.sensor(sensor)
+        assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)

@@ -218,3 +218,13 @@ def test_the_default_cap_on_sensors_without_info_is_64():
     interpreter = Interpreter()
     feed(interpreter, *(quad_frame(sid) for sid in range(255)))
     assert len(interpreter.sensors) == 64 and interpreter.rejected["unannounced_sensor"] == 255 - 64
+
+
+def test_a_malformed_info_costs_nothing_but_itself_in_the_read_it_arrives_in():
+    from service.pipeline import Pipeline
+
+    scans = [quad_frame(1, seq) for seq in range(6)]
+    pipeline = Pipeline()
+    frames = pipeline.feed(b"".join(scans[:3]) + info_frame({"sensors": None}) + b"".join(scans[3:]), 0.0)
+    assert [f.seq for f in frames] == list(range(6))
+    assert pipeline.interpreter.rejected["info_invalid"] == 1
