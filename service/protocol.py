@@ -12,12 +12,16 @@ Every byte that does not end up inside a good frame is counted in
 claims (it may itself be corrupt, so the per-sensor figure is indicative and
 the stream total is exact).
 
-Sequence bookkeeping per sensor: a data frame whose board clock does not
-advance either repeats one of the sensor's last 256 scans (same seq and board
-time: no new scan, dropped and counted in ``duplicates``) or, stepping back,
-comes from a board that restarted (``board_restarts``; its seq starts again
-at 0) — not 65 000 scans missed. Neither case is in the protocol's text; both are what a link or a
-board can do.
+Sequence bookkeeping per sensor, after the protocol's "Restarts and repeats":
+a data frame whose board clock does not advance is one of three things. After
+an INFO that the board sent before this scan (a power-up INFO; a reply to
+INFO? or PING comes after the scans it follows), it is the first scan of a
+board that restarted (``board_restarts``; however soon, even if its bytes
+equal an older scan's). Otherwise, when its bytes equal one of the sensor's
+last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else,
+if the clock went back, it is a restart whose INFO was lost (at the same board
+time it is sequenced like any scan). None of these is a gap of 65 000 scans.
+Data frames from id 255, the board's own, are dropped (``board_id_data``).
 """
 from __future__ import annotations
 
@@ -35,7 +39,8 @@ MAX_PAYLOAD = 1024
 BOARD_SENSOR_ID = 255
 SEQ_MODULUS = 1 << 16
 T_US_MODULUS = 1 << 32
-RECENT_SCANS = 256  # per sensor, remembered to recognise a repeated scan
+RECENT_SCANS = 256  # per sensor, fingerprints of its last frames, to recognise a repeat
+_HALF_CLOCK = 1 << 31  # a board clock step beyond this is a step back (wrapped)
 
 FLAG_SATURATED = 0x01
 FLAG_OVERRUN = 0x02
@@ -61,9 +66,9 @@ class Frame:
 
     ``gap`` is the number of scans of this sensor missing just before this
     frame according to ``seq`` (0 when the sequence is continuous or this is
-    the sensor's first frame). ``board_restart`` marks the first frame after
-    the board's clock went back: it restarted, counting from seq 0 again,
-    and nothing was missed.
+    the sensor's first frame). ``board_restart`` marks the sensor's first
+    frame from a board that restarted (after its power-up INFO, or with its
+    clock gone back), counting from seq 0 again: nothing was missed.
     """
 
     type: FrameType
@@ -94,6 +99,7 @@ class StreamCounters:
     header_errors: int = 0
     truncated: int = 0
     bytes_discarded: int = 0
+    board_id_data: int = 0  # data frames claiming sensor 255, the board's own id
     sensors: dict[int, SensorCounters] = field(default_factory=dict)
 
     def sensor(self, sensor_id: int) -> SensorCounters:
@@ -110,6 +116,7 @@ class StreamCounters:
             "header_errors": self.header_errors,
             "truncated": self.truncated,
             "bytes_discarded": self.bytes_discarded,
+            "board_id_data": self.board_id_data,
             "sensors": {
                 str(sid): {
                     "frames": c.frames,
@@ -134,12 +141,24 @@ def _length_is_valid(frame_type: int, length: int) -> bool:
     return True
 
 
+class _SensorState:
+    """Where a sensor's sequence stands: its last frame passed on, the INFO
+    count then, and fingerprints (hashes of the bytes) of its recent frames."""
+
+    __slots__ = ("seq", "t_us", "infos", "recent")
+
+    def __init__(self) -> None:
+        self.recent: deque[int] = deque(maxlen=RECENT_SCANS)
+
+
 class Decoder:
     """Incremental protocol decoder with per-stream and per-sensor counters."""
 
     def __init__(self) -> None:
         self._buffer = bytearray()
-        self._recent: dict[int, deque[tuple[int, int]]] = {}  # per sensor: (seq, t_us) of its last scans
+        self._states: dict[int, _SensorState] = {}
+        self._infos = 0  # INFO frames seen, and the board time of the last one
+        self._info_t_us = 0
         self.counters = StreamCounters()
 
     def feed(self, data: bytes) -> list[Frame]:
@@ -200,13 +219,14 @@ class Decoder:
                     continue
                 break
             (crc,) = _CRC.unpack_from(buf, end - CRC_SIZE)
-            if crc_hqx(buf[pos + 2 : end - CRC_SIZE], 0xFFFF) != crc:
+            body = bytes(buf[pos + 2 : end - CRC_SIZE])  # all but sync and crc: the frame's identity
+            if crc_hqx(body, 0xFFFF) != crc:
                 counters.crc_errors += 1
                 counters.sensor(sensor).crc_errors += 1
                 counters.bytes_discarded += 1
                 pos += 1
                 continue
-            frame = self._accept(ftype, sensor, flags, seq, t_us, bytes(buf[pos + HEADER_SIZE : end - CRC_SIZE]))
+            frame = self._accept(ftype, sensor, flags, seq, t_us, body)
             if frame is None:
                 counters.bytes_discarded += end - pos
             else:
@@ -215,40 +235,48 @@ class Decoder:
         del buf[:pos]
         return frames
 
-    def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, payload: bytes) -> Frame | None:
+    def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, body: bytes) -> Frame | None:
         """A good frame, with its place in its sensor's sequence; None for a
-        repeat of one of the sensor's recent scans (same seq and board time),
-        which would otherwise count as 65 535 scans missed or a restart."""
+        repeat and for a data frame from the board's own id."""
         frame_type = FrameType(ftype)
         gap = 0
         restart = False
         if frame_type in DATA_TYPES:
+            if sensor == BOARD_SENSOR_ID:
+                self.counters.board_id_data += 1
+                return None
             sensor_counters = self.counters.sensor(sensor)
-            recent = self._recent.get(sensor)
-            if recent is None:
-                recent = self._recent[sensor] = deque(maxlen=RECENT_SCANS)
+            fingerprint = hash(body)
+            state = self._states.get(sensor)
+            if state is None:
+                state = self._states[sensor] = _SensorState()
             else:
-                last_seq, last_t_us = recent[-1]
-                # The board clock only runs forward (wrapping every 71.6 min).
-                # When it did not advance, the frame repeats a recent scan or
-                # the board restarted; the search runs only then.
-                stepped_back = (t_us - last_t_us) % T_US_MODULUS > T_US_MODULUS // 2
-                if stepped_back or t_us == last_t_us:
-                    if (seq, t_us) in recent:
-                        sensor_counters.duplicates += 1
-                        return None
-                    restart = stepped_back
+                # The board clock only runs forward (wrapping every 71.6 min):
+                # only when it did not is the frame a repeat or a restart.
+                step = (t_us - state.t_us) % T_US_MODULUS
+                if step == 0 or step > _HALF_CLOCK:
+                    info_step = (t_us - self._info_t_us) % T_US_MODULUS
+                    restart = state.infos != self._infos and 0 < info_step < _HALF_CLOCK
+                    if not restart:
+                        if fingerprint in state.recent:
+                            sensor_counters.duplicates += 1
+                            return None
+                        restart = step != 0
                 if restart:
                     sensor_counters.board_restarts += 1
                 else:
-                    gap = (seq - last_seq - 1) % SEQ_MODULUS
+                    gap = (seq - state.seq - 1) % SEQ_MODULUS
                     if gap:
                         sensor_counters.seq_gaps += 1
                         sensor_counters.missed_frames += gap
-            recent.append((seq, t_us))
+            state.seq, state.t_us, state.infos = seq, t_us, self._infos
+            state.recent.append(fingerprint)
             sensor_counters.frames += 1
+        elif frame_type == FrameType.INFO:
+            self._infos += 1
+            self._info_t_us = t_us
         self.counters.frames += 1
-        return Frame(frame_type, sensor, flags, seq, t_us, payload, gap, restart)
+        return Frame(frame_type, sensor, flags, seq, t_us, body[HEADER_SIZE - 2 :], gap, restart)
 
 
 def encode_frame(

@@ -22,6 +22,9 @@ log = logging.getLogger(__name__)
 OPEN_SENTINEL = 0xFFFFFFFF
 SHORT_SENTINEL = 0x00000000
 AF_PER_PF = 1e6
+MAX_UNANNOUNCED_SENSORS = 64  # sensors created from data frames alone, without INFO
+MAX_SENSOR_ID = 254  # 255 is the board itself
+MAX_CHANNELS = 256  # a payload holds at most 1024 bytes of u32 channels
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,12 +33,14 @@ class SensorInfo:
     kind: str  # "grid" | "quad"
     rows: int
     cols: int
+    serial: str | None = None  # the sensor's own identity, when INFO carries one
 
     @property
     def channels(self) -> int:
         return self.rows * self.cols
 
     def as_dict(self) -> dict:
+        # Without the serial: this is the export format the replay goldens pin.
         return {"id": self.id, "kind": self.kind, "rows": self.rows, "cols": self.cols}
 
 
@@ -86,41 +91,81 @@ def default_sensor(sensor_id: int, frame: Frame) -> SensorInfo | None:
     return None
 
 
+# Top-level INFO fields and the JSON types they must have (bool is an int
+# subclass in Python, so it is excluded explicitly where a number is meant).
+_BOARD_FIELDS = {"board": str, "fw": str, "serial": str, "rate_hz": (int, float), "pong": bool, "sensors": list}
+
+
+def _has_type(value, types) -> bool:
+    return isinstance(value, types) and (types is bool or not isinstance(value, bool))
+
+
+def _is_int(value) -> bool:
+    return _has_type(value, int)
+
+
+def _parse_sensor(entry) -> SensorInfo | None:
+    """One ``sensors`` entry; None for a well-formed sensor of a kind this
+    service does not know."""
+    if not isinstance(entry, dict):
+        raise ValueError(f"INFO sensor entry is not an object: {entry!r}")
+    sid, kind, serial = entry.get("id"), entry.get("kind"), entry.get("serial")
+    if not (_is_int(sid) and 0 <= sid <= MAX_SENSOR_ID):
+        raise ValueError(f"INFO sensor entry without an integer id in 0..{MAX_SENSOR_ID}: {entry!r}")
+    if not isinstance(kind, str):
+        raise ValueError(f"INFO sensor {sid} has no kind string: {kind!r}")
+    if "serial" in entry and not isinstance(serial, str):
+        raise ValueError(f"INFO sensor {sid} has a serial that is not a string: {serial!r}")
+    if kind == "quad":
+        return SensorInfo(sid, "quad", 2, 2, serial)
+    if kind == "grid":
+        rows, cols = entry.get("rows"), entry.get("cols")
+        if not (_is_int(rows) and _is_int(cols) and rows > 0 and cols > 0 and rows * cols <= MAX_CHANNELS):
+            raise ValueError(f"INFO grid sensor {sid} has invalid shape rows={rows!r} cols={cols!r}")
+        return SensorInfo(sid, "grid", rows, cols, serial)
+    log.warning("INFO: ignoring sensor %s of unknown kind %r", sid, kind)
+    return None
+
+
 def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
-    """Parse an INFO payload; raise ValueError naming what is wrong. A sensor
-    of a kind this service does not know is left out (logged), so one exotic
-    sensor does not hide the shapes of the others."""
+    """Parse an INFO payload; raise ValueError naming what is wrong. Any
+    field of the wrong JSON type invalidates the whole INFO (the protocol's
+    rule); unknown keys are ignored. A sensor of a kind this service does not
+    know is left out (logged), so one exotic sensor does not hide the shapes
+    of the others."""
     try:
         doc = orjson.loads(payload)
     except orjson.JSONDecodeError as exc:
         raise ValueError(f"INFO payload is not JSON: {exc}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"INFO payload must be a JSON object, got {type(doc).__name__}")
+    for name, types in _BOARD_FIELDS.items():
+        if name in doc and not _has_type(doc[name], types):
+            raise ValueError(f"INFO field {name!r} has the wrong type: {doc[name]!r}")
+    if doc.get("rate_hz", 1) <= 0:
+        raise ValueError(f"INFO rate_hz {doc['rate_hz']!r} is not positive")
     sensors: dict[int, SensorInfo] = {}
+    seen: set[int] = set()
     for entry in doc.get("sensors", []):
-        if not isinstance(entry, dict) or not isinstance(entry.get("id"), int):
-            raise ValueError(f"INFO sensor entry without an integer id: {entry!r}")
-        sid, kind = entry["id"], entry.get("kind")
-        if kind == "quad":
-            sensors[sid] = SensorInfo(sid, "quad", 2, 2)
-        elif kind == "grid":
-            rows, cols = entry.get("rows"), entry.get("cols")
-            if not (isinstance(rows, int) and isinstance(cols, int) and rows > 0 and cols > 0 and rows * cols <= 256):
-                raise ValueError(f"INFO grid sensor {sid} has invalid shape rows={rows!r} cols={cols!r}")
-            sensors[sid] = SensorInfo(sid, "grid", rows, cols)
-        else:
-            log.warning("INFO: ignoring sensor %s of unknown kind %r", sid, kind)
+        info = _parse_sensor(entry)
+        if entry["id"] in seen:
+            raise ValueError(f"INFO announces sensor {entry['id']} twice")
+        seen.add(entry["id"])
+        if info is not None:
+            sensors[info.id] = info
     return doc, sensors
 
 
 class Interpreter:
     """Keeps the board description and turns data frames into readings."""
 
-    def __init__(self, clock=time.time) -> None:
-        self.board: dict = {}
+    def __init__(self, clock=time.time, max_unannounced_sensors: int = MAX_UNANNOUNCED_SENSORS) -> None:
+        self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
         self.sensors: dict[int, SensorInfo] = {}
         self.board_errors: deque[tuple[float, str]] = deque(maxlen=50)
-        self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
+        self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
+        self.max_unannounced_sensors = max_unannounced_sensors
+        self._unannounced: set[int] = set()  # sensors known only from their data frames
         self._clock = clock
 
     def interpret(self, frame: Frame, t_host: float | None = None) -> Reading | None:
@@ -137,11 +182,17 @@ class Interpreter:
             return None
         info = self.sensors.get(frame.sensor)
         if info is None:
+            # Without INFO any byte stream could create up to 255 sensors,
+            # each with its own reconstruction and history downstream.
+            if len(self._unannounced) >= self.max_unannounced_sensors:
+                self.rejected["unannounced_sensor"] += 1
+                return None
             info = default_sensor(frame.sensor, frame)
             if info is None:
                 self.rejected["unknown_shape"] += 1
                 return None
             self.sensors[frame.sensor] = info
+            self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
         if info.kind != expected_kind or len(frame.payload) != 4 * info.channels:
             self.rejected["shape_mismatch"] += 1
@@ -167,3 +218,4 @@ class Interpreter:
             return
         self.board = {k: v for k, v in doc.items() if k != "sensors"}
         self.sensors.update(sensors)
+        self._unannounced.difference_update(sensors)

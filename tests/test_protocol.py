@@ -213,3 +213,87 @@ def test_an_older_scan_sent_again_is_a_repeat_not_a_restart():
     assert [f.seq for f in frames] == [40, 41, 42] and not any(f.board_restart for f in frames)
     counters = decoder.counters.as_dict()["sensors"]["1"]
     assert counters["duplicates"] == 1 and counters["board_restarts"] == 0 and counters["missed_frames"] == 0
+
+
+def test_a_data_frame_from_the_boards_own_id_is_dropped_and_counted():
+    decoder = Decoder()
+    board_data = hand_frame(sensor=255, seq=1)
+    frames = decoder.feed(hand_frame(seq=1) + board_data + hand_frame(ftype=0x10, sensor=255, payload=bytes(256)))
+    assert [(f.sensor, f.seq) for f in frames] == [(1, 1)]
+    assert decoder.counters.board_id_data == 2
+    assert decoder.counters.as_dict()["board_id_data"] == 2
+    assert 255 not in decoder.counters.sensors
+    assert decoder.counters.bytes_discarded == len(board_data) + 272
+
+
+def info(t_us, board_seq=0):
+    return hand_frame(ftype=0x01, sensor=255, payload=b'{"board": "b"}', seq=board_seq, t_us=t_us)
+
+
+def test_a_board_in_a_boot_loop_restarts_within_256_scans_and_nothing_is_dropped():
+    # Each power-up: INFO at board time 0, then scans from seq 0 and t_us 0
+    # again, with fresh readings. The second run's first 40 scans carry the
+    # seq and t_us of the first run's, in different bytes.
+    def run(first_value):
+        return info(0) + b"".join(hand_frame(seq=s, t_us=1000 * (s + 1), payload=quad_payload(first_value + s, 2, 3, 4))
+                                  for s in range(40))
+    decoder = Decoder()
+    frames = decoder.feed(run(100) + run(200) + run(300))
+    data = [f for f in frames if f.type == FrameType.QUAD]
+    assert len(data) == 120
+    assert [i for i, f in enumerate(data) if f.board_restart] == [40, 80]
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.duplicates, counters.seq_gaps, counters.missed_frames) == (2, 0, 0, 0)
+
+
+def test_a_power_up_identical_to_the_last_one_is_a_restart_not_repeats():
+    # A deterministic board (the simulator with one seed) that powers up
+    # twice sends the same bytes twice; the INFO between makes it a restart.
+    run = info(0) + b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(10))
+    decoder = Decoder()
+    frames = decoder.feed(run + run)
+    assert [f.seq for f in frames if f.type == FrameType.QUAD] == list(range(10)) * 2
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)
+
+
+def test_a_restart_whose_info_was_lost_is_still_a_restart_when_the_bytes_differ():
+    before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1), payload=quad_payload(1, 2, 3, s)) for s in range(50))
+    after = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1), payload=quad_payload(9, 9, 9, s)) for s in range(5))
+    decoder = Decoder()
+    frames = decoder.feed(before + after)
+    assert len(frames) == 55 and [i for i, f in enumerate(frames) if f.board_restart] == [50]
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)
+
+
+def test_a_repeat_differs_from_its_original_in_no_byte():
+    # Same seq and board time, other flags: not the same frame, so not a repeat.
+    decoder = Decoder()
+    frames = decoder.feed(hand_frame(seq=7, t_us=7000) + hand_frame(seq=7, t_us=7000, flags=FLAG_OVERRUN))
+    assert len(frames) == 2 and decoder.counters.sensor(1).duplicates == 0
+
+
+def test_a_repeat_after_an_info_reply_is_still_a_repeat():
+    # INFO? or PING answered between a scan and its repetition: the reply
+    # carries the board's current time, not a power-up's.
+    a, b = hand_frame(seq=40, t_us=40_000), hand_frame(seq=41, t_us=41_000)
+    decoder = Decoder()
+    frames = decoder.feed(a + b + info(41_500, board_seq=3) + a + b + hand_frame(seq=42, t_us=42_000))
+    assert [f.seq for f in frames if f.type == FrameType.QUAD] == [40, 41, 42]
+    counters = decoder.counters.sensor(1)
+    assert (counters.duplicates, counters.board_restarts, counters.missed_frames) == (2, 0, 0)
+
+
+def test_the_simulator_powering_up_twice_in_a_row_is_one_restart_per_sensor():
+    from firmware_sim.board import BoardConfig, capture
+
+    run, board = capture(BoardConfig(), 0.05)  # one seed: both power-ups send the same bytes
+    decoder = Decoder()
+    frames = decoder.feed(run + run)
+    per_run = 1 + 50 * len(board.config.sensors)  # INFO + 50 scans of each sensor at 1 kHz
+    assert len(frames) == 2 * per_run
+    assert [i for i, f in enumerate(frames) if f.board_restart] == [per_run + 1, per_run + 2]
+    for sensor in (0, 1):
+        counters = decoder.counters.sensor(sensor)
+        assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)

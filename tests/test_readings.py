@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import orjson
 import pytest
@@ -11,7 +13,8 @@ def feed(interpreter, *frames):
 
 
 def info_frame(doc):
-    return encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(doc))
+    # The standard library, not orjson: it can write integers beyond 64 bits.
+    return encode_frame(FrameType.INFO, 255, 0, 0, json.dumps(doc).encode())
 
 
 def test_grid_without_info_is_8x8_and_in_picofarads():
@@ -99,3 +102,129 @@ def test_the_first_frame_after_a_board_restart_says_so_through_to_the_binary_str
     assert [f.seq for f in restarted] == [0] and "seq_gap" not in restarted[0].flags
     record = decode_binary(len([restarted[0]]).to_bytes(2, "little") + to_binary(restarted[0]))[0]
     assert "board_restart" in record["flags"]
+
+
+GOOD_INFO = {"board": "b", "fw": "1.1.0", "serial": "TMX-1", "rate_hz": 1000,
+             "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8, "serial": "A8-2291"}, {"id": 1, "kind": "quad"}]}
+
+
+def with_board(**fields):
+    return {**GOOD_INFO, **fields}
+
+
+def with_sensor(**fields):
+    return {**GOOD_INFO, "sensors": [{**GOOD_INFO["sensors"][0], **fields}, GOOD_INFO["sensors"][1]]}
+
+
+MALFORMED_INFO = {
+    "sensors null": with_board(sensors=None),
+    "sensors number": with_board(sensors=3),
+    "sensors bool": with_board(sensors=True),
+    "sensors string": with_board(sensors="grid"),
+    "sensors object": with_board(sensors={"id": 0, "kind": "quad"}),
+    "entry not an object": with_board(sensors=[{"id": 1, "kind": "quad"}, 7]),
+    "entry a list": with_board(sensors=[[0, "quad"]]),
+    "id bool": with_sensor(id=True),
+    "id float": with_sensor(id=0.0),
+    "id string": with_sensor(id="0"),
+    "id null": with_sensor(id=None),
+    "id 255": with_sensor(id=255),
+    "id negative": with_sensor(id=-1),
+    "id huge": with_sensor(id=2**70),
+    "kind number": with_sensor(kind=1),
+    "kind null": with_sensor(kind=None),
+    "kind missing": {**GOOD_INFO, "sensors": [{"id": 0, "rows": 8, "cols": 8}]},
+    "rows string": with_sensor(rows="8"),
+    "rows float": with_sensor(rows=8.0),
+    "rows bool": with_sensor(rows=True),
+    "cols bool": with_sensor(cols=True),
+    "rows zero": with_sensor(rows=0),
+    "cols negative": with_sensor(cols=-8),
+    "rows absurd": with_sensor(rows=2**40, cols=2**40),
+    "more channels than a payload holds": with_sensor(rows=16, cols=17),
+    "rows missing": {**GOOD_INFO, "sensors": [{"id": 0, "kind": "grid", "cols": 8}]},
+    "duplicate ids": with_board(sensors=[{"id": 1, "kind": "quad"}, {"id": 1, "kind": "grid", "rows": 2, "cols": 2}]),
+    "duplicate id of an unknown kind": with_board(sensors=[{"id": 1, "kind": "quad"}, {"id": 1, "kind": "thermo"}]),
+    "board number": with_board(board=7),
+    "board null": with_board(board=None),
+    "fw number": with_board(fw=1.1),
+    "fw list": with_board(fw=[1, 1]),
+    "serial number": with_board(serial=123),
+    "serial null": with_board(serial=None),
+    "rate_hz string": with_board(rate_hz="1000"),
+    "rate_hz bool": with_board(rate_hz=True),
+    "rate_hz zero": with_board(rate_hz=0),
+    "pong string": with_board(pong="yes"),
+    "sensor serial number": with_sensor(serial=2291),
+    "sensor serial object": with_sensor(serial={"sn": "A8"}),
+}
+
+
+@pytest.mark.parametrize("doc", list(MALFORMED_INFO.values()), ids=list(MALFORMED_INFO))
+def test_malformed_info_is_rejected_whole_and_counted_never_raised(doc):
+    interpreter = Interpreter()
+    first = {"board": "old", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 16}]}
+    feed(interpreter, info_frame(first), info_frame(doc))
+    assert interpreter.rejected["info_invalid"] == 1
+    assert interpreter.sensors == {0: parse_info(orjson.dumps(first))[1][0]}
+    assert (interpreter.sensors[0].rows, interpreter.sensors[0].cols) == (4, 16)
+    assert interpreter.board == {"board": "old"}
+
+
+def test_well_formed_info_with_every_optional_field_is_accepted():
+    interpreter = Interpreter()
+    feed(interpreter, info_frame(with_board(pong=True, future={"x": [1]})))
+    assert interpreter.rejected["info_invalid"] == 0
+    assert sorted(interpreter.sensors) == [0, 1]
+
+
+def test_serials_of_the_board_and_of_each_sensor_are_kept():
+    interpreter = Interpreter()
+    feed(interpreter, info_frame(GOOD_INFO))
+    assert interpreter.board["serial"] == "TMX-1"
+    assert interpreter.sensors[0].serial == "A8-2291"
+    assert interpreter.sensors[1].serial is None  # a sensor without its own identity
+    # The export format (replay goldens) does not change with the serial.
+    assert interpreter.sensors[0].as_dict() == {"id": 0, "kind": "grid", "rows": 8, "cols": 8}
+
+
+def test_sensors_announced_by_a_board_before_firmware_1_1_have_no_serial():
+    interpreter = Interpreter()
+    feed(interpreter, info_frame({"board": "b", "fw": "1.0.0", "rate_hz": 1000, "sensors": [{"id": 3, "kind": "quad"}]}))
+    assert interpreter.sensors[3].serial is None and "serial" not in interpreter.board
+
+
+def quad_frame(sensor, seq=0):
+    return encode_frame(FrameType.QUAD, sensor, seq, 1000 * seq, bytes(np.full(4, 5_000_000, "<u4")))
+
+
+def test_sensors_without_info_are_capped_and_the_rest_dropped_and_counted():
+    interpreter = Interpreter(max_unannounced_sensors=3)
+    readings = feed(interpreter, *(quad_frame(sid) for sid in range(10)), quad_frame(1, seq=1))
+    assert [r.sensor.id if r else None for r in readings] == [0, 1, 2] + [None] * 7 + [1]
+    assert sorted(interpreter.sensors) == [0, 1, 2]
+    assert interpreter.rejected["unannounced_sensor"] == 7
+
+
+def test_announced_sensors_are_not_capped():
+    interpreter = Interpreter(max_unannounced_sensors=1)
+    doc = {"sensors": [{"id": sid, "kind": "quad"} for sid in range(5, 9)]}
+    readings = feed(interpreter, quad_frame(0), info_frame(doc), *(quad_frame(sid) for sid in range(5, 9)), quad_frame(1))
+    assert [r.sensor.id if r else None for r in readings] == [0, None, 5, 6, 7, 8, None]
+    assert interpreter.rejected["unannounced_sensor"] == 1
+
+
+def test_the_default_cap_on_sensors_without_info_is_64():
+    interpreter = Interpreter()
+    feed(interpreter, *(quad_frame(sid) for sid in range(255)))
+    assert len(interpreter.sensors) == 64 and interpreter.rejected["unannounced_sensor"] == 255 - 64
+
+
+def test_a_malformed_info_costs_nothing_but_itself_in_the_read_it_arrives_in():
+    from service.pipeline import Pipeline
+
+    scans = [quad_frame(1, seq) for seq in range(6)]
+    pipeline = Pipeline()
+    frames = pipeline.feed(b"".join(scans[:3]) + info_frame({"sensors": None}) + b"".join(scans[3:]), 0.0)
+    assert [f.seq for f in frames] == list(range(6))
+    assert pipeline.interpreter.rejected["info_invalid"] == 1
