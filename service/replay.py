@@ -21,6 +21,7 @@ from typing import BinaryIO, Callable
 
 import orjson
 
+from .fanout.encoding import to_export_dict
 from .pipeline import Pipeline
 from .protocol import T_US_MODULUS, Decoder
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
@@ -30,7 +31,7 @@ _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
 
 def export_line(frame: ForceFrame) -> bytes:
-    return orjson.dumps(frame.export_dict(), option=_JSON_OPTIONS) + b"\n"
+    return orjson.dumps(to_export_dict(frame), option=_JSON_OPTIONS) + b"\n"
 
 
 class Pacer:

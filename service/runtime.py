@@ -20,7 +20,7 @@ import threading
 import time
 from collections import deque
 
-from .api.stream import Hub
+from .fanout.hub import Hub
 from .latency import LatencyMeter
 from .pipeline import Pipeline
 from .readout import Readout

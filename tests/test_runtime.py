@@ -49,7 +49,7 @@ def test_a_quad_read_later_goes_out_before_grids_still_waiting():
 def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
     import numpy as np
 
-    from service.api.stream import Subscriber
+    from service.fanout.hub import Outgoing, Subscriber
     from service.readings import SensorInfo
     from service.reconstruct import ForceFrame
 
@@ -76,7 +76,7 @@ def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
 
         tasks = [asyncio.create_task(send_batched()), asyncio.create_task(send_unbatched())]
         await asyncio.sleep(0)  # both senders wait
-        dashboard._offer([earlier])  # the batched sender is due first ...
+        dashboard._offer([Outgoing(earlier)])  # the batched sender is due first ...
         service._received(data, time.time())  # ... when a read comes in
         await asyncio.wait_for(asyncio.gather(*tasks), 1.0)
 

@@ -21,8 +21,9 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
 from ..runtime import TactileService
-from .messages import DEFAULT_FIELDS, FIELDS, Contact, FrameMessage, to_json_dict
-from .stream import Subscriber
+from ..fanout.encoding import DEFAULT_FIELDS, FIELDS, to_json_dict
+from ..fanout.hub import Subscriber
+from .schemas import Contact, FrameMessage
 
 
 def web_dir_candidates() -> list[Path]:
