@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from service.api.app import find_web_dir
+from service.api.dashboard import find_web_dir
 
 ROOT = Path(__file__).parents[1]
 

@@ -1,9 +1,23 @@
-"""Pydantic models that document the HTTP schema (OpenAPI) of the messages
-built by ``service.fanout.encoding`` and the bodies the API accepts. They
-describe; they do not encode: frames are serialised by the fan-out."""
+"""Pydantic models of the HTTP schema (OpenAPI): the request bodies the API
+accepts, and the frame messages built by ``service.fanout.encoding``, which
+they document but do not encode (frames are serialised by the fan-out)."""
 from __future__ import annotations
 
 from pydantic import BaseModel, Field
+
+
+class RecordRequest(BaseModel):
+    path: str = Field(description="the MCAP file to write (must end in .mcap)")
+    raw_path: str | None = Field(default=None, description="also write the raw bytes here")
+
+
+class GridCalibrationUpload(BaseModel):
+    sensitivity_pct_per_N: list[float] = Field(description="per taxel, row-major, measured 0–10 N slope in %/N")
+
+
+class QuadCalibrationUpload(BaseModel):
+    normal_fit: tuple[float, float] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1], c2 < 0 < c1")
+    shear_fit: tuple[float, float] = Field(description="ΔC/C0 = a F − b F²: [a, b], a > 0, b ≥ 0")
 
 
 class Header(BaseModel):

@@ -1,0 +1,19 @@
+"""GET /health: link, rates, counters, reconstruction and latency."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from fastapi import APIRouter, Depends
+
+from .deps import get_service
+from .responses import JSONResponse
+
+if TYPE_CHECKING:
+    from ..runtime import TactileService
+
+router = APIRouter()
+
+
+@router.get("/health")
+def health(service: TactileService = Depends(get_service)) -> JSONResponse:
+    return JSONResponse(service.health())
