@@ -268,3 +268,31 @@ def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
     seqs, waited = asyncio.run(scenario())
     assert seqs == [0, 1, 2] and 0.025 < waited < 0.2
 
+
+
+def test_a_frame_is_encoded_once_per_fields_and_encoding_and_never_for_a_client_that_drops_it(monkeypatch):
+    from service.fanout import hub as hub_module
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    encoded = []
+    real = hub_module.to_json_dict
+    monkeypatch.setattr(hub_module, "to_json_dict",
+                        lambda frame, fields: encoded.append((frame.seq, fields)) or real(frame, fields))
+    info, total, force_only = SensorInfo(1, "quad", 2, 2), QUEUE_MESSAGES + 10, frozenset({"force"})
+
+    async def scenario():
+        hub = Hub()
+        readers, stalled = [Subscriber(), Subscriber()], Subscriber(fields=force_only)
+        for subscriber in (*readers, stalled):
+            hub.add(subscriber)
+        for seq in range(total):
+            hub.publish([ForceFrame(info, seq, seq, float(seq), np.zeros(3), np.ones(4), [], "full")])
+            messages = [(await reader.next_message())[0] for reader in readers]
+            assert messages[0] == messages[1]
+        while stalled.pending:
+            await stalled.next_message()
+
+    asyncio.run(scenario())
+    assert sorted(encoded, key=lambda e: (len(e[1]), e[0])) == (
+        [(seq, force_only) for seq in range(10, total)] + [(seq, hub_module.DEFAULT_FIELDS) for seq in range(total)])

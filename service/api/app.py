@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from fastapi import FastAPI
 
 from . import dashboard, routes_calibration, routes_health, routes_recording, routes_sensors, routes_stream
-from .responses import JSONResponse
+from .deps import JSONResponse
 
 if TYPE_CHECKING:
     from ..runtime import TactileService

@@ -1,5 +1,6 @@
-"""What the routes share: the service and the token from the app's state,
-authorisation, sensor look-ups and the stream/history parameter parsers.
+"""What the routes share: the response class, the service and the token from
+the app's state, authorisation, sensor look-ups and the stream/history
+parameter parsers.
 
 The service is taken from ``app.state.service`` (set by ``create_app``), so
 the routes are module-level and the API never imports the runtime to run.
@@ -9,8 +10,10 @@ from __future__ import annotations
 import hmac
 from typing import TYPE_CHECKING
 
+import orjson
 from fastapi import Depends, Header, HTTPException
 from fastapi.requests import HTTPConnection
+from fastapi.responses import Response
 
 from ..fanout.encoding import DEFAULT_FIELDS, FIELDS
 
@@ -22,13 +25,24 @@ if TYPE_CHECKING:
 ALL_FIELDS = frozenset(FIELDS)
 
 
+class JSONResponse(Response):
+    """orjson with numpy support: NaN (no value) becomes null."""
+
+    media_type = "application/json"
+
+    def render(self, content) -> bytes:
+        return orjson.dumps(content, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
 def get_service(connection: HTTPConnection) -> TactileService:
     """The service this app serves (HTTP requests and WebSockets alike)."""
     return connection.app.state.service
 
 
-def authorised(connection: HTTPConnection,
-               authorization: str | None = Header(default=None, description="Bearer token, when the service requires one")):
+def authorised(
+    connection: HTTPConnection,
+    authorization: str | None = Header(default=None, description="Bearer token, when the service requires one"),
+):
     token = connection.app.state.token
     if token is None:
         return

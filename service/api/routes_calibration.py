@@ -5,8 +5,7 @@ from typing import TYPE_CHECKING
 
 from fastapi import APIRouter, Depends, HTTPException
 
-from .deps import authorised, get_service, known_sensor
-from .responses import JSONResponse
+from .deps import JSONResponse, authorised, get_service, known_sensor
 from .schemas import GridCalibrationUpload, QuadCalibrationUpload
 
 if TYPE_CHECKING:
@@ -17,7 +16,8 @@ router = APIRouter(dependencies=[Depends(authorised)])
 
 
 @router.post("/sensors/{sensor_id}/tare")
-def tare_sensor(info: SensorInfo = Depends(known_sensor), service: TactileService = Depends(get_service)) -> JSONResponse:
+def tare_sensor(info: SensorInfo = Depends(known_sensor),
+                service: TactileService = Depends(get_service)) -> JSONResponse:
     try:
         tared = service.pipeline.tare(info.id)
     except KeyError:

@@ -5,8 +5,7 @@ from typing import TYPE_CHECKING
 
 from fastapi import APIRouter, Depends
 
-from .deps import get_service
-from .responses import JSONResponse
+from .deps import JSONResponse, get_service
 
 if TYPE_CHECKING:
     from ..runtime import TactileService

@@ -6,8 +6,7 @@ from typing import TYPE_CHECKING
 
 from fastapi import APIRouter, Depends, HTTPException
 
-from .deps import authorised, get_service
-from .responses import JSONResponse
+from .deps import JSONResponse, authorised, get_service
 from .schemas import RecordRequest
 
 if TYPE_CHECKING:

@@ -7,8 +7,7 @@ from typing import TYPE_CHECKING
 from fastapi import APIRouter, Depends, HTTPException, Query
 
 from ..fanout.encoding import FIELDS, to_json_dict
-from .deps import ALL_FIELDS, get_service, known_sensor, latest_frame, parse_fields
-from .responses import JSONResponse
+from .deps import ALL_FIELDS, JSONResponse, get_service, known_sensor, latest_frame, parse_fields
 from .schemas import Contact, FrameMessage
 
 if TYPE_CHECKING:

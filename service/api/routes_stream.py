@@ -22,6 +22,7 @@ from .deps import get_service, parse_fields, parse_positive, parse_sensors
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable
 
+    from anyio.abc import TaskGroup
     from starlette.datastructures import QueryParams
 
     from ..runtime import TactileService
@@ -89,10 +90,12 @@ class StreamSession:
             service.hub.sent(subscriber, time.time(), oldest_stamp)
 
     async def receive_until_disconnected(self) -> None:
+        # The client's leaving is noticed here even when nothing is being sent
+        # to it (a subscription that matches no frame); what it sends is ignored.
         while (await self.websocket.receive())["type"] != "websocket.disconnect":
             pass
 
-    async def _until_either_ends(self, group: anyio.abc.TaskGroup, name: str, run: Callable[[], Awaitable[None]]) -> None:
+    async def _until_either_ends(self, group: TaskGroup, name: str, run: Callable[[], Awaitable[None]]) -> None:
         try:
             await run()
         except (WebSocketDisconnect, RuntimeError):  # the client went away mid-send
