@@ -31,7 +31,8 @@ def test_missing_dashboard_files_name_where_they_were_looked_for(tmp_path):
 
 def test_importing_the_api_looks_for_no_dashboard_files():
     # In a fresh interpreter where no index.html exists anywhere: the import
-    # succeeds without asking; only create_app looks, and says where it did.
+    # succeeds without asking (nor importing the service's module); only
+    # create_app looks, and says where it did.
     code = """
 import pathlib
 asked = []
@@ -42,8 +43,10 @@ def is_file(self):
         return False
     return real_is_file(self)
 pathlib.Path.is_file = is_file
+import sys
 import service.api.app
 assert asked == [], asked
+assert not {"service.runtime", "service.live_service"} & set(sys.modules)  # the service, for type hints only
 from service.runtime import TactileService
 try:
     service.api.app.create_app(TactileService("sim://"))
