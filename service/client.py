@@ -22,7 +22,7 @@ from collections.abc import Iterator
 
 import orjson
 
-from .api.messages import decode_binary
+from .fanout.encoding import decode_binary
 
 
 class TactileError(RuntimeError):

@@ -10,7 +10,7 @@ import asyncio
 import time
 from pathlib import Path
 
-from .api.stream import Hub
+from .fanout.hub import Hub
 from .handover import LoopHandover
 from .health import health_report
 from .latency import LatencyMeter

@@ -16,6 +16,7 @@ from typing import BinaryIO
 
 import orjson
 
+from .fanout.encoding import to_export_dict
 from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.pacing import Pacer
@@ -25,7 +26,7 @@ _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
 
 def export_line(frame: ForceFrame) -> bytes:
-    return orjson.dumps(frame.export_dict(), option=_JSON_OPTIONS) + b"\n"
+    return orjson.dumps(to_export_dict(frame), option=_JSON_OPTIONS) + b"\n"
 
 
 def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat",

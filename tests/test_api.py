@@ -8,8 +8,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.api.messages import decode_binary
-from service.api.stream import MERGE_FRAMES, QUEUE_MESSAGES, Hub, Subscriber
+from service.fanout.encoding import decode_binary
+from service.fanout.hub import MERGE_FRAMES, QUEUE_MESSAGES, Hub, Outgoing, Subscriber
 from service.live_service import TactileService
 
 
@@ -224,7 +224,7 @@ def test_a_client_that_fell_behind_gets_what_is_queued_in_one_message():
     assert first == list(range(MERGE_FRAMES)) and second == list(range(MERGE_FRAMES, total)) and not behind_left
     # Merging must not grow the list the hub handed to every client.
     assert others == list(range(MERGE_FRAMES))
-    assert [f.seq for f in other_left[0]] == list(range(MERGE_FRAMES, MERGE_FRAMES + per_read))
+    assert [item.frame.seq for item in other_left[0]] == list(range(MERGE_FRAMES, MERGE_FRAMES + per_read))
 
 
 def test_mutating_endpoints_need_the_token_when_one_is_set():
@@ -259,7 +259,8 @@ def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
         subscriber = Subscriber(batch_ms=30.0)
         received = time.time()
         for seq in range(3):  # no further frames arrive to trigger the send
-            subscriber.take([ForceFrame(info, seq, seq, received + seq * 1e-3, np.zeros(3), np.ones(4), [], "full")])
+            frame = ForceFrame(info, seq, seq, received + seq * 1e-3, np.zeros(3), np.ones(4), [], "full")
+            subscriber.take([Outgoing(frame)])
         assert not subscriber.pending
         message, _, _ = await asyncio.wait_for(subscriber.next_message(), 1.0)
         return [f["header"]["seq"] for f in orjson.loads(message)["frames"]], time.time() - received
@@ -267,3 +268,31 @@ def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
     seqs, waited = asyncio.run(scenario())
     assert seqs == [0, 1, 2] and 0.025 < waited < 0.2
 
+
+
+def test_a_frame_is_encoded_once_per_fields_and_encoding_and_never_for_a_client_that_drops_it(monkeypatch):
+    from service.fanout import hub as hub_module
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    encoded = []
+    real = hub_module.to_json_dict
+    monkeypatch.setattr(hub_module, "to_json_dict",
+                        lambda frame, fields: encoded.append((frame.seq, fields)) or real(frame, fields))
+    info, total, force_only = SensorInfo(1, "quad", 2, 2), QUEUE_MESSAGES + 10, frozenset({"force"})
+
+    async def scenario():
+        hub = Hub()
+        readers, stalled = [Subscriber(), Subscriber()], Subscriber(fields=force_only)
+        for subscriber in (*readers, stalled):
+            hub.add(subscriber)
+        for seq in range(total):
+            hub.publish([ForceFrame(info, seq, seq, float(seq), np.zeros(3), np.ones(4), [], "full")])
+            messages = [(await reader.next_message())[0] for reader in readers]
+            assert messages[0] == messages[1]
+        while stalled.pending:
+            await stalled.next_message()
+
+    asyncio.run(scenario())
+    assert sorted(encoded, key=lambda e: (len(e[1]), e[0])) == (
+        [(seq, force_only) for seq in range(10, total)] + [(seq, hub_module.DEFAULT_FIELDS) for seq in range(total)])

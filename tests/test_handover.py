@@ -8,7 +8,7 @@ import numpy as np
 
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimGrid, SimQuad
-from service.api.stream import Subscriber
+from service.fanout.hub import Outgoing, Subscriber
 from service.handover import LoopHandover
 from service.live_service import TactileService
 from service.pipeline import Pipeline
@@ -92,7 +92,7 @@ def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
 
         tasks = [asyncio.create_task(send_batched()), asyncio.create_task(send_unbatched())]
         await asyncio.sleep(0)  # both senders wait
-        dashboard.take([earlier])
+        dashboard.take([Outgoing(earlier)])
         await asyncio.sleep(0)  # the batch flushes: the batched sender is due first ...
         service.handover.from_thread(data, time.time())  # ... when a read comes in
         await asyncio.wait_for(asyncio.gather(*tasks), 1.0)

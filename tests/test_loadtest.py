@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.api.messages import to_binary
+from service.fanout.encoding import to_binary
 from service.readings import SensorInfo
 from service.reconstruct import ForceFrame
 

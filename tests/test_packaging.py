@@ -1,10 +1,12 @@
 """What an install from a wheel needs besides the Python packages."""
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
 import pytest
 
-from service.api.app import find_web_dir
+from service.api.dashboard import find_web_dir
 
 ROOT = Path(__file__).parents[1]
 
@@ -25,3 +27,41 @@ def test_the_dashboard_is_found_where_a_wheel_installs_it(tmp_path):
 def test_missing_dashboard_files_name_where_they_were_looked_for(tmp_path):
     with pytest.raises(RuntimeError, match="checkout"):
         find_web_dir([tmp_path / "checkout" / "web"])
+
+
+def test_importing_the_api_looks_for_no_dashboard_files():
+    # In a fresh interpreter where no index.html exists anywhere: the import
+    # succeeds without asking (nor importing the service's module); only
+    # create_app looks, and says where it did.
+    code = """
+import pathlib
+asked = []
+real_is_file = pathlib.Path.is_file
+def is_file(self):
+    if self.name == "index.html":
+        asked.append(str(self))
+        return False
+    return real_is_file(self)
+pathlib.Path.is_file = is_file
+import sys
+import service.api.app
+assert asked == [], asked
+assert "service.live_service" not in sys.modules  # the service, for type hints only
+from service.live_service import TactileService
+try:
+    service.api.app.create_app(TactileService("sim://"))
+except RuntimeError as exc:
+    print(len(asked), exc)
+"""
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("3 the dashboard's files are in none of ") and "reinstall tactile" in result.stdout
+
+
+def test_create_app_fails_clearly_without_the_dashboard(tmp_path, monkeypatch):
+    from service.api import app, dashboard
+    from service.live_service import TactileService
+
+    monkeypatch.setattr(dashboard, "web_dir_candidates", lambda: [tmp_path / "nowhere" / "web"])
+    with pytest.raises(RuntimeError, match="nowhere"):
+        app.create_app(TactileService("sim://"))

@@ -90,7 +90,7 @@ def test_error_frames_are_kept_as_text():
 
 
 def test_the_first_frame_after_a_board_restart_says_so_through_to_the_binary_stream():
-    from service.api.messages import decode_binary, to_binary
+    from service.fanout.encoding import decode_binary, to_binary
     from service.pipeline import Pipeline
 
     quad = bytes(np.array([5_000_000, 5_100_000, 4_900_000, 5_050_000], "<u4"))

@@ -1,7 +1,6 @@
 """The report generators (service/reports): the noise floor they state errors
 against, their figures, what happens without matplotlib, and their place above
 the runtime."""
-import ast
 import csv
 import math
 import sys

@@ -29,10 +29,6 @@ class ForceFrame:
     level: str
     taxel_flags: np.ndarray | None = None  # grid: (rows*cols,) bit set, see grid.TAXEL_FLAG_NAMES
     _contact: dict | None = field(default=None, init=False, repr=False, compare=False)
-    # Serialised forms by (fields, encoding), filled by the API on first send:
-    # a frame is encoded once however many clients take it, and never for a
-    # client that drops it unsent.
-    encoded: dict | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def contact(self) -> dict | None:
@@ -52,20 +48,4 @@ class ForceFrame:
             hits = np.flatnonzero(self.taxel_flags & bit)
             if hits.size:
                 out[name] = hits.tolist()
-        return out
-
-    def export_dict(self) -> dict:
-        """The replay export / stream shape (one JSON object per frame)."""
-        key = "taxels_N" if self.sensor.kind == "grid" else "fxyz_N"
-        out = {
-            "sensor": self.sensor.id,
-            "seq": self.seq,
-            "t_us": self.t_us,
-            "kind": self.sensor.kind,
-            key: self.forces_N,
-            "flags": self.flags,
-        }
-        if self.sensor.kind == "grid":
-            out["taxel_flags"] = self.taxel_flag_lists()
-            out["contact"] = self.contact
         return out

@@ -19,6 +19,7 @@ import numpy as np
 import orjson
 from mcap.writer import CompressionType, Writer
 
+from ..fanout.encoding import to_export_dict
 from ..reconstruct import ForceFrame
 from . import schemas
 
@@ -69,7 +70,7 @@ class McapLog:
         publish = frame.t_us * 1000
         self._add(f"/sensor/{sid}/raw", "frame", frame.t_host,
                   {"sensor": sid, "seq": frame.seq, "t_us": frame.t_us, "capacitance_pF": frame.capacitance_pF}, publish)
-        self._add(f"/sensor/{sid}/forces", "forces", frame.t_host, frame.export_dict(), publish)
+        self._add(f"/sensor/{sid}/forces", "forces", frame.t_host, to_export_dict(frame), publish)
         if frame.sensor.kind == "grid":
             self._add(f"/sensor/{sid}/grid", "grid", frame.t_host, foxglove_grid(frame), publish)
             return 3

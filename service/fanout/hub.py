@@ -1,10 +1,10 @@
-"""WebSocket fan-out: bounded queue per client, each frame encoded once.
+"""Fan-out to stream clients: bounded queue per client, each frame encoded once.
 
-``Hub.publish`` runs on the event loop with each reconstructed batch and
-queues references to the frames each client wants. A frame is serialised
-when a client's message is sent — once per (fields, encoding), cached on the
-frame, however many clients take it — so frames a stalled client drops cost
-nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
+``Hub.publish`` runs on the event loop with each reconstructed batch, wraps
+each frame once in an ``Outgoing`` and queues references to those each
+client wants. A frame is serialised when a client's message is sent — once
+per (fields, encoding), cached on its ``Outgoing``, however many clients take
+it — so frames a stalled client drops cost nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
 (``batch_ms``: frames are held and sent together, at most that long after the
 oldest of them was received). A client whose queue is full loses its own
 oldest message — never blocking the pipeline or other clients — and is told
@@ -23,7 +23,7 @@ import orjson
 
 from ..latency import LatencyMeter
 from ..reconstruct import ForceFrame
-from .messages import DEFAULT_FIELDS, to_binary, to_json_dict
+from .encoding import DEFAULT_FIELDS, to_binary, to_json_dict
 
 QUEUE_MESSAGES = 64
 # At most this many frames in a merged message: the frames of a message are
@@ -32,6 +32,31 @@ QUEUE_MESSAGES = 64
 MERGE_FRAMES = 32
 CLIENT_WINDOW_SAMPLES = 2_000  # 2 s of an unbatched 1 kHz client, 10 s of 5 ms batches
 _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
+
+
+class Outgoing:
+    """A published frame as every client's queue holds it, with its
+    serialised forms by (fields, binary), filled on first send."""
+
+    __slots__ = ("frame", "parts")
+
+    def __init__(self, frame: ForceFrame) -> None:
+        self.frame = frame
+        self.parts: dict[tuple[frozenset[str], bool], bytes] | None = None
+
+    def encoded(self, fields: frozenset[str], binary: bool) -> bytes:
+        parts = self.parts
+        if parts is None:
+            parts = self.parts = {}
+        key = (fields, binary)
+        part = parts.get(key)
+        if part is None:
+            if binary:
+                part = to_binary(self.frame, fields)
+            else:
+                part = orjson.dumps(to_json_dict(self.frame, fields), option=_JSON_OPTIONS)
+            parts[key] = part
+        return part
 
 
 @dataclass(eq=False)
@@ -43,13 +68,13 @@ class Subscriber:
     binary: bool = False
     max_rate_hz: float | None = None
     batch_ms: float | None = None
-    pending: deque[list[ForceFrame]] = field(default_factory=deque)  # messages not yet taken, oldest first
+    pending: deque[list[Outgoing]] = field(default_factory=deque)  # messages not yet taken, oldest first
     dropped_frames: int = 0  # since the last notice
     dropped_total: int = 0
     # Receive stamp → handed to this client's socket, per message (its oldest frame).
     latency: LatencyMeter = field(default_factory=lambda: LatencyMeter(CLIENT_WINDOW_SAMPLES))
     _next_due: dict[int, float] = field(default_factory=dict)
-    _batch: list[ForceFrame] = field(default_factory=list)
+    _batch: list[Outgoing] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
     _wakeup: asyncio.Future | None = None  # set while its sender waits for a message
 
@@ -58,11 +83,8 @@ class Subscriber:
         """A message came while its sender waited, and the sender has not run yet."""
         return self._wakeup is not None and self._wakeup.done()
 
-    @property
-    def key(self) -> tuple[frozenset[str], bool]:
-        return self.fields, self.binary
-
-    def wants(self, frame: ForceFrame) -> bool:
+    def wants(self, item: Outgoing) -> bool:
+        frame = item.frame
         sid = frame.sensor.id
         if self.sensors is not None and sid not in self.sensors:
             return False
@@ -76,7 +98,7 @@ class Subscriber:
         self._next_due[sid] = due + period if frame.t_host < due + period else frame.t_host + period
         return True
 
-    def take(self, frames: list[ForceFrame]) -> None:
+    def take(self, frames: list[Outgoing]) -> None:
         """Queue ``frames``, now or, when batching, in the batch that is sent
         ``batch_ms`` after its oldest frame was received: a batched frame
         waits at most ``batch_ms``, whenever the next frames come."""
@@ -86,7 +108,7 @@ class Subscriber:
         if not frames:
             return
         if not self._batch:
-            delay = frames[0].t_host + self.batch_ms / 1000.0 - time.time()
+            delay = frames[0].frame.t_host + self.batch_ms / 1000.0 - time.time()
             self._flush_timer = asyncio.get_running_loop().call_later(max(delay, 0.0), self._flush)
         self._batch.extend(frames)
 
@@ -111,7 +133,7 @@ class Subscriber:
         self._offer(self._batch)
         self._batch, self._flush_timer = [], None
 
-    def _offer(self, frames: list[ForceFrame]) -> None:
+    def _offer(self, frames: list[Outgoing]) -> None:
         if not frames:
             return
         if len(self.pending) >= QUEUE_MESSAGES:
@@ -143,24 +165,12 @@ class Subscriber:
         if self.dropped_frames:
             notice = orjson.dumps({"type": "dropped", "frames": self.dropped_frames})
             self.dropped_frames = 0
-        parts = [self._encode(frame) for frame in frames]
-        oldest = frames[0].t_host
+        fields, binary = self.fields, self.binary
+        parts = [item.encoded(fields, binary) for item in frames]
+        oldest = frames[0].frame.t_host
         if self.binary:
             return struct.pack("<H", len(parts)) + b"".join(parts), notice, oldest
         return b'{"type":"frames","frames":[' + b",".join(parts) + b"]}", notice, oldest
-
-    def _encode(self, frame: ForceFrame) -> bytes:
-        cache = frame.encoded
-        if cache is None:
-            cache = frame.encoded = {}
-        part = cache.get(self.key)
-        if part is None:
-            if self.binary:
-                part = to_binary(frame, self.fields)
-            else:
-                part = orjson.dumps(to_json_dict(frame, self.fields), option=_JSON_OPTIONS)
-            cache[self.key] = part
-        return part
 
 
 class Hub:
@@ -199,10 +209,11 @@ class Hub:
 
     def publish(self, frames: list[ForceFrame]) -> None:
         self.frames_published += len(frames)
-        if not frames:
+        if not frames or not self.subscribers:
             return
+        items = list(map(Outgoing, frames))  # one list, shared by every client that takes all
         for subscriber in self.subscribers:
             if subscriber.sensors is None and subscriber.max_rate_hz is None:
-                subscriber.take(frames)
+                subscriber.take(items)
             else:
-                subscriber.take([frame for frame in frames if subscriber.wants(frame)])
+                subscriber.take([item for item in items if subscriber.wants(item)])

@@ -1,4 +1,5 @@
-"""The message a robot controller receives, in JSON and in a compact binary form.
+"""Frame encodings: the message a robot controller receives, in JSON and in a
+compact binary form, and the replay export's JSON line.
 
 Shaped after ROS habits (std_msgs/Header, TactileState-like named arrays,
 geometry_msgs/WrenchStamped for the quad):
@@ -23,13 +24,16 @@ concatenated; a message starts with the u16 record count:
     (1 force, 2 raw) · u16 seq · u32 board_time_us · f64 stamp ·
     u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · f32[n] force ·
     f32[n'] raw (if requested; n' = channels) — NaN = no value.
+
+The replay export (``tactile replay --export``, the recorder's ``forces``
+topic) is flatter, one object per frame: see ``to_export_dict``.
+The HTTP schema models documenting these shapes are in ``service.api.schemas``.
 """
 from __future__ import annotations
 
 import struct
 
 import numpy as np
-from pydantic import BaseModel, Field
 
 from ..reconstruct import ForceFrame
 
@@ -79,6 +83,23 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
     return out
 
 
+def to_export_dict(frame: ForceFrame) -> dict:
+    """The replay export / recording shape (one JSON object per frame)."""
+    key = "taxels_N" if frame.sensor.kind == "grid" else "fxyz_N"
+    out = {
+        "sensor": frame.sensor.id,
+        "seq": frame.seq,
+        "t_us": frame.t_us,
+        "kind": frame.sensor.kind,
+        key: frame.forces_N,
+        "flags": frame.flags,
+    }
+    if frame.sensor.kind == "grid":
+        out["taxel_flags"] = frame.taxel_flag_lists()
+        out["contact"] = frame.contact
+    return out
+
+
 def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> bytes:
     info = frame.sensor
     flag_bits = 0
@@ -111,48 +132,3 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
             pos += 4 * m
         out.append(record)
     return out
-
-
-class Header(BaseModel):
-    sensor_id: int
-    sensor_name: str
-    kind: str = Field(description="grid | quad")
-    seq: int = Field(description="board scan counter, wraps at 65536")
-    board_time_us: int = Field(description="board clock at the end of the scan, µs, wraps at 2^32")
-    stamp: float = Field(description="host receive time, s since the epoch")
-
-
-class Vector3(BaseModel):
-    x: float | None
-    y: float | None
-    z: float | None
-
-
-class Wrench(BaseModel):
-    force: Vector3
-
-
-class Contact(BaseModel):
-    total_N: float
-    cop_x_mm: float | None = Field(description="centre of pressure, array frame (origin at the centre, x along columns)")
-    cop_y_mm: float | None
-    area_mm2: float
-    contacts: int = Field(description="4-connected regions above 0.05 N")
-
-
-class Raw(BaseModel):
-    capacitance_pF: list[float | None]
-
-
-class FrameMessage(BaseModel):
-    """One reconstructed frame (fields present as subscribed)."""
-
-    header: Header
-    rows: int | None = None
-    cols: int | None = None
-    force_N: list[float | None] | None = Field(default=None, description="grid: normal force per taxel, row-major")
-    wrench: Wrench | None = Field(default=None, description="quad: force in N (Fz positive in compression)")
-    raw: Raw | None = None
-    contact: Contact | None = None
-    flags: list[str] | None = None
-    taxel_flags: dict[str, list[int]] | None = Field(default=None, description="flag name → row-major taxel indices")

@@ -1,0 +1,112 @@
+"""The /ws stream: one ``StreamSession`` per WebSocket client.
+
+A session subscribes its client to the service's hub, then runs two loops
+until either ends: the sender takes the client's next message from its
+queue and sends it; the receiver waits for the client to leave (noticed even
+when nothing is being sent to it, a subscription that matches no frame).
+Whichever ends first cancels the other, and the subscription is removed from
+the hub whatever happened.
+"""
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import anyio
+import orjson
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+
+from ..fanout.hub import Subscriber
+from .deps import get_service, parse_fields, parse_positive, parse_sensors
+
+if TYPE_CHECKING:
+    from collections.abc import Awaitable, Callable
+
+    from anyio.abc import TaskGroup
+    from starlette.datastructures import QueryParams
+
+    from ..live_service import TactileService
+
+MAX_WS_RATE_HZ = 5000.0
+MAX_BATCH_MS = 1000.0
+
+router = APIRouter()
+
+
+def subscription(params: QueryParams) -> Subscriber:
+    """The client's subscription from its query; ValueError names a bad parameter."""
+    encoding = params.get("encoding", "json")
+    if encoding not in ("json", "binary"):
+        raise ValueError(f"encoding={encoding!r} must be 'json' or 'binary'")
+    return Subscriber(
+        sensors=parse_sensors(params.get("sensors")),
+        fields=parse_fields(params.get("fields")),
+        binary=encoding == "binary",
+        max_rate_hz=parse_positive("max_rate", params.get("max_rate"), MAX_WS_RATE_HZ),
+        batch_ms=parse_positive("batch_ms", params.get("batch_ms"), MAX_BATCH_MS),
+    )
+
+
+class StreamSession:
+    """One WebSocket client, from accept to the removal of its subscription."""
+
+    def __init__(self, websocket: WebSocket, service: TactileService) -> None:
+        self.websocket = websocket
+        self.service = service
+        self.subscriber: Subscriber | None = None
+        self.ended_by: str | None = None  # "sender" or "receiver": the loop that ended first
+
+    async def run(self) -> None:
+        await self.websocket.accept()
+        try:
+            self.subscriber = subscription(self.websocket.query_params)
+        except ValueError as exc:
+            await self.reject(str(exc))
+            return
+        self.service.hub.add(self.subscriber)
+        try:
+            async with anyio.create_task_group() as group:
+                group.start_soon(self._until_either_ends, group, "sender", self.send_forever)
+                group.start_soon(self._until_either_ends, group, "receiver", self.receive_until_disconnected)
+        finally:
+            self.service.hub.remove(self.subscriber)
+
+    async def reject(self, detail: str) -> None:
+        await self.websocket.send_text(orjson.dumps({"type": "error", "detail": detail}).decode())
+        await self.websocket.close(code=1008, reason=detail[:120])
+
+    async def send_forever(self) -> None:
+        subscriber, websocket, service = self.subscriber, self.websocket, self.service
+        while True:
+            message, notice, oldest_stamp = await subscriber.next_message()
+            if subscriber.batch_ms is not None:
+                await service.let_urgent_go_first()
+            if notice is not None:
+                await websocket.send_text(notice.decode())
+            if subscriber.binary:
+                await websocket.send_bytes(message)
+            else:
+                await websocket.send_text(message.decode())
+            service.hub.sent(subscriber, time.time(), oldest_stamp)
+
+    async def receive_until_disconnected(self) -> None:
+        # The client's leaving is noticed here even when nothing is being sent
+        # to it (a subscription that matches no frame); what it sends is ignored.
+        while (await self.websocket.receive())["type"] != "websocket.disconnect":
+            pass
+
+    async def _until_either_ends(self, group: TaskGroup, name: str, run: Callable[[], Awaitable[None]]) -> None:
+        try:
+            await run()
+        except (WebSocketDisconnect, RuntimeError):  # the client went away mid-send
+            pass
+        if self.ended_by is None:
+            self.ended_by = name
+        group.cancel_scope.cancel()
+
+
+@router.websocket("/ws")
+async def stream(websocket: WebSocket) -> None:
+    """Query: sensors=0,1 · fields=force,raw,contact,flags · max_rate=Hz ·
+    batch_ms=ms · encoding=json|binary."""
+    await StreamSession(websocket, get_service(websocket)).run()

@@ -1,0 +1,65 @@
+"""Pydantic models of the HTTP schema (OpenAPI): the request bodies the API
+accepts, and the frame messages built by ``service.fanout.encoding``, which
+they document but do not encode (frames are serialised by the fan-out)."""
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+
+class RecordRequest(BaseModel):
+    path: str = Field(description="the MCAP file to write (must end in .mcap)")
+    raw_path: str | None = Field(default=None, description="also write the raw bytes here")
+
+
+class GridCalibrationUpload(BaseModel):
+    sensitivity_pct_per_N: list[float] = Field(description="per taxel, row-major, measured 0–10 N slope in %/N")
+
+
+class QuadCalibrationUpload(BaseModel):
+    normal_fit: tuple[float, float] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1], c2 < 0 < c1")
+    shear_fit: tuple[float, float] = Field(description="ΔC/C0 = a F − b F²: [a, b], a > 0, b ≥ 0")
+
+
+class Header(BaseModel):
+    sensor_id: int
+    sensor_name: str
+    kind: str = Field(description="grid | quad")
+    seq: int = Field(description="board scan counter, wraps at 65536")
+    board_time_us: int = Field(description="board clock at the end of the scan, µs, wraps at 2^32")
+    stamp: float = Field(description="host receive time, s since the epoch")
+
+
+class Vector3(BaseModel):
+    x: float | None
+    y: float | None
+    z: float | None
+
+
+class Wrench(BaseModel):
+    force: Vector3
+
+
+class Contact(BaseModel):
+    total_N: float
+    cop_x_mm: float | None = Field(description="centre of pressure, array frame (origin at the centre, x along columns)")
+    cop_y_mm: float | None
+    area_mm2: float
+    contacts: int = Field(description="4-connected regions above 0.05 N")
+
+
+class Raw(BaseModel):
+    capacitance_pF: list[float | None]
+
+
+class FrameMessage(BaseModel):
+    """One reconstructed frame (fields present as subscribed)."""
+
+    header: Header
+    rows: int | None = None
+    cols: int | None = None
+    force_N: list[float | None] | None = Field(default=None, description="grid: normal force per taxel, row-major")
+    wrench: Wrench | None = Field(default=None, description="quad: force in N (Fz positive in compression)")
+    raw: Raw | None = None
+    contact: Contact | None = None
+    flags: list[str] | None = None
+    taxel_flags: dict[str, list[int]] | None = Field(default=None, description="flag name → row-major taxel indices")
