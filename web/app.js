@@ -357,7 +357,8 @@ function drawHistoryAxes(ctx, plot, scale) {
   }
   ctx.textBaseline = "top";
   for (let s = HISTORY_S; s >= 0; s -= 2) {
-    ctx.textAlign = s === 0 ? "right" : "center"; // "now" ends at the plot's edge, inside the canvas
+    // The end labels stay inside the plot's span: clear of the y labels and of the canvas edge.
+    ctx.textAlign = s === 0 ? "right" : s === HISTORY_S ? "left" : "center";
     ctx.fillText(s === 0 ? "now" : `−${s} s`, plot.x + plot.w * (1 - s / HISTORY_S), plot.y + plot.h + 3);
   }
 }
