@@ -270,3 +270,7 @@ def test_record_button_shows_where_the_file_goes_with_either_backend(service, ba
     service.page.wait_for_function("() => document.getElementById('record-label').textContent.startsWith('Saved')")
     assert service.page.text_content("#record-path") == started
     assert service.page.text_content("#record") == "Record"
+    service.page.click("#record")  # again: an old service is asked by path straight away
+    service.page.wait_for_selector("text=Stop recording")
+    again = [body for path, body in service.posts if path == "/record/start"][len(bodies):]
+    assert [list(body) for body in again] == [[backend]]

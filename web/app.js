@@ -499,7 +499,7 @@ function showRecording(status, error) {
   if (!status) return;
   const messages = status.messages === undefined ? "" : ` (${status.messages} msgs)`;
   document.getElementById("record-label").textContent =
-    (active ? "● Recording to" : "Saved") + messages + (status.error ? ` · ${status.error}` : "") + ":";
+    (active ? "● Recording" : "Saved") + messages + (status.error ? ` · ${status.error} ·` : "") + " to";
   document.getElementById("record-path").textContent = status.path;
 }
 
@@ -513,11 +513,18 @@ function post(path, body) {
 }
 
 // The service writes a bare name into its recordings directory; one that
-// predates names requires {"path"} (422) and writes relative to its own directory.
+// predates names requires {"path"} (422) and writes relative to its own
+// directory: it is asked by path from then on, sparing a failed request each time.
+let recordByPath = false;
+
 async function startRecording() {
   const name = `recording-${new Date().toISOString().replace(/[:.]/g, "-")}.mcap`;
-  const response = await post("/record/start", { name });
-  return response.status === 422 ? post("/record/start", { path: name }) : response;
+  if (!recordByPath) {
+    const response = await post("/record/start", { name });
+    if (response.status !== 422) return response;
+    recordByPath = true;
+  }
+  return post("/record/start", { path: name });
 }
 
 async function toggleRecording() {
