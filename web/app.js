@@ -1,14 +1,174 @@
 "use strict";
-// Live dashboard: one panel per sensor, drawn at the display rate from the
-// latest frame of each sensor (the stream is decimated server-side), plus a
-// force-history plot (total grid force, quad Fz and |Fxy|) over 10 s.
+// Live dashboard: one panel per sensor, sorted by id (grouped by board when the
+// service reads several), redrawn at the display rate from the latest frame of
+// each sensor (the stream is decimated server-side), with a force history of
+// the last 10 s, a link status banner and the recording's path.
 
-const panels = new Map();
-const GRID_MAX_N = 5;      // colour scale top, newtons per taxel
-const QUAD_MAX_N = 10;     // arrow and bar scale, newtons
+const GRID_MAX_N = 5;             // colour scale top, newtons per taxel
+const CONTACT_THRESHOLD_N = 0.05; // the service's own contact threshold (docs/reconstruction.md)
+const PITCH_MM = 4;
+const SHEAR_MAX_N = 10;           // quad arrow full scale
+const FZ_MAX_N = 20;              // quad bar full scale
 const HISTORY_S = 10;
+const STALE_AFTER_S = 1;          // only for services that do not report link.state
+const FLAG_HOLD_MS = 1500;        // a flag raised for one frame stays long enough to be read
+const TAXEL_MARKS = [["saturated", "S"], ["out_of_range", "R"], ["crosstalk_corrected", "x"], ["stale", "?"]];
+const FLAG_SEVERITY = {
+  open_channel: "error", shorted_channel: "error", electrode_fault: "error", board_restart: "error",
+  taring: "info", crosstalk_corrected: "info",
+};
 const token = new URLSearchParams(location.search).get("token");
 const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
+
+const panels = new Map();         // sensor id → panel
+const sensorInfo = new Map();     // sensor id → what /sensors said about it
+let streamOpen = false;
+let dirty = false;
+
+// ---- DOM helpers --------------------------------------------------------
+
+function element(tag, className, text) {
+  const node = document.createElement(tag);
+  if (className) node.className = className;
+  if (text !== undefined) node.textContent = text;
+  return node;
+}
+
+const resizer = new ResizeObserver((entries) => {
+  for (const entry of entries) fitCanvas(entry.target);
+  dirty = true;
+});
+
+// The backing store follows the element's CSS size, so drawings stay sharp at any window width.
+function fitCanvas(canvas) {
+  const ratio = window.devicePixelRatio || 1;
+  const width = Math.round(canvas.clientWidth * ratio), height = Math.round(canvas.clientHeight * ratio);
+  if (canvas.width !== width || canvas.height !== height) { canvas.width = width; canvas.height = height; }
+}
+
+// Clears the whole canvas, so nothing of an earlier frame survives, and returns
+// a context drawing in CSS pixels.
+function beginDraw(canvas) {
+  if (!canvas.clientWidth || !canvas.width) return null;
+  const ctx = canvas.getContext("2d");
+  ctx.setTransform(1, 0, 0, 1, 0, 0);
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const scale = canvas.width / canvas.clientWidth;
+  ctx.setTransform(scale, 0, 0, scale, 0, 0);
+  return { ctx, w: canvas.clientWidth, h: canvas.height / scale };
+}
+
+function haloText(ctx, text, x, y, colour = "#fff") {
+  ctx.lineWidth = 3; ctx.strokeStyle = "rgba(0,0,0,0.85)"; ctx.lineJoin = "round";
+  ctx.strokeText(text, x, y);
+  ctx.fillStyle = colour; ctx.fillText(text, x, y);
+}
+
+// ---- panels, boards and their order ---------------------------------------
+
+function boardGroup(board) {
+  const root = document.getElementById("sensors");
+  const key = board ?? "";
+  let group = [...root.children].find((g) => g.dataset.board === key);
+  if (!group) {
+    group = element("section", "board");
+    group.dataset.board = key;
+    group.append(element("h2", "board-title", board ? `board ${board}` : "board"), element("div", "panels"));
+    root.append(group);
+  }
+  return group;
+}
+
+function lowestId(group) {
+  return Math.min(...[...group.querySelectorAll(".panel")].map((p) => Number(p.dataset.sensor)));
+}
+
+// Boards in the order of their lowest sensor id; headings only when there are several.
+function arrangeBoards() {
+  const root = document.getElementById("sensors");
+  for (const empty of [...root.children].filter((g) => !g.querySelector(".panel"))) empty.remove();
+  const groups = [...root.children];
+  groups.sort((a, b) => lowestId(a) - lowestId(b)).forEach((g) => root.append(g));
+  root.classList.toggle("several-boards", groups.length > 1);
+}
+
+function placePanel(panel) {
+  const list = boardGroup(panel.board).querySelector(".panels");
+  const next = [...list.children].find((other) => Number(other.dataset.sensor) > panel.id);
+  list.insertBefore(panel.el, next || null);
+  arrangeBoards();
+}
+
+function makeCanvas(className) {
+  const canvas = element("canvas", className);
+  resizer.observe(canvas);
+  return canvas;
+}
+
+function colourScale() {
+  const scale = element("div", "colour-scale");
+  scale.append(element("span", "", "0"), element("div", "bar"), element("span", "", `${GRID_MAX_N} N`));
+  return scale;
+}
+
+function createPanel(id, info) {
+  const el = element("section", "panel");
+  el.dataset.sensor = id;
+  const title = element("h3");
+  const flags = element("span", "flags");
+  const live = makeCanvas("live");
+  const history = makeCanvas("history");
+  const meta = element("div", "meta", "waiting for data…");
+  el.append(element("div", "panel-head"), live);
+  el.firstChild.append(title, flags);
+  if (info.kind === "grid") el.append(colourScale());
+  el.append(history, meta);
+  const panel = { id, el, title, flags, live, history, meta, board: info.board ?? null,
+                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "" };
+  describePanel(panel, info);
+  placePanel(panel);
+  return panel;
+}
+
+function describePanel(panel, info) {
+  panel.kind = info.kind;
+  panel.el.dataset.kind = info.kind;
+  const shape = info.kind === "grid" && info.rows ? ` ${info.rows}×${info.cols}` : "";
+  panel.title.textContent = `${info.name ?? `sensor ${panel.id}`} · ${info.kind}${shape}`;
+  const aspect = info.kind === "grid" && info.rows ? info.cols / info.rows : 4 / 3;
+  panel.live.style.setProperty("--aspect", aspect);
+}
+
+// One panel per sensor id; a board learnt later moves the panel to its group.
+function ensurePanel(id, info) {
+  const panel = panels.get(id);
+  if (!panel) { panels.set(id, createPanel(id, info)); return panels.get(id); }
+  const board = info.board ?? panel.board;
+  if (board !== panel.board) { panel.board = board; placePanel(panel); }
+  return panel;
+}
+
+function infoFromFrame(frame) {
+  const h = frame.header;
+  const known = sensorInfo.get(h.sensor_id) || {};
+  return { name: h.sensor_name, kind: h.kind, rows: frame.rows, cols: frame.cols,
+           board: h.board ?? known.board ?? null };
+}
+
+async function loadSensors() {
+  try {
+    const answer = await (await fetch("/sensors")).json();
+    const list = Array.isArray(answer) ? answer : answer.sensors || [];
+    for (const s of [...list].sort((a, b) => a.id - b.id)) {
+      sensorInfo.set(s.id, s);
+      ensurePanel(s.id, s);
+    }
+  } catch (err) {
+    // The frames create their panels; /health reports why the service is unwell.
+  }
+}
+
+// ---- grid drawing -------------------------------------------------------
 
 function heatColour(f) {
   const x = Math.max(0, Math.min(1, f / GRID_MAX_N));
@@ -18,139 +178,237 @@ function heatColour(f) {
   return `rgb(${r},${g},${b})`;
 }
 
-function makePanel(frame) {
-  const h = frame.header;
-  const el = document.createElement("section");
-  el.className = "panel";
-  el.dataset.sensor = h.sensor_id;
-  el.dataset.kind = h.kind;
-  const title = document.createElement("h2");
-  title.textContent = `${h.sensor_name} · ${h.kind}` + (h.kind === "grid" ? ` ${frame.rows}×${frame.cols}` : "");
-  const canvas = document.createElement("canvas");
-  canvas.className = "live";
-  const cell = 44;
-  canvas.width = h.kind === "grid" ? frame.cols * cell : 320;
-  canvas.height = h.kind === "grid" ? frame.rows * cell : 240;
-  const history = document.createElement("canvas");
-  history.className = "history";
-  history.width = canvas.width;
-  history.height = 90;
-  const meta = document.createElement("div");
-  meta.className = "meta";
-  el.append(title, canvas, history, meta);
-  document.getElementById("sensors").append(el);
-  const panel = { el, canvas, history, meta, cell, frame, changes: 0, series: [] };
-  panels.set(h.sensor_id, panel);
-  return panel;
-}
-
-function drawGrid(panel) {
-  const { canvas, cell, frame } = panel;
-  const ctx = canvas.getContext("2d");
-  const flags = frame.taxel_flags || {};
-  const flagged = (name, i) => (flags[name] || []).includes(i);
-  ctx.font = "11px system-ui";
-  ctx.textAlign = "center";
-  ctx.textBaseline = "middle";
-  const threshold = 0.05;
+function drawTaxels(ctx, frame, cell) {
   frame.force_N.forEach((f, i) => {
     const r = Math.floor(i / frame.cols), c = i % frame.cols;
     ctx.fillStyle = f === null ? "#444" : heatColour(f);
     ctx.fillRect(c * cell + 1, r * cell + 1, cell - 2, cell - 2);
-    ctx.fillStyle = f !== null && f > GRID_MAX_N * 0.6 ? "#000" : "#ddd";
-    ctx.fillText(f === null ? "—" : f.toFixed(2), c * cell + cell / 2, r * cell + cell / 2);
-    const mark = flagged("saturated", i) ? "S" : flagged("out_of_range", i) ? "R" : flagged("crosstalk_corrected", i) ? "x"
-      : flagged("stale", i) ? "?" : "";
-    if (mark) { ctx.fillStyle = "#ff5252"; ctx.fillText(mark, c * cell + cell - 8, r * cell + 9); }
   });
-  // Contact outlines: edges between a loaded taxel and one that is not.
-  const loaded = (r, c) => r >= 0 && c >= 0 && r < frame.rows && c < frame.cols &&
-    frame.force_N[r * frame.cols + c] !== null && frame.force_N[r * frame.cols + c] > threshold;
+}
+
+function isLoaded(frame, r, c) {
+  if (r < 0 || c < 0 || r >= frame.rows || c >= frame.cols) return false;
+  const f = frame.force_N[r * frame.cols + c];
+  return f !== null && f > CONTACT_THRESHOLD_N;
+}
+
+// Edges between a taxel in contact and one that is not.
+function drawContactOutline(ctx, frame, cell) {
   ctx.strokeStyle = "#00e5ff"; ctx.lineWidth = 2; ctx.beginPath();
-  for (let r = 0; r < frame.rows; r++) for (let c = 0; c < frame.cols; c++) {
-    if (!loaded(r, c)) continue;
-    const x = c * cell, y = r * cell;
-    if (!loaded(r - 1, c)) { ctx.moveTo(x, y); ctx.lineTo(x + cell, y); }
-    if (!loaded(r + 1, c)) { ctx.moveTo(x, y + cell); ctx.lineTo(x + cell, y + cell); }
-    if (!loaded(r, c - 1)) { ctx.moveTo(x, y); ctx.lineTo(x, y + cell); }
-    if (!loaded(r, c + 1)) { ctx.moveTo(x + cell, y); ctx.lineTo(x + cell, y + cell); }
+  for (let r = 0; r < frame.rows; r++) {
+    for (let c = 0; c < frame.cols; c++) {
+      if (!isLoaded(frame, r, c)) continue;
+      const x = c * cell, y = r * cell;
+      if (!isLoaded(frame, r - 1, c)) { ctx.moveTo(x, y + 1); ctx.lineTo(x + cell, y + 1); }
+      if (!isLoaded(frame, r + 1, c)) { ctx.moveTo(x, y + cell - 1); ctx.lineTo(x + cell, y + cell - 1); }
+      if (!isLoaded(frame, r, c - 1)) { ctx.moveTo(x + 1, y); ctx.lineTo(x + 1, y + cell); }
+      if (!isLoaded(frame, r, c + 1)) { ctx.moveTo(x + cell - 1, y); ctx.lineTo(x + cell - 1, y + cell); }
+    }
   }
-  ctx.stroke(); ctx.lineWidth = 1;
+  ctx.stroke();
+}
+
+// A ring with ticks outside it: the centre stays open for the taxel's number.
+function drawCentreOfPressure(ctx, frame, cell) {
   const contact = frame.contact;
-  if (contact && contact.cop_x_mm !== null) {
-    // Array frame: origin at the centre, 4 mm pitch, x along columns, y along rows.
-    const px = (contact.cop_x_mm / 4 + (frame.cols - 1) / 2 + 0.5) * cell;
-    const py = (contact.cop_y_mm / 4 + (frame.rows - 1) / 2 + 0.5) * cell;
-    ctx.strokeStyle = "#fff"; ctx.lineWidth = 2;
-    ctx.beginPath(); ctx.arc(px, py, 7, 0, 2 * Math.PI); ctx.moveTo(px - 11, py); ctx.lineTo(px + 11, py);
-    ctx.moveTo(px, py - 11); ctx.lineTo(px, py + 11); ctx.stroke(); ctx.lineWidth = 1;
+  if (!contact || contact.cop_x_mm === null || contact.cop_y_mm === null) return;
+  // Array frame: origin at the centre, x along columns, y along rows.
+  const x = (contact.cop_x_mm / PITCH_MM + frame.cols / 2) * cell;
+  const y = (contact.cop_y_mm / PITCH_MM + frame.rows / 2) * cell;
+  const ring = cell * 0.42, tick = cell * 0.2;
+  ctx.beginPath();
+  ctx.arc(x, y, ring, 0, 2 * Math.PI);
+  for (const [dx, dy] of [[1, 0], [-1, 0], [0, 1], [0, -1]]) {
+    ctx.moveTo(x + dx * ring, y + dy * ring); ctx.lineTo(x + dx * (ring + tick), y + dy * (ring + tick));
   }
-  const total = contact ? contact.total_N : 0;
-  panel.meta.textContent = `seq ${frame.header.seq} · ΣF ${total.toFixed(2)} N · contacts ${contact ? contact.contacts : 0}` +
-    (frame.flags.length ? ` · ${frame.flags.join(", ")}` : "");
+  ctx.lineWidth = 4; ctx.strokeStyle = "rgba(0,0,0,0.7)"; ctx.stroke();
+  ctx.lineWidth = 2; ctx.strokeStyle = "#fff"; ctx.stroke();
+}
+
+function taxelMark(frame, i) {
+  const flags = frame.taxel_flags || {};
+  const found = TAXEL_MARKS.find(([name]) => (flags[name] || []).includes(i));
+  return found ? found[1] : "";
+}
+
+function drawTaxelLabels(ctx, frame, cell) {
+  const size = Math.max(9, Math.min(15, cell * 0.26));
+  ctx.textAlign = "center"; ctx.textBaseline = "middle";
+  frame.force_N.forEach((f, i) => {
+    const r = Math.floor(i / frame.cols), c = i % frame.cols;
+    ctx.font = `${size}px system-ui, sans-serif`;
+    haloText(ctx, f === null ? "—" : f.toFixed(2), c * cell + cell / 2, r * cell + cell / 2);
+    const mark = taxelMark(frame, i);
+    if (mark) {
+      ctx.font = `bold ${size}px system-ui, sans-serif`;
+      haloText(ctx, mark, c * cell + cell - size * 0.6, r * cell + size * 0.7, "#ff6e6e");
+    }
+  });
+}
+
+function drawGrid(panel) {
+  const frame = panel.frame;
+  const view = beginDraw(panel.live);
+  if (!view) return;
+  const cell = view.w / frame.cols;
+  drawTaxels(view.ctx, frame, cell);
+  drawContactOutline(view.ctx, frame, cell);
+  drawCentreOfPressure(view.ctx, frame, cell);
+  drawTaxelLabels(view.ctx, frame, cell); // last, so the numbers stay readable
+  const contact = frame.contact || {};
+  panel.meta.textContent = [`seq ${frame.header.seq}`, `ΣF ${(contact.total_N ?? 0).toFixed(2)} N`,
+    `contacts ${contact.contacts ?? 0}`, `area ${contact.area_mm2 ?? 0} mm²`].join(" · ");
+}
+
+// ---- quad drawing -------------------------------------------------------
+
+function drawShearDial(ctx, cx, cy, radius, fx, fy) {
+  ctx.strokeStyle = "#555"; ctx.lineWidth = 1; ctx.fillStyle = "#999";
+  ctx.font = "11px system-ui, sans-serif"; ctx.textAlign = "left"; ctx.textBaseline = "bottom";
+  for (const n of [SHEAR_MAX_N / 2, SHEAR_MAX_N]) {
+    const r = radius * n / SHEAR_MAX_N;
+    ctx.beginPath(); ctx.arc(cx, cy, r, 0, 2 * Math.PI); ctx.stroke();
+    ctx.fillText(`${n} N`, cx + r * 0.72 + 3, cy - r * 0.72);
+  }
+  ctx.beginPath(); ctx.moveTo(cx - radius, cy); ctx.lineTo(cx + radius, cy);
+  ctx.moveTo(cx, cy - radius); ctx.lineTo(cx, cy + radius); ctx.stroke();
+  ctx.textAlign = "center"; ctx.textBaseline = "middle";
+  ctx.fillText("+Fx", cx + radius + 16, cy); ctx.fillText("+Fy", cx, cy - radius - 9);
+  if (fx === null || fy === null) return;
+  const magnitude = Math.hypot(fx, fy);
+  const shown = Math.min(1, SHEAR_MAX_N / Math.max(magnitude, 1e-9)); // beyond full scale: pinned to the rim, red
+  const ex = cx + fx * shown / SHEAR_MAX_N * radius, ey = cy - fy * shown / SHEAR_MAX_N * radius;
+  ctx.strokeStyle = magnitude > SHEAR_MAX_N ? "#ff5252" : "#4fc3f7"; ctx.lineWidth = 4; ctx.lineCap = "round";
+  ctx.beginPath(); ctx.moveTo(cx, cy); ctx.lineTo(ex, ey); ctx.stroke();
+  ctx.lineCap = "butt";
+}
+
+function drawFzBar(ctx, x, top, height, fz) {
+  const width = 26;
+  ctx.fillStyle = "#999"; ctx.strokeStyle = "#555"; ctx.lineWidth = 1;
+  ctx.font = "11px system-ui, sans-serif"; ctx.textAlign = "left"; ctx.textBaseline = "middle";
+  for (let n = 0; n <= FZ_MAX_N; n += 5) {
+    const y = top + height - height * n / FZ_MAX_N;
+    ctx.beginPath(); ctx.moveTo(x + width, y); ctx.lineTo(x + width + 5, y); ctx.stroke();
+    ctx.fillText(n === FZ_MAX_N ? `${n} N` : `${n}`, x + width + 8, y);
+  }
+  if (fz !== null) {
+    const h = Math.max(0, Math.min(1, fz / FZ_MAX_N)) * height;
+    ctx.fillStyle = fz > FZ_MAX_N ? "#ff5252" : "#ffb74d";
+    ctx.fillRect(x, top + height - h, width, h);
+  }
+  ctx.strokeRect(x, top, width, height);
+  ctx.fillStyle = "#ddd"; ctx.textAlign = "center"; ctx.textBaseline = "top";
+  ctx.fillText("Fz", x + width / 2, top + height + 6);
 }
 
 function drawQuad(panel) {
-  const { canvas, frame } = panel;
-  const ctx = canvas.getContext("2d");
-  ctx.clearRect(0, 0, canvas.width, canvas.height);
-  const { x: fx, y: fy, z: fz } = frame.wrench.force;
-  const cx = 120, cy = 120, radius = 100;
-  ctx.strokeStyle = "#555";
-  ctx.beginPath(); ctx.arc(cx, cy, radius, 0, 2 * Math.PI); ctx.stroke();
-  ctx.beginPath(); ctx.moveTo(cx - radius, cy); ctx.lineTo(cx + radius, cy); ctx.moveTo(cx, cy - radius); ctx.lineTo(cx, cy + radius); ctx.stroke();
-  if (fx !== null && fy !== null) {
-    const ex = cx + (fx / QUAD_MAX_N) * radius, ey = cy - (fy / QUAD_MAX_N) * radius;
-    ctx.strokeStyle = "#4fc3f7"; ctx.lineWidth = 4;
-    ctx.beginPath(); ctx.moveTo(cx, cy); ctx.lineTo(ex, ey); ctx.stroke();
-    ctx.lineWidth = 1;
-  }
-  const barX = 260, barH = 200, top = 20;
-  ctx.strokeStyle = "#555"; ctx.strokeRect(barX, top, 30, barH);
-  if (fz !== null) {
-    const h = Math.max(0, Math.min(1, fz / (2 * QUAD_MAX_N))) * barH;
-    ctx.fillStyle = "#ffb74d"; ctx.fillRect(barX, top + barH - h, 30, h);
-  }
-  ctx.fillStyle = "#ddd"; ctx.font = "12px system-ui";
-  ctx.fillText("Fz", barX + 8, top + barH + 15);
-  const fmt = v => (v === null ? "—" : v.toFixed(2));
-  panel.meta.textContent = `Fx ${fmt(fx)} · Fy ${fmt(fy)} · Fz ${fmt(fz)} N` + (frame.flags.length ? ` · ${frame.flags.join(", ")}` : "");
+  const view = beginDraw(panel.live);
+  if (!view) return;
+  const { x: fx, y: fy, z: fz } = panel.frame.wrench.force;
+  const barHeight = view.h - 44;
+  const radius = Math.min(view.h / 2 - 24, view.w * 0.32);
+  drawShearDial(view.ctx, view.w * 0.38, view.h / 2, radius, fx, fy);
+  drawFzBar(view.ctx, view.w * 0.78, 18, barHeight, fz);
+  const fmt = (v) => (v === null ? "—" : v.toFixed(2));
+  panel.meta.textContent = `seq ${panel.frame.header.seq} · Fx ${fmt(fx)} · Fy ${fmt(fy)} · Fz ${fmt(fz)} N`;
 }
 
-function record(panel) {
+// ---- flags --------------------------------------------------------------
+
+function updateFlags(panel, now) {
+  for (const flag of panel.frame.flags || []) panel.flagSeen.set(flag, now);
+  const shown = [...panel.flagSeen].filter(([, t]) => now - t < FLAG_HOLD_MS).map(([flag]) => flag).sort();
+  const key = shown.join(",");
+  if (key === panel.shownFlags) return;
+  panel.shownFlags = key;
+  panel.flags.replaceChildren(...shown.map((flag) =>
+    element("span", `flag ${FLAG_SEVERITY[flag] || "warn"}`, flag.replaceAll("_", " "))));
+}
+
+// ---- history ------------------------------------------------------------
+
+function recordHistory(panel) {
   const f = panel.frame;
   const t = f.header.stamp;
+  if (panel.series.length && t < panel.series[panel.series.length - 1][0]) panel.series = []; // a replay restarted
   const values = f.header.kind === "grid" ? [f.contact ? f.contact.total_N : 0]
     : [f.wrench.force.z || 0, Math.hypot(f.wrench.force.x || 0, f.wrench.force.y || 0)];
   panel.series.push([t, values]);
-  while (panel.series.length && panel.series[0][0] < t - HISTORY_S) panel.series.shift();
+  while (panel.series[0][0] < t - HISTORY_S) panel.series.shift();
+}
+
+// Round numbers for the axis, with 20 % headroom so a steady load stays off the top edge.
+function niceScale(low, high) {
+  const span = Math.max(high * 1.2 - Math.min(0, low * 1.2), 1);
+  const raw = span / 4;
+  const magnitude = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 2.5, 5, 10].map((k) => k * magnitude).find((s) => s >= raw);
+  return { step, bottom: Math.floor(Math.min(0, low * 1.2) / step) * step, top: Math.ceil(Math.max(high * 1.2, 1) / step) * step };
+}
+
+function drawHistoryAxes(ctx, plot, scale) {
+  ctx.strokeStyle = "#333"; ctx.fillStyle = "#999"; ctx.lineWidth = 1;
+  ctx.font = "10px system-ui, sans-serif"; ctx.textAlign = "right"; ctx.textBaseline = "middle";
+  for (let v = scale.bottom; v <= scale.top + scale.step / 2; v += scale.step) {
+    const y = plot.y + plot.h - (v - scale.bottom) / (scale.top - scale.bottom) * plot.h;
+    ctx.beginPath(); ctx.moveTo(plot.x, y); ctx.lineTo(plot.x + plot.w, y); ctx.stroke();
+    ctx.fillText(`${+v.toFixed(2)}`, plot.x - 4, y);
+  }
+  ctx.textBaseline = "top";
+  for (let s = HISTORY_S; s >= 0; s -= 2) {
+    // The end labels stay inside the plot's span: clear of the y labels and of the canvas edge.
+    ctx.textAlign = s === 0 ? "right" : s === HISTORY_S ? "left" : "center";
+    ctx.fillText(s === 0 ? "now" : `−${s} s`, plot.x + plot.w * (1 - s / HISTORY_S), plot.y + plot.h + 3);
+  }
+}
+
+function drawHistoryLegend(ctx, plot, names, colours) {
+  ctx.font = "10px system-ui, sans-serif"; ctx.textBaseline = "middle"; ctx.textAlign = "left";
+  ctx.fillStyle = "#999";
+  ctx.fillText("N", 6, 7);
+  let x = plot.x;
+  names.forEach((name, k) => {
+    ctx.fillStyle = colours[k]; ctx.fillRect(x, 4, 14, 3);
+    ctx.fillStyle = "#ccc"; ctx.fillText(name, x + 18, 6);
+    x += 26 + ctx.measureText(name).width;
+  });
 }
 
 function drawHistory(panel) {
-  const { history, series } = panel;
-  const ctx = history.getContext("2d");
-  ctx.clearRect(0, 0, history.width, history.height);
-  if (series.length < 2) return;
-  const t1 = series[series.length - 1][0], t0 = t1 - HISTORY_S;
-  const top = Math.max(1, ...series.flatMap(([, v]) => v));
+  const view = beginDraw(panel.history);
+  if (!view) return;
+  const { ctx, w, h } = view;
+  const plot = { x: 34, y: 16, w: w - 42, h: h - 34 };
+  const names = panel.kind === "grid" ? ["ΣF"] : ["Fz", "|Fxy|"];
   const colours = ["#ffb74d", "#4fc3f7"];
-  series[0][1].forEach((_, k) => {
-    ctx.strokeStyle = colours[k]; ctx.beginPath();
-    series.forEach(([t, v], i) => {
-      const x = ((t - t0) / HISTORY_S) * history.width, y = history.height - 4 - (v[k] / top) * (history.height - 8);
+  const values = panel.series.flatMap(([, v]) => v);
+  const scale = niceScale(Math.min(0, ...values), Math.max(0, ...values));
+  panel.history.dataset.top = scale.top;
+  drawHistoryAxes(ctx, plot, scale);
+  drawHistoryLegend(ctx, plot, names, colours);
+  if (panel.series.length < 2) return;
+  const t1 = panel.series[panel.series.length - 1][0];
+  names.forEach((_, k) => {
+    ctx.strokeStyle = colours[k]; ctx.lineWidth = 1.5; ctx.beginPath();
+    panel.series.forEach(([t, v], i) => {
+      const x = plot.x + plot.w * (1 - (t1 - t) / HISTORY_S);
+      const y = plot.y + plot.h - (v[k] - scale.bottom) / (scale.top - scale.bottom) * plot.h;
       if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y);
     });
     ctx.stroke();
   });
-  ctx.fillStyle = "#999"; ctx.font = "10px system-ui";
-  ctx.fillText(`${top.toFixed(1)} N · last ${HISTORY_S} s`, 4, 11);
 }
 
-let dirty = false;
+// ---- the live stream --------------------------------------------------------
+
 function render() {
   if (dirty) {
+    const now = performance.now();
     for (const panel of panels.values()) {
-      if (panel.frame.header.kind === "grid") drawGrid(panel); else drawQuad(panel);
+      if (!panel.frame) continue;
+      if (panel.kind === "grid") drawGrid(panel); else drawQuad(panel);
+      updateFlags(panel, now);
       drawHistory(panel);
     }
     dirty = false;
@@ -158,59 +416,151 @@ function render() {
   requestAnimationFrame(render);
 }
 
+function onFrames(frames) {
+  for (const frame of frames) {
+    const panel = ensurePanel(frame.header.sensor_id, infoFromFrame(frame));
+    panel.frame = frame;
+    panel.frames += 1;
+    panel.el.dataset.frames = panel.frames;
+    recordHistory(panel);
+  }
+  dirty = true;
+}
+
 function connect() {
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws?max_rate=30`);
+  ws.onopen = () => { streamOpen = true; loadSensors(); };
   ws.onmessage = (event) => {
     const msg = JSON.parse(event.data);
-    if (msg.type !== "frames") return;
-    for (const frame of msg.frames) {
-      const panel = panels.get(frame.header.sensor_id) || makePanel(frame);
-      panel.frame = frame;
-      panel.changes += 1;
-      panel.el.dataset.frames = panel.changes;
-      record(panel);
-    }
-    dirty = true;
+    if (msg.type === "frames") onFrames(msg.frames);
   };
-  ws.onclose = () => setTimeout(connect, 1000);
+  ws.onclose = () => { streamOpen = false; setTimeout(connect, 1000); };
 }
+
+// ---- status banner --------------------------------------------------------
+
+function linkState(link) {
+  if (link.state) return link.state;
+  if (!link.up) return "down";
+  return link.last_data_age_s > STALE_AFTER_S ? "stale" : "up";
+}
+
+function describeStatus(health) {
+  const link = health.link || {};
+  const source = link.source ? ` · ${link.source}` : "";
+  const age = link.last_data_age_s == null ? "" : ` for ${link.last_data_age_s.toFixed(1)} s`;
+  const state = linkState(link);
+  if (state === "finished") return ["finished", `Replay finished: the recording has ended, showing its last frames${source}`];
+  if (state === "down") {
+    const reconnects = link.reconnects ? ` · ${link.reconnects} reconnects` : "";
+    return ["down", `Link down · last error: ${link.last_error || "none reported"}${reconnects}${source}`];
+  }
+  if (state === "stale") return ["stale", `Stale: no data${age}${source}`];
+  if (!streamOpen) return ["stale", `Live stream disconnected, reconnecting…${source}`];
+  const degraded = health.status === "degraded" ? " (service degraded)" : "";
+  return health.replay ? ["replay", `Replay${degraded}${source}`] : ["ok", `Live${degraded}${source}`];
+}
+
+function showStatus(state, text) {
+  const banner = document.getElementById("status");
+  banner.dataset.state = state;
+  banner.textContent = text;
+}
+
+function statsText(health) {
+  const sensors = Object.entries(health.sensors || {});
+  const stream = health.stream || {};
+  const p99 = health.latency && health.latency.published ? health.latency.published.p99_ms : null;
+  return [
+    ...sensors.map(([id, s]) => `#${id} ${s.rate_hz} Hz`),
+    stream.crc_errors === undefined ? "" : `CRC errors ${stream.crc_errors}`,
+    stream.bytes_discarded === undefined ? "" : `discarded ${stream.bytes_discarded} B`,
+    sensors.length ? `gaps ${sensors.reduce((n, [, s]) => n + (s.seq_gaps || 0), 0)}` : "",
+    p99 == null ? "" : `latency p99 ${p99.toFixed(1)} ms`,
+  ].filter(Boolean).join(" · ");
+}
+
+// ---- recording ------------------------------------------------------------
 
 const recordButton = document.getElementById("record");
 
-async function pollHealth() {
+function showRecording(status, error) {
+  const info = document.getElementById("record-info");
+  const active = Boolean(status && status.active);
+  recordButton.textContent = active ? "Stop recording" : "Record";
+  recordButton.classList.toggle("recording", active);
+  info.hidden = !(status || error);
+  info.classList.toggle("error", Boolean(error || (status && status.error)));
+  if (error) {
+    document.getElementById("record-label").textContent = `Record failed: ${error}`;
+    document.getElementById("record-path").textContent = "";
+    return;
+  }
+  if (!status) return;
+  const messages = status.messages === undefined ? "" : ` (${status.messages} msgs)`;
+  document.getElementById("record-label").textContent =
+    (active ? "● Recording" : "Saved") + messages + (status.error ? ` · ${status.error} ·` : "") + " to";
+  document.getElementById("record-path").textContent = status.path;
+}
+
+async function errorText(response) {
+  try { return (await response.json()).detail || response.statusText; } catch (err) { return response.statusText; }
+}
+
+function post(path, body) {
+  return fetch(path, { method: "POST", headers: { "Content-Type": "application/json", ...authHeaders },
+                       body: body === undefined ? undefined : JSON.stringify(body) });
+}
+
+// The service writes a bare name into its recordings directory; one that
+// predates names requires {"path"} (422) and writes relative to its own
+// directory: it is asked by path from then on, sparing a failed request each time.
+let recordByPath = false;
+
+async function startRecording() {
+  const name = `recording-${new Date().toISOString().replace(/[:.]/g, "-")}.mcap`;
+  if (!recordByPath) {
+    const response = await post("/record/start", { name });
+    if (response.status !== 422) return response;
+    recordByPath = true;
+  }
+  return post("/record/start", { path: name });
+}
+
+async function toggleRecording() {
+  recordButton.disabled = true;
   try {
-    const health = await (await fetch("/health")).json();
-    const link = document.getElementById("link");
-    link.textContent = health.link.up ? `link up · ${health.link.source}` : `link down · ${health.link.last_error || ""}`;
-    link.className = "badge " + (health.link.up ? "up" : "down");
-    const rates = Object.entries(health.sensors).map(([id, s]) => `#${id} ${s.rate_hz} Hz`).join(" · ");
-    document.getElementById("stats").textContent =
-      `${rates} · CRC errors ${health.stream.crc_errors} · discarded ${health.stream.bytes_discarded} B · gaps ` +
-      Object.values(health.sensors).reduce((n, s) => n + (s.seq_gaps || 0), 0) +
-      (health.latency.published.p99_ms === null ? "" : ` · latency p99 ${health.latency.published.p99_ms.toFixed(1)} ms`) +
-      (health.replay ? " · REPLAY" : "");
-    const rec = health.recording;
-    recordButton.textContent = rec && rec.active ? `Stop recording (${rec.messages} msgs)` : "Record";
-    recordButton.title = rec && rec.error ? rec.error : "";
+    const current = await (await fetch("/record")).json();
+    const response = current && current.active ? await post("/record/stop") : await startRecording();
+    if (response.ok) showRecording(await response.json());
+    else showRecording(null, await errorText(response));
   } catch (err) {
-    document.getElementById("link").textContent = "service unreachable";
+    showRecording(null, "service unreachable");
+  } finally {
+    recordButton.disabled = false;
   }
 }
 
-document.getElementById("tare").addEventListener("click", () => fetch("/tare", { method: "POST", headers: authHeaders }));
+// ---- polling ----------------------------------------------------------------
 
-recordButton.addEventListener("click", async () => {
-  const status = await (await fetch("/record")).json();
-  if (status && status.active) {
-    await fetch("/record/stop", { method: "POST", headers: authHeaders });
-  } else {
-    const stamp = new Date().toISOString().replace(/[:.]/g, "-");
-    await fetch("/record/start", { method: "POST", headers: { "Content-Type": "application/json", ...authHeaders },
-                                   body: JSON.stringify({ path: `tactile-${stamp}.mcap` }) });
+async function pollHealth() {
+  let health;
+  try {
+    health = await (await fetch("/health")).json();
+  } catch (err) {
+    showStatus("down", "Service unreachable: the dashboard cannot reach the tactile service");
+    return;
   }
-  pollHealth();
-});
+  showStatus(...describeStatus(health));
+  document.getElementById("stats").textContent = statsText(health);
+  const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();
+  if (recording) showRecording(recording);
+}
 
+document.getElementById("tare").addEventListener("click", () => fetch("/tare", { method: "POST", headers: authHeaders }));
+recordButton.addEventListener("click", toggleRecording);
+
+loadSensors();
 connect();
 pollHealth();
 setInterval(pollHealth, 1000);

@@ -1,0 +1,276 @@
+"""The dashboard against a scripted service: Playwright serves web/ and answers
+the REST calls and the WebSocket itself, so each test chooses exactly the
+frames and health the page sees (a press that jumps between taxels, each link
+state, several boards, an old and a new recording endpoint) and checks what
+is drawn, from the canvas pixels or the text shown.
+"""
+import copy
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from tests.test_dashboard import VIEWPORT, launch, sync_api
+
+WEB = Path(__file__).resolve().parents[1] / "web"
+BASE = "http://tactile.test/"
+CONTENT_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml"}
+ROWS = COLS = 8
+HEALTH = {
+    "status": "ok", "replay": False, "recording": None,
+    "link": {"source": "sim://", "up": True, "state": "up", "last_error": None, "reconnects": 0, "last_data_age_s": 0.001},
+    "stream": {"crc_errors": 0, "bytes_discarded": 0},
+    "sensors": {"0": {"kind": "grid", "rate_hz": 1000.0, "seq_gaps": 0}},
+    "latency": {"published": {"p99_ms": 1.5}},
+}
+
+
+def grid_frame(seq, forces, stamp=None, sensor=0):
+    """A grid frame with the service's contact summary (taxels above 0.05 N)."""
+    active = [i for i, f in enumerate(forces) if f > 0.05]
+    total = sum(forces[i] for i in active)
+    centre = (lambda axis: sum(axis(i) * 4.0 * forces[i] for i in active) / total) if total else (lambda axis: None)
+    return {
+        "header": {"sensor_id": sensor, "sensor_name": f"grid{sensor}", "kind": "grid", "seq": seq,
+                   "board_time_us": seq * 1000, "stamp": seq / 1000 if stamp is None else stamp},
+        "rows": ROWS, "cols": COLS, "force_N": forces, "flags": [], "taxel_flags": {},
+        "contact": {"total_N": total, "cop_x_mm": centre(lambda i: i % COLS - (COLS - 1) / 2),
+                    "cop_y_mm": centre(lambda i: i // COLS - (ROWS - 1) / 2), "area_mm2": 16.0 * len(active),
+                    "contacts": 1 if active else 0},
+    }
+
+
+def pressed(loads):
+    forces = [0.0] * (ROWS * COLS)
+    for index, force in loads.items():
+        forces[index] = force
+    return forces
+
+
+class ScriptedService:
+    """Answers the dashboard's requests; `record_start` decides POST /record/start."""
+
+    def __init__(self, page):
+        self.page = page
+        self.health = copy.deepcopy(HEALTH)
+        self.sensors = {"board": {"board": "sim"}, "sensors": [{"id": 0, "kind": "grid", "rows": ROWS, "cols": COLS, "name": "grid0"}]}
+        self.recording = None
+        self.record_start = lambda body: (200, {"path": f"/srv/recordings/{body['name']}", "raw_path": None, "active": True, "messages": 0})
+        self.posts = []
+        self.socket = None
+        page.route(f"{BASE}**", self.answer)
+        page.route_web_socket(re.compile(r".*/ws(\?.*)?$"), self.connected)
+
+    def connected(self, socket):
+        self.socket = socket
+
+    def json(self, route, body, status=200):
+        route.fulfill(status=status, content_type="application/json", body=json.dumps(body))
+
+    def answer(self, route):
+        path = route.request.url[len(BASE) - 1:].split("?")[0]
+        if path == "/" or path.startswith("/static/"):
+            file = WEB / ("index.html" if path == "/" else path[len("/static/"):])
+            return route.fulfill(path=str(file), content_type=CONTENT_TYPES[file.suffix])
+        if route.request.method == "POST":
+            return self.answer_post(route, path)
+        answers = {"/health": lambda: {**self.health, "recording": self.recording}, "/sensors": lambda: self.sensors,
+                   "/record": lambda: self.recording}
+        self.json(route, answers[path]())
+
+    def answer_post(self, route, path):
+        body = route.request.post_data_json
+        self.posts.append((path, body))
+        if path == "/record/start":
+            status, answer = self.record_start(body)
+            self.recording = answer if status == 200 else self.recording
+            return self.json(route, answer, status)
+        if path == "/record/stop":
+            self.recording = {**self.recording, "active": False, "messages": 1234}
+            return self.json(route, self.recording)
+        self.json(route, {})
+
+    def open(self):
+        self.page.goto(BASE)
+        self.page.wait_for_function("() => document.querySelector('section.panel')")
+        assert self.socket is not None
+
+    def send(self, frames):
+        """Sends frames and returns once the page has drawn them."""
+        before = int(self.page.get_attribute('section[data-sensor="0"]', "data-frames") or 0)
+        self.socket.send(json.dumps({"type": "frames", "frames": frames}))
+        self.page.wait_for_selector(f'section[data-sensor="0"][data-frames="{before + len(frames)}"]')
+        self.page.evaluate("() => new Promise(done => requestAnimationFrame(() => requestAnimationFrame(done)))")
+
+    def poll(self):
+        self.page.evaluate("() => pollHealth()")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_api.sync_playwright() as p:
+        browser = launch(p)
+        yield browser
+        browser.close()
+
+
+@pytest.fixture
+def service(browser):
+    page = browser.new_page(viewport=VIEWPORT)
+    yield ScriptedService(page)
+    page.close()
+
+
+def pixels_around(page, index, reach=0.7, reach_y=None):
+    """Canvas pixels of the box reaching `reach` cells (`reach_y` up and down) from a taxel's centre, as [r, g, b, a, ...]."""
+    return page.evaluate(
+        """([index, cols, reach, reachY]) => {
+            const canvas = document.querySelector('section[data-sensor="0"] canvas.live');
+            const cell = canvas.width / cols, r = Math.floor(index / cols), c = index % cols;
+            const x = Math.round((c + 0.5 - reach) * cell), y = Math.round((r + 0.5 - reachY) * cell);
+            return Array.from(canvas.getContext("2d").getImageData(x, y, Math.round(2 * reach * cell),
+                                                                   Math.round(2 * reachY * cell)).data);
+        }""",
+        [index, COLS, reach, reach if reach_y is None else reach_y],
+    )
+
+
+def cyan_pixels(rgba):
+    return sum(1 for i in range(0, len(rgba), 4) if rgba[i] < 100 and rgba[i + 1] > 180 and rgba[i + 2] > 180)
+
+
+def differing_pixels(a, b):
+    return sum(1 for i in range(0, len(a), 4) if max(abs(a[i + k] - b[i + k]) for k in range(3)) > 48)
+
+
+def test_a_moved_press_leaves_no_outline_or_cross_behind(service):
+    service.open()
+    first, second, reference = 27, 45, 9  # (row 4, col 4) → (row 6, col 6); row 2, col 2 is never pressed
+    service.send([grid_frame(1, pressed({first: 3.0, reference: 0.03}))])
+    loaded = pixels_around(service.page, first)
+    assert cyan_pixels(loaded) > 50  # the outline is seen where it is drawn …
+    assert differing_pixels(loaded, pixels_around(service.page, reference)) > 500  # … and so are the heat and the ring
+    service.send([grid_frame(2, pressed({second: 3.0, first: 0.03, reference: 0.03}))])
+    left = pixels_around(service.page, first)
+    assert cyan_pixels(left) == 0
+    # Where the press was, the canvas now looks exactly like a taxel that was never pressed.
+    assert differing_pixels(left, pixels_around(service.page, reference)) < len(left) // 400
+    assert cyan_pixels(pixels_around(service.page, second)) > 50
+
+
+def test_the_centre_of_pressure_ring_leaves_the_number_uncovered(service):
+    service.open()
+    frame = grid_frame(1, pressed({27: 2.24}))
+    service.send([frame])
+    number = {"reach": 0.3, "reach_y": 0.15}  # the box of the taxel's number, inside the ring
+    with_ring = pixels_around(service.page, 27, **number)
+    frame = copy.deepcopy(frame)
+    frame["header"]["seq"] = 2
+    frame["contact"].update(cop_x_mm=None, cop_y_mm=None)
+    service.send([frame])
+    assert differing_pixels(with_ring, pixels_around(service.page, 27, **number)) == 0
+
+
+def test_history_of_a_steady_load_sits_below_a_labelled_top(service):
+    service.open()
+    service.send([grid_frame(seq, pressed({27: 4.0}), stamp=100 + seq / 20) for seq in range(200)])  # 10 s of 4 N
+    top = float(service.page.get_attribute('section[data-sensor="0"] canvas.history', "data-top"))
+    assert top >= 4.0 * 1.2
+    # The orange trace's highest pixel (legend swatch excluded) sits well below the plot's top edge.
+    rows_with_trace = service.page.evaluate(
+        """() => {
+            const canvas = document.querySelector('section[data-sensor="0"] canvas.history');
+            const { width, height, data } = canvas.getContext("2d").getImageData(0, 0, canvas.width, canvas.height);
+            const rows = [];
+            for (let y = 12; y < height; y++) for (let x = 60; x < width; x++) {
+                const i = 4 * (y * width + x);
+                if (data[i] > 200 && data[i + 1] > 140 && data[i + 1] < 210 && data[i + 2] < 120) { rows.push(y); break; }
+            }
+            return { rows, height };
+        }"""
+    )
+    plot_top, plot_height = 16, rows_with_trace["height"] - 34
+    assert rows_with_trace["rows"], "no trace drawn"
+    assert min(rows_with_trace["rows"]) > plot_top + 0.1 * plot_height
+
+
+@pytest.mark.parametrize("link, replay, state, words", [
+    ({"state": "up"}, False, "ok", ["Live", "sim://"]),
+    ({"state": "stale", "last_data_age_s": 3.24}, False, "stale", ["no data for 3.2 s"]),
+    ({"state": "down", "up": False, "last_error": "device reports readiness to read but returned no data"}, False, "down",
+     ["Link down", "returned no data"]),
+    ({"state": "up", "source": "replay:///tmp/x.mcap"}, True, "replay", ["Replay", "/tmp/x.mcap"]),
+    ({"state": "finished", "source": "replay:///tmp/x.mcap"}, True, "finished", ["Replay finished"]),
+    ({"state": None, "up": False, "last_error": "[Errno 2] no such device"}, False, "down", ["no such device"]),
+    ({"state": None, "last_data_age_s": 5.0}, False, "stale", ["no data for 5.0 s"]),
+], ids=["up", "stale", "down", "replay", "finished", "down-without-state", "stale-without-state"])
+def test_status_banner_names_each_link_state(service, link, replay, state, words):
+    service.health["link"].update(link)
+    if link["state"] is None:
+        del service.health["link"]["state"]  # a service that predates link.state
+    service.health["replay"] = replay
+    service.open()
+    service.poll()
+    assert service.page.get_attribute("#status", "data-state") == state
+    text = service.page.text_content("#status")
+    assert all(word in text for word in words), text
+
+
+def test_stats_have_no_stray_separators_without_a_board(service):
+    service.health.update(sensors={}, stream={}, latency={"published": {"p99_ms": None}})
+    service.open()
+    service.poll()
+    stats = service.page.text_content("#stats")
+    assert "CRC" not in stats and not stats.startswith(" ·") and "· ·" not in stats
+
+
+def test_panels_are_grouped_by_board_when_there_are_several(service):
+    service.sensors["sensors"] = [
+        {"id": 3, "kind": "quad", "rows": 2, "cols": 2, "name": "quad3", "board": "left"},
+        {"id": 0, "kind": "grid", "rows": ROWS, "cols": COLS, "name": "grid0", "board": "right"},
+        {"id": 1, "kind": "grid", "rows": ROWS, "cols": COLS, "name": "grid1", "board": "left"},
+        {"id": 2, "kind": "quad", "rows": 2, "cols": 2, "name": "quad2", "board": "right"},
+    ]
+    service.open()
+    service.page.wait_for_function("() => document.querySelectorAll('section.panel').length === 4")
+    groups = service.page.eval_on_selector_all(
+        "section.board", "els => els.map(g => [g.querySelector('.board-title').innerText, "
+                         "[...g.querySelectorAll('section.panel')].map(p => Number(p.dataset.sensor))])")
+    assert groups == [["board right", [0, 2]], ["board left", [1, 3]]]
+
+
+def test_one_board_has_no_board_heading(service):
+    service.open()
+    assert service.page.locator(".board-title").is_hidden()
+
+
+def old_record_start(body):
+    if "path" not in body:
+        return 422, {"detail": [{"type": "missing", "loc": ["body", "path"], "msg": "Field required"}]}
+    return 200, {"path": body["path"], "raw_path": None, "active": True, "messages": 0}
+
+
+@pytest.mark.parametrize("backend", ["name", "path"])
+def test_record_button_shows_where_the_file_goes_with_either_backend(service, backend):
+    if backend == "path":
+        service.record_start = old_record_start
+    service.open()
+    service.page.click("#record")
+    service.page.wait_for_selector("#record-info:not([hidden])")
+    started = service.recording["path"]
+    assert service.page.text_content("#record-path") == started
+    assert "Recording" in service.page.text_content("#record-label")
+    assert service.page.text_content("#record") == "Stop recording"
+    bodies = [body for path, body in service.posts if path == "/record/start"]
+    name = bodies[0]["name"]
+    assert re.fullmatch(r"recording-[0-9T-]+Z\.mcap", name)
+    assert bodies[1:] == ([] if backend == "name" else [{"path": name}])
+    service.page.click("#record")
+    service.page.wait_for_function("() => document.getElementById('record-label').textContent.startsWith('Saved')")
+    assert service.page.text_content("#record-path") == started
+    assert service.page.text_content("#record") == "Record"
+    service.page.click("#record")  # again: an old service is asked by path straight away
+    service.page.wait_for_selector("text=Stop recording")
+    again = [body for path, body in service.posts if path == "/record/start"][len(bodies):]
+    assert [list(body) for body in again] == [[backend]]

@@ -1,0 +1,109 @@
+"""The dashboard against `tactile` run as a command, in a directory the test
+owns: the Record button names the file the service writes, and the end of a
+replay is shown. Saves /tmp/dashboard-replay-finished.png.
+"""
+import contextlib
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from tests.test_dashboard import VIEWPORT, launch, sync_api
+
+TACTILE = shutil.which("tactile", path=str(Path(sys.executable).parent)) or shutil.which("tactile")
+REPLAY_SCREENSHOT = Path("/tmp/dashboard-replay-finished.png")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def get_json(url):
+    with urllib.request.urlopen(url, timeout=5) as response:
+        return json.load(response)
+
+
+@contextlib.contextmanager
+def tactile(*args, cwd):
+    """Base URL of `tactile ARGS --port N` once its /health answers."""
+    port = free_port()
+    log = open(cwd / "tactile.log", "wb")
+    process = subprocess.Popen([TACTILE, *args, "--port", str(port)], cwd=cwd, stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}/"
+    try:
+        deadline = time.monotonic() + 15
+        while True:
+            try:
+                get_json(url + "health")
+                break
+            except OSError:
+                assert process.poll() is None and time.monotonic() < deadline, (cwd / "tactile.log").read_text()
+                time.sleep(0.1)
+        yield url
+    finally:
+        process.terminate()
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_api.sync_playwright() as p:
+        browser = launch(p)
+        yield browser
+        browser.close()
+
+
+def test_record_button_shows_the_path_the_service_writes(browser, tmp_path):
+    with tactile("serve", "--source", "sim://?scene=press&rate=250", cwd=tmp_path) as url:
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(url)
+        page.wait_for_selector('#status[data-state="ok"]', timeout=10_000)
+        page.click("#record")
+        page.wait_for_selector("#record-info:not([hidden])", timeout=5000)
+        shown = page.text_content("#record-path")
+        status = get_json(url + "record")
+        assert status["active"] and shown == status["path"]
+        assert page.text_content("#record-label").startswith("● Recording")
+        written = tmp_path / shown  # an absolute path stays itself; a service that predates names writes in its cwd
+        try:
+            assert written.suffix == ".mcap" and written.exists()
+            page.wait_for_timeout(500)
+            page.click("#record")
+            page.wait_for_function("() => document.getElementById('record-label').textContent.startsWith('Saved')",
+                                   timeout=5000)
+            assert page.text_content("#record-path") == shown and page.text_content("#record") == "Record"
+            assert written.stat().st_size > 0
+        finally:
+            written.unlink(missing_ok=True)
+            page.close()
+
+
+def test_the_end_of_a_replay_is_shown(browser, tmp_path):
+    capture = tmp_path / "press.bin"
+    subprocess.run([TACTILE, "sim", "--capture", str(capture), "--seconds", "3", "--scene", "press", "--rate", "250"],
+                   check=True, capture_output=True, timeout=20)
+    with tactile("replay", str(capture), "--serve", cwd=tmp_path) as url:
+        if "state" not in get_json(url + "health")["link"]:
+            pytest.skip("backend lacks the /health field link.state (== 'finished' when a replay reaches its end), "
+                        "which the dashboard's 'Replay finished' banner is driven by")
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(url)
+        page.wait_for_selector('#status[data-state="finished"]', timeout=15_000)
+        assert get_json(url + "health")["link"]["state"] == "finished"
+        assert page.text_content("#status").startswith("Replay finished")
+        assert int(page.get_attribute('section[data-sensor="0"]', "data-frames")) > 0  # its last frames stay on screen
+        page.screenshot(path=str(REPLAY_SCREENSHOT))
+        page.close()
