@@ -27,6 +27,16 @@ def _slice_us(text: str) -> int:
     return value
 
 
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return value
+
+
 def _speed(text: str) -> float:
     try:
         return parse_speed(text)
@@ -42,11 +52,25 @@ def _add_reconstruction_options(parser: argparse.ArgumentParser) -> None:
 
 def _add_serving_options(parser: argparse.ArgumentParser) -> None:
     """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=8000)
-    parser.add_argument("--log-level", default="warning")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s; beyond localhost "
+                                                                "a token is required, see --token)")
+    parser.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
+    parser.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"],
+                        help="server log level (default: %(default)s)")
     parser.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
                                         "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
+    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                        help="a host name clients may use for this service besides localhost and IP addresses "
+                             "(repeatable; DNS names are refused otherwise, against DNS rebinding)")
+    parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                        help="a web origin (e.g. http://lab-pc:3000) whose pages may change state or stream "
+                             "(repeatable; default: only the service's own dashboard)")
+    parser.add_argument("--recordings-dir", default="recordings", metavar="DIR",
+                        help="where POST /record/start and the dashboard's Record write (default: %(default)s, "
+                             "created on demand)")
+    parser.add_argument("--silence-s", type=_positive, default=2.0, metavar="S",
+                        help="after this long without a byte, ask the board INFO? and then reopen the link "
+                             "(default: %(default)s)")
     _add_reconstruction_options(parser)
     parser.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
                         help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "

@@ -29,8 +29,11 @@ def cmd_serve(args) -> int:
     token = args.token or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         token = secrets.token_urlsafe(16)
-    app = create_app(TactileService(args.source, level=args.level, mounting=args.mounting,
-                                    sched_slice_us=args.sched_slice_us or None), token=token)
+    service = TactileService(args.source, level=args.level, mounting=args.mounting,
+                             sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
+                             silence_s=args.silence_s)
+    app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
+                     allow_origins=tuple(args.allow_origin))
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
     print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
     if token:

@@ -15,19 +15,37 @@ from .handover import LoopHandover
 from .health import health_report
 from .latency import LatencyMeter
 from .pipeline import Pipeline
-from .readout import Readout
+from .readout import DEFAULT_SILENCE_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
 from .record.recorder import Recorder
 from .sched import SliceRequest, current_slice_us, tune_for_latency
 from .sources import DEFAULT_SOURCE
 
 
+MAX_NAME_CHARS = 128
+
+
+def recording_name(name: str | None) -> str:
+    """A bare file name ending in .mcap (no directory, no leading dot), or a
+    timestamped default; ValueError naming what is wrong."""
+    if name is None:
+        return time.strftime("recording-%Y%m%d-%H%M%S.mcap")
+    if not 6 <= len(name) <= MAX_NAME_CHARS or not name.isprintable():
+        raise ValueError(f"{name[:MAX_NAME_CHARS]!r} must be 6 to {MAX_NAME_CHARS} printable characters")
+    if "/" in name or "\\" in name or name.startswith(".") or not name.endswith(".mcap"):
+        raise ValueError(f"{name!r} must be a bare file name ending in .mcap (no directory, no leading dot)")
+    return name
+
+
 class TactileService:
     """Owns the data path for one source."""
 
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat",
-                 sched_slice_us: int | None = None) -> None:
+                 sched_slice_us: int | None = None, recordings_dir: str | Path = "recordings",
+                 silence_s: float = DEFAULT_SILENCE_S) -> None:
         self.source = source
+        self.recordings_dir = Path(recordings_dir).resolve()
+        self.silence_s = silence_s
         self.sched_slice_us = sched_slice_us
         self.scheduling = SliceRequest(None, current_slice_us())
         self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
@@ -44,7 +62,7 @@ class TactileService:
         self.scheduling = tune_for_latency(self.sched_slice_us)
         self.handover = LoopHandover(self.pipeline.feed_reads, self.pipeline.link_lost, loop)
         self.pipeline.listeners += [self._measure_published, self.hub.publish]
-        self.readout = Readout(self.source, self.handover)
+        self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
         self.readout.start(loop)
 
     def stop(self) -> None:
@@ -55,11 +73,16 @@ class TactileService:
             if listener in self.pipeline.listeners:
                 self.pipeline.listeners.remove(listener)
 
-    def start_recording(self, path: str | Path, raw_path: str | Path | None = None) -> dict:
-        """Start recording the live stream; OSError/ValueError name the bad path."""
+    def start_recording(self, name: str | None = None) -> dict:
+        """Record the live stream to ``name`` (a bare .mcap file name) in the
+        recordings directory, the raw bytes beside it (.bin). ValueError for a
+        name that is not a bare .mcap name, FileExistsError for one taken,
+        RuntimeError while recording."""
         if self.recorder is not None and self.recorder.active:
             raise RuntimeError(f"already recording to {self.recorder.path}")
-        self.recorder = Recorder(path, raw_path)
+        path = self.recordings_dir / recording_name(name)
+        self.recordings_dir.mkdir(parents=True, exist_ok=True)
+        self.recorder = Recorder(path, path.with_suffix(".bin"), exclusive=True)
         self.recorder.attach(self.pipeline)
         return self.recorder.status()
 

@@ -23,7 +23,7 @@ def wait_for_frames(service, sensors=2, seconds=5.0):
 @pytest.fixture(scope="module")
 def client():
     service = TactileService("sim://?scene=press&rate=1000")
-    with TestClient(create_app(service)) as client:
+    with TestClient(create_app(service), base_url="http://localhost") as client:
         wait_for_frames(service)
         yield client
 
@@ -41,7 +41,7 @@ def test_health_reports_link_rates_counters_and_reconstruction(client):
 
 
 def test_health_reports_latency_through_the_service(client):
-    with client.websocket_connect("/ws?sensors=1&encoding=binary") as ws:
+    with client.websocket_connect("ws://localhost/ws?sensors=1&encoding=binary") as ws:
         for _ in range(20):
             ws.receive_bytes()
     latency = client.get("/health").json()["latency"]
@@ -54,7 +54,7 @@ def test_health_reports_latency_through_the_service(client):
 
 
 def test_clients_lists_each_subscription_with_its_own_latency(client):
-    with client.websocket_connect("/ws?sensors=1&encoding=binary&fields=force") as ws:
+    with client.websocket_connect("ws://localhost/ws?sensors=1&encoding=binary&fields=force") as ws:
         for _ in range(30):
             ws.receive_bytes()
         listed = client.get("/clients").json()["clients"]
@@ -126,7 +126,7 @@ def test_calibration_upload_is_validated_and_applied(client):
 
 
 def test_websocket_json_stream_with_fields(client):
-    with client.websocket_connect("/ws?sensors=1&fields=force,raw") as ws:
+    with client.websocket_connect("ws://localhost/ws?sensors=1&fields=force,raw") as ws:
         message = orjson.loads(ws.receive_text())
     assert message["type"] == "frames"
     frame = message["frames"][0]
@@ -134,19 +134,19 @@ def test_websocket_json_stream_with_fields(client):
 
 
 def test_websocket_binary_stream(client):
-    with client.websocket_connect("/ws?sensors=0&encoding=binary&fields=force,raw") as ws:
+    with client.websocket_connect("ws://localhost/ws?sensors=0&encoding=binary&fields=force,raw") as ws:
         records = decode_binary(ws.receive_bytes())
     assert records[0]["kind"] == "grid" and records[0]["force_N"].shape == (64,)
     assert records[0]["capacitance_pF"].shape == (64,) and np.all(records[0]["capacitance_pF"] > 5)
 
 
 def test_websocket_decimates_and_batches_on_request(client):
-    with client.websocket_connect("/ws?sensors=0&max_rate=20") as ws:
+    with client.websocket_connect("ws://localhost/ws?sensors=0&max_rate=20") as ws:
         t = []
         while len(t) < 6:
             t += [f["header"]["stamp"] for f in orjson.loads(ws.receive_text())["frames"]]
     assert min(b - a for a, b in zip(t, t[1:])) >= 0.045  # 20 Hz, minus scheduling slack
-    with client.websocket_connect("/ws?sensors=0&batch_ms=100") as ws:
+    with client.websocket_connect("ws://localhost/ws?sensors=0&batch_ms=100") as ws:
         frames = orjson.loads(ws.receive_text())["frames"]
     assert len(frames) >= 50  # ~100 frames of 1 kHz in one message
 
@@ -157,7 +157,7 @@ def test_websocket_decimates_and_batches_on_request(client):
      ("encoding=xml", "encoding='xml'"), ("batch_ms=0", "batch_ms='0'")],
 )
 def test_websocket_rejects_bad_parameters(client, query, message):
-    with client.websocket_connect(f"/ws?{query}") as ws:
+    with client.websocket_connect(f"ws://localhost/ws?{query}") as ws:
         reply = orjson.loads(ws.receive_text())
     assert reply["type"] == "error" and message in reply["detail"]
 
@@ -229,7 +229,7 @@ def test_a_client_that_fell_behind_gets_what_is_queued_in_one_message():
 
 def test_mutating_endpoints_need_the_token_when_one_is_set():
     service = TactileService("sim://?scene=idle")
-    with TestClient(create_app(service, token="s3cret")) as client:
+    with TestClient(create_app(service, token="s3cret"), base_url="http://localhost") as client:
         wait_for_frames(service)
         denied = client.post("/tare")
         assert denied.status_code == 401 and "Bearer" in denied.json()["detail"]

@@ -136,7 +136,7 @@ def test_pacer_follows_recorded_time_at_any_speed():
 def test_replay_served_through_the_live_api(tmp_path):
     *_, mcap_path, _ = live_recording(tmp_path, seconds=1.5)
     service = TactileService(f"replay://{mcap_path}?speed=max")
-    with TestClient(create_app(service)) as client:
+    with TestClient(create_app(service), base_url="http://localhost") as client:
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline and service.pipeline.decoder.counters.frames < 3000:
             time.sleep(0.02)
@@ -146,20 +146,32 @@ def test_replay_served_through_the_live_api(tmp_path):
         assert client.get("/sensors/0/latest").json()["header"]["seq"] == 1499
 
 
-def test_record_from_the_api(tmp_path):
-    service = TactileService("sim://?scene=press")
-    with TestClient(create_app(service)) as client:
+def test_record_from_the_api_into_the_recordings_directory_only(tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    service = TactileService("sim://?scene=press", recordings_dir=tmp_path / "recordings")
+    with TestClient(create_app(service), base_url="http://localhost") as client:
         assert client.post("/record/stop").status_code == 409
-        bad = client.post("/record/start", json={"path": str(tmp_path / "no" / "x.mcap")})
-        assert bad.status_code == 400 and "path" in bad.json()["detail"]
-        assert client.post("/record/start", json={}).status_code == 422
-        started = client.post("/record/start", json={"path": str(tmp_path / "api.mcap")})
+        for body in ({"path": str(victim)}, {"name": str(victim)}, {"name": "../victim.mcap"}, {"name": ".hidden.mcap"},
+                     {"name": "run.txt"}, {"raw_path": str(victim)}):
+            refused = client.post("/record/start", json=body)
+            assert refused.status_code == 422, body
+        assert victim.read_text() == "precious" and not (tmp_path / "victim.mcap").exists()
+        started = client.post("/record/start", json={"name": "api.mcap"})
         assert started.status_code == 200 and started.json()["active"]
-        assert client.post("/record/start", json={"path": str(tmp_path / "b.mcap")}).status_code == 409
+        assert started.json()["path"] == str(tmp_path / "recordings" / "api.mcap")
+        assert started.json()["raw_path"] == str(tmp_path / "recordings" / "api.bin")
+        assert client.post("/record/start", json={"name": "b.mcap"}).status_code == 409  # already recording
+        assert client.get("/record").json()["path"] == started.json()["path"]
         time.sleep(0.5)
         stopped = client.post("/record/stop").json()
         assert stopped["error"] is None and stopped["messages"] > 100
-    assert summary(tmp_path / "api.mcap")["/raw"] > 10
+        again = client.post("/record/start", json={"name": "api.mcap"})
+        assert again.status_code == 409 and "exists" in again.json()["detail"]  # never overwritten
+        default = client.post("/record/start")
+        assert default.status_code == 200 and default.json()["path"].startswith(str(tmp_path / "recordings" / "recording-"))
+        client.post("/record/stop")
+    assert summary(tmp_path / "recordings" / "api.mcap")["/raw"] > 10
 
 
 def test_a_file_that_is_no_recording_is_refused_by_name(tmp_path):

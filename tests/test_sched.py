@@ -62,14 +62,14 @@ def test_without_the_system_call_the_request_reports_why_and_changes_nothing(mon
 @custom_slices
 def test_health_reports_the_slice_the_service_runs_with():
     service = TactileService("sim://?scene=idle&sensors=quad", sched_slice_us=300)
-    with TestClient(create_app(service)) as client:
+    with TestClient(create_app(service), base_url="http://localhost") as client:
         scheduling = client.get("/health").json()["scheduling"]
     assert scheduling == {"requested_us": 300, "granted_us": 300, "applied": True, "error": None}
 
 
 def test_health_reports_the_kernels_slice_when_none_is_asked_for():
     service = TactileService("sim://?scene=idle&sensors=quad")
-    with TestClient(create_app(service)) as client:
+    with TestClient(create_app(service), base_url="http://localhost") as client:
         scheduling = client.get("/health").json()["scheduling"]
     assert scheduling["requested_us"] is None and scheduling["applied"] is False
     assert scheduling["granted_us"] == sched.current_slice_us()

@@ -48,6 +48,6 @@ def test_tactile_replay_serve_serves_the_recording_through_the_live_service(tmp_
     monkeypatch.setattr(uvicorn, "run", lambda app, **options: served.update(app=app, **options))
     assert cli.main(["replay", str(run), "--serve", "--port", "8123", "--speed", "max"]) == 0
     assert served["port"] == 8123
-    with TestClient(served["app"]) as client:
+    with TestClient(served["app"], base_url="http://localhost") as client:
         health = client.get("/health").json()
     assert health["replay"] is True and health["link"]["source"].startswith("replay://")

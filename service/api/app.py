@@ -15,6 +15,7 @@ from fastapi import FastAPI
 
 from . import dashboard, routes_calibration, routes_health, routes_recording, routes_sensors, routes_stream
 from .deps import JSONResponse
+from .guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 
 if TYPE_CHECKING:
     from ..live_service import TactileService
@@ -30,8 +31,11 @@ async def lifespan(app: FastAPI):
         service.stop()
 
 
-def create_app(service: TactileService, token: str | None = None) -> FastAPI:
-    """An app serving ``service``; RuntimeError when the dashboard's files are missing."""
+def create_app(service: TactileService, token: str | None = None, bind_host: str = "127.0.0.1",
+               allow_hosts: tuple[str, ...] = (), allow_origins: tuple[str, ...] = (),
+               max_body_bytes: int = DEFAULT_MAX_BODY_BYTES) -> FastAPI:
+    """An app serving ``service`` behind the request guard (guard.py);
+    RuntimeError when the dashboard's files are missing."""
     app = FastAPI(title="tactile", version="0.1.0", lifespan=lifespan, default_response_class=JSONResponse,
                   description="Calibrated forces from capacitive tactile sensors. See docs/api.md.")
     app.state.service = service
@@ -39,4 +43,6 @@ def create_app(service: TactileService, token: str | None = None) -> FastAPI:
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
         app.include_router(routes.router)
     dashboard.add_dashboard(app)
+    app.add_middleware(RequestGuard, bind_host=bind_host, token=token, allow_hosts=allow_hosts,
+                       allow_origins=allow_origins, max_body_bytes=max_body_bytes)
     return app

@@ -46,8 +46,9 @@ def authorised(
     token = connection.app.state.token
     if token is None:
         return
-    expected = f"Bearer {token}"
-    if authorization is None or not hmac.compare_digest(authorization, expected):
+    expected = f"Bearer {token}".encode()
+    given = (authorization or "").encode("utf-8", "surrogateescape")  # any header, even not ASCII, is a 401
+    if not hmac.compare_digest(given, expected):
         raise HTTPException(401, "this endpoint needs 'Authorization: Bearer <token>' (printed by tactile serve)")
 
 

@@ -16,13 +16,16 @@ router = APIRouter()
 
 
 @router.post("/record/start", dependencies=[Depends(authorised)])
-def record_start(request: RecordRequest, service: TactileService = Depends(get_service)) -> JSONResponse:
+def record_start(request: RecordRequest | None = None, service: TactileService = Depends(get_service)) -> JSONResponse:
+    """Record into the recordings directory; the API never takes a path."""
     try:
-        return JSONResponse(service.start_recording(request.path, request.raw_path))
-    except RuntimeError as exc:
+        return JSONResponse(service.start_recording(None if request is None else request.name))
+    except (RuntimeError, FileExistsError) as exc:
         raise HTTPException(409, str(exc)) from None
-    except (OSError, ValueError) as exc:
-        raise HTTPException(400, f"path: {exc}") from None
+    except ValueError as exc:
+        raise HTTPException(422, f"name: {exc}") from None
+    except OSError as exc:
+        raise HTTPException(500, f"the recordings directory cannot be written: {exc}") from None
 
 
 @router.post("/record/stop", dependencies=[Depends(authorised)])

@@ -7,8 +7,10 @@ from pydantic import BaseModel, Field
 
 
 class RecordRequest(BaseModel):
-    path: str = Field(description="the MCAP file to write (must end in .mcap)")
-    raw_path: str | None = Field(default=None, description="also write the raw bytes here")
+    model_config = {"extra": "forbid"}  # an old client's "path" is refused by name, never taken as one
+
+    name: str | None = Field(default=None, description="a bare file name ending in .mcap, written into the service's "
+                             "recordings directory (default: recording-<time>.mcap); the raw bytes go beside it as .bin")
 
 
 class GridCalibrationUpload(BaseModel):

@@ -34,14 +34,18 @@ class Recorder:
     Files are opened at construction so that a bad path fails at once, in
     the caller's thread."""
 
-    def __init__(self, out: str | Path, raw_out: str | Path | None = None) -> None:
+    def __init__(self, out: str | Path, raw_out: str | Path | None = None, exclusive: bool = False) -> None:
+        """``exclusive``: refuse (FileExistsError) rather than overwrite an existing file."""
         self.path = Path(out)
         if self.path.suffix != ".mcap":
             raise ValueError(f"recording file {str(out)!r} must end in .mcap")
         self.raw_path = Path(raw_out) if raw_out else None
-        self._stream = open(self.path, "wb")
+        mode = "xb" if exclusive else "wb"
+        if exclusive and self.raw_path is not None and self.raw_path.exists():
+            raise FileExistsError(f"{self.raw_path} exists")
+        self._stream = open(self.path, mode)
         try:
-            self._raw = open(self.raw_path, "wb") if self.raw_path else None
+            self._raw = open(self.raw_path, mode) if self.raw_path else None
         except OSError:
             self._stream.close()
             raise

@@ -1,0 +1,66 @@
+"""What a web page, a rebinding DNS name or an unauthenticated client can do: nothing."""
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.api.app import create_app
+from service.live_service import TactileService
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(create_app(TactileService("sim://?scene=idle")), base_url="http://localhost:8000") as client:
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not client.get("/sensors").json()["sensors"]:
+            time.sleep(0.02)
+        yield client
+
+
+def test_a_form_posted_by_another_site_changes_nothing(client):
+    form = client.post("/tare", data={"x": "1"}, headers={"Origin": "http://evil.example"})
+    assert form.status_code == 403 and "http://evil.example" in form.json()["detail"]
+    plain = client.post("/tare", content=b"x=1", headers={"Content-Type": "text/plain"})  # no Origin (not a browser)
+    assert plain.status_code == 415 and "application/json" in plain.json()["detail"]
+    assert client.post("/tare", headers={"Origin": "http://localhost:8000"}).status_code == 200  # the dashboard itself
+
+
+def test_a_rebound_dns_name_is_not_this_service(client):
+    rebound = client.get("/health", headers={"Host": "attacker.example:8000"})
+    assert rebound.status_code == 403 and "attacker.example" in rebound.json()["detail"]
+    for host in ("127.0.0.1:8000", "[::1]:8000", "localhost", "192.168.1.20:8000"):
+        assert client.get("/health", headers={"Host": host}).status_code == 200, host
+
+
+def test_a_websocket_from_another_origin_is_refused(client):
+    from starlette.websockets import WebSocketDisconnect
+
+    with pytest.raises(WebSocketDisconnect) as refused:
+        with client.websocket_connect("ws://localhost/ws", headers={"Origin": "http://evil.example"}) as ws:
+            ws.receive_text()
+    assert refused.value.code == 1008
+    with client.websocket_connect("ws://localhost/ws?sensors=0", headers={"Origin": "http://localhost"}) as ws:
+        assert "frames" in ws.receive_text()
+
+
+def test_a_large_body_is_refused_before_it_is_read_or_parsed(client):
+    huge = b'{"sensitivity_pct_per_N": [' + b"1.0," * 400_000 + b"1.0]}"
+    response = client.put("/sensors/0/calibration", content=huge, headers={"Content-Type": "application/json"})
+    assert response.status_code == 413 and "1048576" in response.json()["detail"]
+
+
+def test_non_finite_json_is_a_422(client):
+    for text in (b"NaN", b'{"sensitivity_pct_per_N": [NaN]}', b'{"normal_fit": [Infinity, 1]}'):
+        response = client.put("/sensors/0/calibration", content=text, headers={"Content-Type": "application/json"})
+        assert response.status_code == 422 and "not JSON" in response.json()["detail"], text
+
+
+def test_the_token_is_checked_before_the_body_and_any_header_is_a_401():
+    service = TactileService("sim://?scene=idle")
+    with TestClient(create_app(service, token="s3cret"), base_url="http://localhost") as client:
+        big = client.put("/sensors/0/calibration", content=b"x" * (2 << 20), headers={"Content-Type": "application/json"})
+        assert big.status_code == 401  # not 413: nothing was read
+        for header in ("Bearer é", "Basic abc", "Bearer", "bearer s3cret"):
+            response = client.post("/tare", headers={"Authorization": header.encode("utf-8")})
+            assert response.status_code == 401, header
+        assert client.post("/tare", headers={"Authorization": "Bearer s3cret"}).status_code in (200, 409)
