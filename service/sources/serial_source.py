@@ -16,10 +16,14 @@ class SerialSource(Source):
         self.url = url
         handlers.register()
         try:
-            self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=0)
+            self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, do_not_open=True)
         except ValueError as exc:  # pyserial's word for an unknown URL scheme
             raise OSError(f"cannot open {url!r}: {exc}") from None
-        except serial.SerialException as exc:
+        try:
+            self._port.open()
+        except (serial.SerialException, OSError) as exc:
+            # pyserial's socket:// may fail after connecting (a peer that resets at once) and keep the socket.
+            self.close()
             raise OSError(f"cannot open {url!r}: {exc}") from None
 
     def _read_internal(self, timeout: float) -> bytes:
@@ -62,4 +66,12 @@ class SerialSource(Source):
             raise OSError(f"{self.url}: {exc}") from None
 
     def close(self) -> None:
+        sock = getattr(self._port, "_socket", None)
+        if sock is not None:
+            # pyserial's socket:// close() leaks the socket when shutdown() fails
+            # (a peer that reset) and then sleeps 0.3 s "for quick reconnects":
+            # close it here and tell pyserial it is closed.
+            sock.close()
+            self._port._socket = None
+            self._port.is_open = False
         self._port.close()
