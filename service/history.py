@@ -85,15 +85,23 @@ class History:
     def window(self, seconds: float, max_points: int) -> list[ForceFrame]:
         """Frames received in the last ``seconds`` before the newest one,
         evenly decimated to at most ``max_points``, oldest first."""
+        return self.frames_at(self.window_slots(seconds, max_points))
+
+    def window_slots(self, seconds: float, max_points: int) -> np.ndarray:
+        """The ring slots ``window`` returns, oldest first, shape (k,)."""
         n = len(self)
         if n == 0:
-            return []
+            return np.zeros(0, dtype=np.int64)
         order = (self._count - n + np.arange(n)) % self.capacity  # ring slots, oldest first
         stamps = self._t_host[order]
         first = int(np.searchsorted(stamps, stamps[-1] - seconds, side="left"))
         kept = order[first:]
         picks = np.unique(np.linspace(0, len(kept) - 1, min(max_points, len(kept))).round().astype(int))
-        return [self._frame(int(kept[p])) for p in picks]
+        return kept[picks]
+
+    def frames_at(self, slots: np.ndarray) -> list[ForceFrame]:
+        """Frames rebuilt from ring slots (copies: the ring goes on)."""
+        return [self._frame(int(i)) for i in slots]
 
     def _frame(self, i: int) -> ForceFrame:
         return ForceFrame(

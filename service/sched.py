@@ -21,6 +21,7 @@ import gc
 import os
 import platform
 import struct
+import sys
 from dataclasses import dataclass
 
 # struct sched_attr, first version (48 bytes): size, policy, flags, nice,
@@ -100,6 +101,13 @@ def request_slice(slice_us: int) -> SliceRequest:
     return SliceRequest(slice_us, granted, error)
 
 
+# How long a thread that wants the interpreter waits for one that runs
+# Python without pause (a history read, a replay, the built-in simulator)
+# before it must hand over: CPython's default is 5 ms, longer than the whole
+# 2 ms budget of a frame.
+SWITCH_INTERVAL_S = 0.0005
+
+
 def tune_for_latency(slice_us: int | None) -> SliceRequest:
     """Called once on the event loop's thread before the readout starts
     (threads started after it inherit the slice). What exists now (modules,
@@ -107,6 +115,7 @@ def tune_for_latency(slice_us: int | None) -> SliceRequest:
     full passes, which would otherwise stall the loop for tens of ms every
     few seconds at 8 kHz of frames."""
     gc.freeze()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     if slice_us:
         return request_slice(slice_us)
     return SliceRequest(None, current_slice_us())

@@ -64,3 +64,19 @@ def test_the_token_is_checked_before_the_body_and_any_header_is_a_401():
             response = client.post("/tare", headers={"Authorization": header.encode("utf-8")})
             assert response.status_code == 401, header
         assert client.post("/tare", headers={"Authorization": "Bearer s3cret"}).status_code in (200, 409)
+
+
+def test_history_reads_beyond_the_cap_are_told_to_retry(client):
+    gate = client.app.state.heavy_reads
+    held = [gate.acquire(blocking=False) for _ in range(2)]  # two long reads in flight
+    try:
+        busy = client.get("/sensors/0/history?seconds=5&max_points=5000")
+        assert busy.status_code == 429 and busy.headers["retry-after"] == "1"
+    finally:
+        for taken in held:
+            if taken:
+                gate.release()
+    frames = client.get("/sensors/0/history?seconds=1&max_points=250").json()
+    assert 1 <= len(frames) <= 250 and all(f["header"]["sensor_id"] == 0 for f in frames)
+    seqs = [f["header"]["seq"] for f in frames]
+    assert seqs == sorted(seqs)

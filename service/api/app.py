@@ -8,12 +8,20 @@ in the app's state.
 """
 from __future__ import annotations
 
+import threading
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
 
-from . import dashboard, routes_calibration, routes_health, routes_recording, routes_sensors, routes_stream
+from . import (
+    dashboard,
+    routes_calibration,
+    routes_health,
+    routes_recording,
+    routes_sensors,
+    routes_stream,
+)
 from .deps import JSONResponse
 from .guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 
@@ -40,6 +48,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
                   description="Calibrated forces from capacitive tactile sensors. See docs/api.md.")
     app.state.service = service
     app.state.token = token
+    app.state.heavy_reads = threading.BoundedSemaphore(routes_sensors.MAX_HEAVY_READS)
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
         app.include_router(routes.router)
     dashboard.add_dashboard(app)

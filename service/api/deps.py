@@ -18,9 +18,9 @@ from fastapi.responses import Response
 from ..fanout.encoding import DEFAULT_FIELDS, FIELDS
 
 if TYPE_CHECKING:
+    from ..live_service import TactileService
     from ..readings import SensorInfo
     from ..reconstruct import ForceFrame
-    from ..live_service import TactileService
 
 ALL_FIELDS = frozenset(FIELDS)
 

@@ -9,8 +9,8 @@ from .deps import JSONResponse, authorised, get_service, known_sensor
 from .schemas import GridCalibrationUpload, QuadCalibrationUpload
 
 if TYPE_CHECKING:
-    from ..readings import SensorInfo
     from ..live_service import TactileService
+    from ..readings import SensorInfo
 
 router = APIRouter(dependencies=[Depends(authorised)])
 

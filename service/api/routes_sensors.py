@@ -4,17 +4,28 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from fastapi import APIRouter, Depends, HTTPException, Query
+import orjson
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from ..fanout.encoding import FIELDS, to_json_dict
-from .deps import ALL_FIELDS, JSONResponse, get_service, known_sensor, latest_frame, parse_fields
+from .deps import (
+    ALL_FIELDS,
+    JSONResponse,
+    get_service,
+    known_sensor,
+    latest_frame,
+    parse_fields,
+)
 from .schemas import Contact, FrameMessage
 
 if TYPE_CHECKING:
-    from ..reconstruct import ForceFrame
     from ..live_service import TactileService
+    from ..reconstruct import ForceFrame
 
 router = APIRouter()
+
+MAX_HEAVY_READS = 2
+HISTORY_CHUNK = 100  # frames encoded at a time: orjson holds the interpreter for one call
 
 
 @router.get("/clients")
@@ -55,19 +66,40 @@ def contact(sensor_id: int, frame: ForceFrame = Depends(latest_frame)) -> JSONRe
     return JSONResponse(frame.contact)
 
 
-@router.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}})
+@router.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}, 429: {}})
 def history(
+    request: Request,
     sensor_id: int,
     seconds: float = Query(2.0, gt=0, le=5, description="window length back from the latest frame (5 s kept at 1 kHz)"),
     max_points: int = Query(200, ge=1, le=5000, description="decimate to at most this many frames"),
     fields: str = Query("force,contact,flags", description=f"comma-separated: {', '.join(FIELDS)}"),
     service: TactileService = Depends(get_service),
-) -> JSONResponse:
+) -> Response:
+    """Runs in a worker thread, at most ``MAX_HEAVY_READS`` at once (429
+    beyond), encoded in chunks: the event loop can take the interpreter
+    between them (sched.SWITCH_INTERVAL_S), so a history read never holds
+    up the live stream for long."""
     known_sensor(sensor_id, service)  # after the query is validated: a bad query is 422 for any sensor
     try:
         wanted = parse_fields(fields)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
-    history = service.pipeline.history.get(sensor_id)
-    frames = [] if history is None else history.window(seconds, max_points)
-    return JSONResponse([to_json_dict(frame, wanted) for frame in frames])
+    gate = request.app.state.heavy_reads
+    if not gate.acquire(blocking=False):
+        raise HTTPException(429, f"{MAX_HEAVY_READS} history reads are running; retry shortly", headers={"Retry-After": "1"})
+    try:
+        history = service.pipeline.history.get(sensor_id)
+        return Response(b"[]" if history is None else encode_history(history, seconds, max_points, wanted),
+                        media_type="application/json")
+    finally:
+        gate.release()
+
+
+def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
+    """A JSON list of frames, built ``HISTORY_CHUNK`` frames at a time."""
+    slots = history.window_slots(seconds, max_points)
+    parts = []
+    for start in range(0, len(slots), HISTORY_CHUNK):
+        frames = history.frames_at(slots[start:start + HISTORY_CHUNK])
+        parts.append(orjson.dumps([to_json_dict(f, wanted) for f in frames], option=orjson.OPT_SERIALIZE_NUMPY)[1:-1])
+    return b"[" + b",".join(parts) + b"]"

@@ -1,0 +1,96 @@
+"""History storm: many clients polling /history while the 1 kHz path runs (a script, not a unit test).
+
+    python scripts/historystorm.py --clients 20 --hz 5 --seconds 20
+
+Starts `tactile serve` on loopback (built-in simulator: one 8x8 grid and one
+quad at 1 kHz), lets it settle, then runs ``--clients`` threads each asking
+``GET /sensors/0/history?seconds=5&max_points=5000`` ``--hz`` times a second
+for ``--seconds``. Reports the service's own published latency (receive
+stamp → reconstructed and handed to the listeners; /health, its last 2 000
+frames) before and at the end of the storm, and how the reads were answered.
+Only loopback is used; every loop is bounded in time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections import Counter
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def get(url: str, timeout: float = 10.0) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=timeout) as response:
+            return response.status, response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read()
+
+
+def published(base: str) -> dict:
+    return json.loads(get(f"{base}/health")[1])["latency"]["published"]
+
+
+def poll(base: str, hz: float, until: float, answers: Counter, lock: threading.Lock) -> None:
+    url = f"{base}/sensors/0/history?seconds=5&max_points=5000"
+    next_due = time.monotonic()
+    while next_due < until:
+        status, _ = get(url)
+        with lock:
+            answers[status] += 1
+        next_due += 1.0 / hz
+        time.sleep(max(0.0, next_due - time.monotonic()))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--clients", type=int, default=20)
+    parser.add_argument("--hz", type=float, default=5.0)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    args = parser.parse_args()
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            try:
+                if published(base)["samples"] > 6000:  # 3 s of frames: the window is full and tared
+                    break
+            except (OSError, KeyError, ValueError):
+                pass
+            time.sleep(0.2)
+        quiet = published(base)
+        answers: Counter = Counter()
+        lock = threading.Lock()
+        until = time.monotonic() + args.seconds
+        threads = [threading.Thread(target=poll, args=(base, args.hz, until, answers, lock), daemon=True)
+                   for _ in range(args.clients)]
+        for thread in threads:
+            thread.start()
+        time.sleep(args.seconds - 2.0)  # the last 2 000 frames (2 s at 1 kHz of the grid) fall inside the storm
+        storm = published(base)
+        for thread in threads:
+            thread.join(30)
+    finally:
+        server.terminate()
+        server.wait(10)
+    print(json.dumps({"quiet_published": quiet, "storm_published": storm, "answers": dict(answers),
+                      "clients": args.clients, "hz": args.hz, "seconds": args.seconds}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
