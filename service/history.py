@@ -15,6 +15,8 @@ import numpy as np
 from .readings import SensorInfo
 from .reconstruct import ForceFrame
 
+# Distinct flag sets seen (a few dozen at most: frame flags are a fixed vocabulary).
+_FLAG_SETS: dict[tuple[str, ...], tuple[str, ...]] = {}
 DEFAULT_BUDGET_BYTES = 256 << 20
 DEFAULT_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5.5 MB for an 8x8 grid)
 
@@ -78,7 +80,8 @@ class History:
         self._raw[i] = frame.capacitance_pF
         if self._taxel_flags is not None:
             self._taxel_flags[i] = 0 if frame.taxel_flags is None else frame.taxel_flags
-        self._flags[i] = tuple(frame.flags)
+        flags = tuple(frame.flags)
+        self._flags[i] = _FLAG_SETS.setdefault(flags, flags)  # one tuple per distinct set of flags, not per frame
         self._levels[i] = frame.level
         self._count += 1
 
