@@ -80,3 +80,10 @@ def test_history_reads_beyond_the_cap_are_told_to_retry(client):
     assert 1 <= len(frames) <= 250 and all(f["header"]["sensor_id"] == 0 for f in frames)
     seqs = [f["header"]["seq"] for f in frames]
     assert seqs == sorted(seqs)
+
+
+def test_a_subscription_to_sensors_the_board_has_not_announced_is_told_so(client):
+    with client.websocket_connect("ws://localhost/ws?sensors=0,99") as ws:
+        notice = ws.receive_json()
+        assert notice == {"type": "notice", "detail": "sensors 99 are not known (yet); known: 0, 1"}
+        assert ws.receive_json()["type"] == "frames"  # sensor 0 streams all the same

@@ -63,6 +63,7 @@ class StreamSession:
         except ValueError as exc:
             await self.reject(str(exc))
             return
+        await self.tell_unknown_sensors()
         self.service.hub.add(self.subscriber)
         try:
             async with anyio.create_task_group() as group:
@@ -70,6 +71,16 @@ class StreamSession:
                 group.start_soon(self._until_either_ends, group, "receiver", self.receive_until_disconnected)
         finally:
             self.service.hub.remove(self.subscriber)
+
+    async def tell_unknown_sensors(self) -> None:
+        """Sensors asked for that the board has not announced: a notice, not a
+        refusal (a board that connects later may announce them)."""
+        known = self.service.pipeline.interpreter.sensors
+        unknown = sorted((self.subscriber.sensors or frozenset()) - set(known))
+        if unknown:
+            detail = (f"sensors {', '.join(map(str, unknown))} are not known (yet); known: "
+                      f"{', '.join(map(str, sorted(known))) or 'none yet'}")
+            await self.websocket.send_text(orjson.dumps({"type": "notice", "detail": detail}).decode())
 
     async def reject(self, detail: str) -> None:
         await self.websocket.send_text(orjson.dumps({"type": "error", "detail": detail}).decode())
