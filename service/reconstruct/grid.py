@@ -13,6 +13,19 @@ Every level flags per taxel: no reading, saturated, out of range; ``full``
 adds crosstalk-corrected and drift-suspect; a channel stuck at the same
 count for STUCK_FRAMES frames is flagged stale. Inputs are capacitances in
 pF, shape (n,) per frame or (N, n) per batch, and the sensor's baseline (n,).
+
+``out_of_range`` has two meanings, told apart by the value: force 0 for a
+ΔC/C0 below −5σ (a compressive taxel cannot pull; noise or drift), force
+null (NaN) for an implausible reading, at every level — one outside
+
+    0.5·C0 ≤ C ≤ (1 + r_top)·1.5·C0
+
+with C0 the taxel's tared baseline and r_top the model table's top ΔC/C0
+(0.785, where the gap would close by half): ΔC/C0 outside [−0.5, 1.68].
+See level0.py for the reasoning and the figures. At ``full`` an implausible
+channel is treated like a missing one before any compensation: the
+leakage filter takes its baseline in its place and mechanical unmixing 0,
+so it moves none of its neighbours.
 """
 from __future__ import annotations
 
@@ -22,7 +35,7 @@ from itertools import accumulate
 import numpy as np
 
 from ..physics.paper_data import GridCalibration
-from ..physics.taxel_response import TaxelResponse
+from ..physics.taxel_response import TaxelResponse, table_top
 from . import level0
 from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
@@ -62,6 +75,7 @@ class GridProcessor:
     level: str
     calibration: GridCalibration
     response: TaxelResponse | None = None
+    top_relative: float | None = None  # largest ΔC/C0 the model explains; default: the response's table top
     crosstalk: Crosstalk | None = None
     drift: DriftTracker = field(default_factory=DriftTracker)
     estimator: CrosstalkEstimator | None = None
@@ -81,6 +95,9 @@ class GridProcessor:
             raise ValueError(f"unknown grid level {self.level!r}; known: {', '.join(GRID_LEVELS)}")
         if self.level != "level0" and self.response is None:
             raise ValueError(f"level {self.level!r} needs a taxel response table")
+        if self.top_relative is None:
+            self.top_relative = self.response.top if self.response is not None else table_top()
+        self.plausible = level0.plausible_relative(self.top_relative)
         if self.level == "full":
             self.crosstalk = self.crosstalk or Crosstalk(self.calibration.rows, self.calibration.cols)
             self.estimator = self.estimator or CrosstalkEstimator(self.calibration.rows, self.calibration.cols)
@@ -88,6 +105,32 @@ class GridProcessor:
     def reset(self) -> None:
         """Forget tracked state (after a tare)."""
         self.drift.reset()
+
+    def checkpoint(self) -> tuple:
+        """What processing a batch advances (stuck counters, drift, frame
+        count, sampled frames, estimator sums, adopted coefficients), for
+        ``rollback`` after a failed call of several sensors. References and
+        scalars only: every array here is replaced when it changes, never
+        written in place, so this costs a few attribute reads."""
+        drift, estimator, crosstalk = self.drift, self.estimator, self.crosstalk
+        state = (self._last_raw, self._same_count, self._frames_seen, self._sampled, len(self._sampled),
+                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since)
+        if estimator is None:
+            return state
+        slopes = tuple((s, s.xy, s.xx, s.events) for s in (estimator.mechanical, estimator.electrical))
+        return state + (slopes, crosstalk.electrical, crosstalk.mechanical, crosstalk._unmix)
+
+    def rollback(self, checkpoint: tuple) -> None:
+        """Back to a ``checkpoint`` taken before a batch."""
+        (self._last_raw, self._same_count, self._frames_seen, sampled, length, self.adopted_events,
+         self.drift.drift, self.drift._last_t, self.drift._frozen_since) = checkpoint[:9]
+        del sampled[length:]
+        self._sampled = sampled
+        if len(checkpoint) > 9:
+            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[9:]
+            for slope, xy, xx, events in slopes:
+                slope.xy, slope.xx, slope.events = xy, xx, events
+            self.estimator.mechanical, self.estimator.electrical = (slope for slope, _, _, _ in slopes)
 
     def noise(self, baseline_pF: np.ndarray, baseline_std_pF: np.ndarray) -> np.ndarray:
         """Noise of ΔC/C0 per taxel from the tare window's spread. The
@@ -127,10 +170,15 @@ class GridProcessor:
         if self.level == "full":
             return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
         flags = self._reading_flags(capacitance, baseline_std)
-        if self.level == "level0":
-            return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags)
+        relative = level0.relative_change(capacitance, baseline)
+        implausible = level0.implausible(relative, *self.plausible)
+        if implausible is not None:  # no force, flagged
+            relative = np.where(implausible, np.nan, relative)
+            np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+        if self.level == "level0":  # level0.grid_forces, on the checked ΔC/C0
+            return GridResult(relative / self.calibration.sensitivity_per_N, flags)
         noise = self.noise(baseline, baseline_std)
-        forces, saturated, out_of_range = self.response.inverse(level0.relative_change(capacitance, baseline), noise)
+        forces, saturated, out_of_range = self.response.inverse(relative, noise)
         np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
         np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
         return GridResult(forces, flags)
@@ -291,11 +339,30 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     for (p, job, sl), r in zip(pieces, rows):
         if p._noisy_board(job.baseline_std):
             np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
-    if any(p.crosstalk.electrical for p, _, _ in pieces):
-        unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
-        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
+    # Implausible readings (level0.py) are made missing before any
+    # compensation, so they move none of their neighbours. Without leakage
+    # the reference is the baseline itself and the test reuses the ratio.
+    if all(p.plausible == first.plausible for p, _, _ in pieces):
+        low, high = first.plausible
+    else:
+        low, high = (np.repeat([p.plausible[i] for p, _, _ in pieces], counts)[:, None] for i in (0, 1))
+    leaky = any(p.crosstalk.electrical for p, _, _ in pieces)
+    if leaky:
+        implausible = level0.implausible(capacitance / baseline, low + 1.0, high + 1.0)
     else:
         ratio = capacitance / reference
+        implausible = level0.implausible(ratio, low + 1.0, high + 1.0)
+    if implausible is not None:
+        capacitance = np.where(implausible, np.nan, capacitance)
+        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+        if not leaky:
+            ratio = np.where(implausible, np.nan, ratio)
+    if leaky:
+        if implausible is None:
+            unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
+        else:
+            unleaked = [p.crosstalk.unleak(capacitance[r], job.baseline) for (p, job, _), r in zip(pieces, rows)]
+        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
     medians, enough = quiet_medians(ratio - 1.0, band)
     drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
     for (p, _, _), r in zip(pieces, rows):
@@ -313,7 +380,7 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     uncompensated = capacitance / (baseline * scale) - 1.0
     np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise)
     if np.count_nonzero(suspect):
-        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & NO_READING == 0))
+        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & (NO_READING | OUT_OF_RANGE) == 0))
     if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
         forces, saturated, out_of_range = first.response.inverse(compensated, noise, gain)
     else:
