@@ -35,7 +35,7 @@ from itertools import accumulate
 import numpy as np
 
 from ..physics.paper_data import GridCalibration
-from ..physics.taxel_response import TaxelResponse, table_top
+from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS, TaxelResponse, table_top
 from . import level0
 from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
@@ -83,6 +83,7 @@ class GridProcessor:
     _same_count: np.ndarray | None = None
     _noise_for: tuple | None = None
     _noisy_for: tuple | None = None
+    _low_flagged_for: tuple | None = None
     _reference_for: tuple | None = None
     _parameters_for: tuple | None = None
     _stacked_for: tuple | None = None
@@ -98,6 +99,8 @@ class GridProcessor:
         if self.top_relative is None:
             self.top_relative = self.response.top if self.response is not None else table_top()
         self.plausible = level0.plausible_relative(self.top_relative)
+        self._bounds = level0.bounds(*self.plausible)
+        self._ratio_bounds = level0.bounds(self.plausible[0] + 1.0, self.plausible[1] + 1.0)
         if self.level == "full":
             self.crosstalk = self.crosstalk or Crosstalk(self.calibration.rows, self.calibration.cols)
             self.estimator = self.estimator or CrosstalkEstimator(self.calibration.rows, self.calibration.cols)
@@ -171,17 +174,33 @@ class GridProcessor:
             return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
         flags = self._reading_flags(capacitance, baseline_std)
         relative = level0.relative_change(capacitance, baseline)
-        implausible = level0.implausible(relative, *self.plausible)
-        if implausible is not None:  # no force, flagged
-            relative = np.where(implausible, np.nan, relative)
-            np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
         if self.level == "level0":  # level0.grid_forces, on the checked ΔC/C0
+            implausible = level0.implausible(relative, *self._bounds)
+            if implausible is not None:  # no force, flagged
+                relative = np.where(implausible, np.nan, relative)
+                np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
             return GridResult(relative / self.calibration.sensitivity_per_N, flags)
         noise = self.noise(baseline, baseline_std)
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
-        np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
-        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
+        # Taxel by taxel, so an implausible reading is set aside afterwards.
+        # It lies above the table's top (saturated) or below −5σ (out of
+        # range) — unless the tare was absurdly noisy — so a frame with
+        # neither needs no test: the usual frame costs two counts.
+        if np.count_nonzero(saturated) or np.count_nonzero(out_of_range) or not self._low_flagged(noise):
+            np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
+            np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
+            implausible = level0.implausible(relative, *self._bounds)
+            if implausible is not None:  # no force, flagged out of range (not saturated)
+                forces[implausible] = np.nan
+                flags[implausible] = (flags[implausible] & ~np.uint8(SATURATED)) | OUT_OF_RANGE
         return GridResult(forces, flags)
+
+    def _low_flagged(self, noise: np.ndarray) -> bool:
+        """Whether every implausibly low ΔC/C0 is also below −5σ (flagged out
+        of range by the inversion); once per tare."""
+        if self._low_flagged_for is None or self._low_flagged_for[0] is not noise:
+            self._low_flagged_for = (noise, bool(np.all(OUT_OF_RANGE_SIGMAS * noise < -self.plausible[0])))
+        return self._low_flagged_for[1]
 
     def _reading_flags(self, capacitance: np.ndarray, baseline_std: np.ndarray) -> np.ndarray:
         """No-reading and stale bits of (N, n) frames. Flags are set with
@@ -342,16 +361,16 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     # Implausible readings (level0.py) are made missing before any
     # compensation, so they move none of their neighbours. Without leakage
     # the reference is the baseline itself and the test reuses the ratio.
-    if all(p.plausible == first.plausible for p, _, _ in pieces):
-        low, high = first.plausible
+    if len(pieces) == 1 or len({p.plausible for p, _, _ in pieces}) == 1:
+        low, high = first._ratio_bounds
     else:
-        low, high = (np.repeat([p.plausible[i] for p, _, _ in pieces], counts)[:, None] for i in (0, 1))
+        low, high = (np.repeat([p.plausible[i] + 1.0 for p, _, _ in pieces], counts)[:, None] for i in (0, 1))
     leaky = any(p.crosstalk.electrical for p, _, _ in pieces)
     if leaky:
-        implausible = level0.implausible(capacitance / baseline, low + 1.0, high + 1.0)
+        implausible = level0.implausible(capacitance / baseline, low, high)
     else:
         ratio = capacitance / reference
-        implausible = level0.implausible(ratio, low + 1.0, high + 1.0)
+        implausible = level0.implausible(ratio, low, high)
     if implausible is not None:
         capacitance = np.where(implausible, np.nan, capacitance)
         np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)

@@ -78,15 +78,17 @@ def tare_window_pF(nominal_c0_pF: np.ndarray, top_relative: float) -> tuple[np.n
 
 
 def implausible(relative: np.ndarray, low, high) -> np.ndarray | None:
-    """Mask of ΔC/C0 outside [low, high] (scalars, or arrays broadcasting
-    against ``relative``), or None when there is none — the usual case, two
-    reductions (NaN falls through to the full test, where it compares False)."""
-    if not relative.size:
-        return None
-    if np.ndim(low) == 0 and np.ndim(high) == 0 and relative.min() >= low and relative.max() <= high:
-        return None
+    """Mask of ΔC/C0 outside [low, high], or None when there is none (NaN
+    compares False: a missing reading is not implausible). The bounds may be
+    arrays broadcasting against ``relative``; as 0-d arrays (``bounds``) the
+    comparisons take numpy's fast path — this runs on every frame."""
     mask = (relative < low) | (relative > high)
     return mask if np.count_nonzero(mask) else None
+
+
+def bounds(low: float, high: float) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds as 0-d arrays, for ``implausible``."""
+    return np.array(float(low)), np.array(float(high))
 
 
 def relative_change(capacitance_pF: np.ndarray, baseline_pF: np.ndarray) -> np.ndarray:

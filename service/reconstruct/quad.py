@@ -20,14 +20,15 @@ from dataclasses import astuple, dataclass, field
 
 import numpy as np
 
+from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N
 from ..physics.quad_model import QuadModel
 from .baseline import NOISE_FLOOR_PF
-from .level0 import implausible, plausible_relative, quad_axes, relative_change
-from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N
+from .level0 import bounds, implausible, plausible_relative, quad_axes, relative_change
 
 QUAD_LEVELS = ("level0", "table", "full")
 FAULT_SIGMAS = 8.0
 FAULT_RELATIVE = 0.05  # model mismatch allowed in R, as a share of |Z|
+_LEVEL0_SLOPES = np.array([QUAD_SHEAR_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, QUAD_NORMAL_SLOPE_PER_N])
 
 
 @dataclass
@@ -44,6 +45,7 @@ class QuadProcessor:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
         self.batch_key = (self.level, astuple(self.model))
         self.plausible = plausible_relative(self.model.top_relative)
+        self._bounds = bounds(*self.plausible)
 
     def noise(self, baseline: np.ndarray, baseline_std: np.ndarray) -> float:
         """Noise of the combinations' ΔC/C0 from the tare spread (once per tare)."""
@@ -55,12 +57,12 @@ class QuadProcessor:
         """Capacitances (N, 4) pF against baselines (4,) or (N, 4) with the
         combinations' noise (scalar or (N,)) → forces (N, 3) and each frame's flags."""
         relative = relative_change(capacitance, baseline)
-        bad = implausible(relative, *self.plausible)
+        bad = implausible(relative, *self._bounds)
         if bad is not None:  # a frame with an implausible electrode has no force
             frames = bad.any(axis=-1)
             relative = np.where(frames[..., None], np.nan, relative)
         if self.level == "level0":  # level0.quad_forces, on the checked ΔC/C0
-            forces = quad_axes(relative) / np.array([QUAD_SHEAR_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, QUAD_NORMAL_SLOPE_PER_N])
+            forces = quad_axes(relative) / _LEVEL0_SLOPES
             if bad is None:
                 return forces, [[] for _ in range(len(capacitance))]
             return forces, [["out_of_range"] if hit else [] for hit in frames.tolist()]

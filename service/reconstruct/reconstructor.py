@@ -295,25 +295,30 @@ class Reconstructor:
                 place(indices, frames)
         for batch in quads.values():
             members = [(state, [items[i][1] for i in indices]) for state, indices in batch]
-            for (_, indices), frames in zip(batch, self._isolated_quads(members)):
-                place(indices, frames)
+            place((i for _, indices in batch for i in indices), self._isolated_quads(members))
         return out
 
     def _isolated_grids(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
         """Tared grids' frames per sensor. At ``full`` they go through one
         call; if it raises, every processor is rolled back and each sensor
         runs alone, so the culprit's frames come out null and flagged and the
-        others' exactly as without it. Below ``full`` each runs alone anyway."""
-        together = [m for m in members if m[0].info.id not in self._failing] if self.level == "full" else []
+        others' exactly as without it. Below ``full`` each sensor is its own
+        call anyway, isolated where it is made."""
+        if self.level != "full":
+            return self._reconstruct_grids(members, isolated=True)
+        together = [m for m in members if m[0].info.id not in self._failing] if self._failing else members
         results: dict[int, list[ForceFrame]] = {}
         if len(together) > 1:
             checkpoints = [state.processor.checkpoint() for state, _ in together]
             try:
-                for (state, _), frames in zip(together, self._reconstruct_grids(together)):
-                    results[id(state)] = frames
+                frames = self._reconstruct_grids(together)
             except Exception:  # noqa: BLE001 — find the culprit below
                 for (state, _), checkpoint in zip(together, checkpoints):
                     state.processor.rollback(checkpoint)
+            else:
+                if len(together) == len(members):  # the usual case
+                    return frames
+                results = {id(state): f for (state, _), f in zip(together, frames)}
         out = []
         for member in members:
             frames = results.get(id(member[0]))
@@ -322,15 +327,15 @@ class Reconstructor:
             out.append(frames)
         return out
 
-    def _isolated_quads(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
-        """Quads sharing a model, frames per sensor: one call, or each alone
-        if it raises (a quad processor keeps no state but caches)."""
+    def _isolated_quads(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[ForceFrame]:
+        """Quads sharing a model, their frames in member order: one call, or
+        each alone if it raises (a quad processor keeps no state but caches)."""
         if len(members) > 1:
             try:
                 return self._reconstruct_quads(members)
             except Exception:  # noqa: BLE001 — find the culprit below
                 pass
-        return [self._alone(member, lambda m: self._reconstruct_quads([m])[0]) for member in members]
+        return [frame for member in members for frame in self._alone(member, lambda m: self._reconstruct_quads([m]))]
 
     def _alone(self, member: tuple[_SensorState, list[Reading]], run) -> list[ForceFrame]:
         state, readings = member
@@ -345,36 +350,58 @@ class Reconstructor:
         forces = np.full((len(readings), 3 if state.info.kind == "quad" else state.info.channels), np.nan)
         return self._frames(readings, forces, [r.frame_flags() + ["taring"] for r in readings], None)
 
-    def _reconstruct_grids(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
-        """Tared grids, each with its readings; frames per sensor."""
-        jobs = [GridJob(state.processor, np.stack([r.capacitance_pF for r in rs]), state.baseline.value, state.baseline.std,
-                        np.array([r.t_us * 1e-6 for r in rs])) for state, rs in members]
+    def _reconstruct_grids(self, members: list[tuple[_SensorState, list[Reading]]],
+                           isolated: bool = False) -> list[list[ForceFrame]]:
+        """Tared grids, each with its readings; frames per sensor. Below
+        ``full`` each sensor is processed on its own; ``isolated`` then turns
+        a sensor's exception into its null, flagged frames."""
         if self.level == "full":
-            results = process_full(jobs)
-        else:
-            results = [job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s) for job in jobs]
+            jobs = [GridJob(state.processor, np.stack([r.capacitance_pF for r in rs]), state.baseline.value,
+                            state.baseline.std, np.array([r.t_us * 1e-6 for r in rs])) for state, rs in members]
+            return [self._grid_frames(rs, result) for (_, rs), result in zip(members, process_full(jobs))]
         out = []
-        for (_, rs), result in zip(members, results):
-            flags = [r.frame_flags() for r in rs]
-            union = np.bitwise_or.reduce(result.taxel_flags, axis=1) & ~np.uint8(NO_READING)
-            if np.count_nonzero(union):
-                for f, bits in zip(flags, union.tolist()):
-                    f.extend(flag_names(bits))
-            out.append(self._frames(rs, result.forces_N, flags, result.taxel_flags))
+        for state, rs in members:
+            if not isolated:
+                out.append(self._grid_frames(rs, self._process_grid(state, rs)))
+                continue
+            try:
+                frames = self._grid_frames(rs, self._process_grid(state, rs))
+            except Exception as exc:  # noqa: BLE001 — isolated: null frames, counted, logged at most once a minute
+                frames = self._error_frames(state.info, rs, exc)
+            else:
+                if self._failing:
+                    self._failing.discard(state.info.id)
+            out.append(frames)
         return out
 
-    def _reconstruct_quads(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
-        """Tared quads sharing one model, each with its readings; frames per sensor."""
+    @staticmethod
+    def _job(state: _SensorState, readings: list[Reading]) -> GridJob:
+        return GridJob(state.processor, np.stack([r.capacitance_pF for r in readings]), state.baseline.value,
+                       state.baseline.std, np.array([r.t_us * 1e-6 for r in readings]))
+
+    def _process_grid(self, state: _SensorState, readings: list[Reading]):
+        job = self._job(state, readings)
+        return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s)
+
+    def _grid_frames(self, readings: list[Reading], result) -> list[ForceFrame]:
+        flags = [r.frame_flags() for r in readings]
+        union = np.bitwise_or.reduce(result.taxel_flags, axis=1) & ~np.uint8(NO_READING)
+        if np.count_nonzero(union):
+            for f, bits in zip(flags, union.tolist()):
+                f.extend(flag_names(bits))
+        return self._frames(readings, result.forces_N, flags, result.taxel_flags)
+
+    def _reconstruct_quads(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[ForceFrame]:
+        """Tared quads sharing one model, each with its readings; their
+        frames in member order."""
         counts = [len(rs) for _, rs in members]
-        readings = [r for _, rs in members for r in rs]
+        readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
         capacitance = np.stack([r.capacitance_pF for r in readings])
         baseline = np.repeat(np.stack([state.baseline.value for state, _ in members]), counts, axis=0)
         noise = np.repeat([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in members], counts)
         forces, quad_flags = members[0][0].processor.process(capacitance, baseline, noise)
         flags = [r.frame_flags() + extra for r, extra in zip(readings, quad_flags)]
-        frames = self._frames(readings, forces, flags, None)
-        bounds = np.cumsum([0] + counts).tolist()
-        return [frames[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+        return self._frames(readings, forces, flags, None)
 
     def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None) -> list[ForceFrame]:
         if taxel_flags is None:
