@@ -402,3 +402,18 @@ def test_a_rolled_back_grid_processor_continues_as_if_the_batch_never_ran():
     np.testing.assert_array_equal(got.taxel_flags, expected.taxel_flags)
     assert processor.crosstalk.electrical == reference.crosstalk.electrical
     assert processor.adopted_events == reference.adopted_events
+
+
+def test_an_implausible_reading_is_caught_at_table_level_even_after_a_noisy_tare():
+    """The table level tests only frames its inversion flagged, which covers
+    every implausibly low reading unless 5σ exceeds the 50 % floor."""
+    rec = Reconstructor(tare_frames=20, level="table")
+    c0 = table1().c0_pF
+    rng = np.random.default_rng(8)
+    for seq in range(20):  # a 15 % spread: 5σ = 0.75 in ΔC/C0
+        rec.process(reading(GRID, c0 * (1 + rng.normal(0, 0.15, 64)), seq))
+    counts = rec.baseline(0).copy()
+    counts[7] *= 0.45  # ΔC/C0 = −0.55: implausible, yet within 5σ
+    (frame,) = rec.process(reading(GRID, counts, 20))
+    assert np.isnan(frame.forces_N[7]) and 7 in frame.taxel_flag_lists()["out_of_range"]
+    assert np.isfinite(np.delete(frame.forces_N, 7)).all()
