@@ -18,6 +18,14 @@ The inverse F = R⁻¹(r)/κ is monotone interpolation (PCHIP resampled to a
 dense grid). Above the table's top (gap closure) the force is held at the
 top and flagged saturated; a compressive sensor cannot pull, so a negative
 ΔC/C0 gives zero force, flagged out of range when it exceeds 5× the noise.
+
+An uploaded calibration (per-taxel sensitivity, %/N) must be finite and
+within SENSITIVITY_RANGE_PCT_PER_N = (0.1, 10) %/N (table 1: 1.22–1.27), and
+the response built from it must pass ``check``: the forward model on a dense
+grid over [0, max_force_N] finite and strictly increasing per taxel, and the
+inverse giving those forces back within ROUND_TRIP_TOLERANCE_N = 0.002 N
+(a quarter of the noise floor; the PCHIP inverse of the linear-interpolated
+table differs from it by < 0.0004 N).
 """
 from __future__ import annotations
 
@@ -33,6 +41,9 @@ from .paper_data import GridCalibration
 DENSE_POINTS = 4096
 OUT_OF_RANGE_SIGMAS = 5.0  # 3σ would flag ~1 taxel-frame in 700 on noise alone
 SENSITIVITY_FORCES_N = np.arange(0.0, 11.0)
+SENSITIVITY_RANGE_PCT_PER_N = (0.1, 10.0)  # plausible per-taxel sensitivity of an upload
+ROUND_TRIP_TOLERANCE_N = 0.002
+CHECK_POINTS = 1025
 
 
 def _ls_slope(forces: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -65,6 +76,26 @@ class TaxelResponse:
             scaled = np.interp(np.outer(gain, SENSITIVITY_FORCES_N), force_N, relative)
             gain = gain * sensitivity / _ls_slope(SENSITIVITY_FORCES_N, scaled)
         return cls(force_N, relative, gain)
+
+    def check(self) -> None:
+        """ValueError unless every taxel's forward model is finite and
+        strictly increasing over [0, max_force_N] and the inverse gives the
+        forces back within ROUND_TRIP_TOLERANCE_N."""
+        with np.errstate(all="ignore"):
+            limit = self.max_force_N
+            force = np.linspace(0.0, 1.0, CHECK_POINTS)[:, None] * limit[None, :]
+            relative = self.forward(force)
+            monotone = np.isfinite(limit) & np.isfinite(relative).all(axis=0) & np.all(np.diff(relative, axis=0) > 0, axis=0)
+            back, _, _ = self.inverse(relative)
+            error = np.abs(back - force)
+            exact = np.all(error <= ROUND_TRIP_TOLERANCE_N, axis=0)
+        if not monotone.all():
+            bad = int(np.flatnonzero(~monotone)[0])
+            raise ValueError(f"taxel {bad}: the response is not finite and strictly increasing over its range")
+        if not exact.all():
+            bad = int(np.flatnonzero(~exact)[0])
+            raise ValueError(f"taxel {bad}: the inverse does not give the forces back "
+                             f"(error {np.nanmax(error[:, bad], initial=np.inf):.3g} N)")
 
     @property
     def top(self) -> float:
@@ -115,6 +146,14 @@ def _table(shape: str):
     from .tables import TableSpec, load
 
     return load(TableSpec(shape))
+
+
+def table_top(mounting: str = "flat") -> float:
+    """ΔC/C0 at the end of the mounting's model table (where the gap would
+    close by half): the largest change the model explains."""
+    if mounting not in MOUNTINGS:
+        raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
+    return float(_table(MOUNTINGS[mounting]).relative_change[-1])
 
 
 def taxel_response(calibration: GridCalibration, mounting: str = "flat") -> TaxelResponse:

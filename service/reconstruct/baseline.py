@@ -17,12 +17,18 @@ class Baseline:
     The sensor must be unloaded while it tares: a load present then becomes
     the new zero (the price of auto-tare; a later tare with the sensor free
     corrects it).
+
+    ``window`` ((channels,) low and high pF, level0.tare_window_pF): a
+    reading outside it is implausible (1 aF, the converter's top count) and,
+    like a sentinel, takes no part in the mean; None accepts every reading.
     """
 
-    def __init__(self, channels: int, frames: int = DEFAULT_TARE_FRAMES) -> None:
+    def __init__(self, channels: int, frames: int = DEFAULT_TARE_FRAMES,
+                 window: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if frames < 1:
             raise ValueError(f"tare needs at least 1 frame, got frames={frames}")
         self.frames = frames
+        self.window = window
         self._sum = np.zeros(channels)
         self._sum_sq = np.zeros(channels)
         self._count = np.zeros(channels, dtype=np.int64)
@@ -68,7 +74,10 @@ class Baseline:
         return self.ready
 
     def _accumulate(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> None:
-        valid = channels & ~np.isnan(capacitance_pF)
+        if self.window is None:
+            valid = channels & ~np.isnan(capacitance_pF)
+        else:  # NaN compares False: a sentinel is left out as before
+            valid = channels & (capacitance_pF >= self.window[0]) & (capacitance_pF <= self.window[1])
         self._sum[valid] += capacitance_pF[valid]
         self._sum_sq[valid] += capacitance_pF[valid] ** 2
         self._count += valid

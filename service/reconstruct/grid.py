@@ -13,6 +13,19 @@ Every level flags per taxel: no reading, saturated, out of range; ``full``
 adds crosstalk-corrected and drift-suspect; a channel stuck at the same
 count for STUCK_FRAMES frames is flagged stale. Inputs are capacitances in
 pF, shape (n,) per frame or (N, n) per batch, and the sensor's baseline (n,).
+
+``out_of_range`` has two meanings, told apart by the value: force 0 for a
+ΔC/C0 below −5σ (a compressive taxel cannot pull; noise or drift), force
+null (NaN) for an implausible reading, at every level — one outside
+
+    0.5·C0 ≤ C ≤ (1 + r_top)·1.5·C0
+
+with C0 the taxel's tared baseline and r_top the model table's top ΔC/C0
+(0.785, where the gap would close by half): ΔC/C0 outside [−0.5, 1.68].
+See level0.py for the reasoning and the figures. At ``full`` an implausible
+channel is treated like a missing one before any compensation: the
+leakage filter takes its baseline in its place and mechanical unmixing 0,
+so it moves none of its neighbours.
 """
 from __future__ import annotations
 
@@ -22,7 +35,7 @@ from itertools import accumulate
 import numpy as np
 
 from ..physics.paper_data import GridCalibration
-from ..physics.taxel_response import TaxelResponse
+from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS, TaxelResponse, table_top
 from . import level0
 from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
@@ -62,6 +75,7 @@ class GridProcessor:
     level: str
     calibration: GridCalibration
     response: TaxelResponse | None = None
+    top_relative: float | None = None  # largest ΔC/C0 the model explains; default: the response's table top
     crosstalk: Crosstalk | None = None
     drift: DriftTracker = field(default_factory=DriftTracker)
     estimator: CrosstalkEstimator | None = None
@@ -69,6 +83,7 @@ class GridProcessor:
     _same_count: np.ndarray | None = None
     _noise_for: tuple | None = None
     _noisy_for: tuple | None = None
+    _low_flagged_for: tuple | None = None
     _reference_for: tuple | None = None
     _parameters_for: tuple | None = None
     _stacked_for: tuple | None = None
@@ -81,6 +96,11 @@ class GridProcessor:
             raise ValueError(f"unknown grid level {self.level!r}; known: {', '.join(GRID_LEVELS)}")
         if self.level != "level0" and self.response is None:
             raise ValueError(f"level {self.level!r} needs a taxel response table")
+        if self.top_relative is None:
+            self.top_relative = self.response.top if self.response is not None else table_top()
+        self.plausible = level0.plausible_relative(self.top_relative)
+        self._bounds = level0.bounds(*self.plausible)
+        self._ratio_bounds = level0.bounds(self.plausible[0] + 1.0, self.plausible[1] + 1.0)
         if self.level == "full":
             self.crosstalk = self.crosstalk or Crosstalk(self.calibration.rows, self.calibration.cols)
             self.estimator = self.estimator or CrosstalkEstimator(self.calibration.rows, self.calibration.cols)
@@ -88,6 +108,32 @@ class GridProcessor:
     def reset(self) -> None:
         """Forget tracked state (after a tare)."""
         self.drift.reset()
+
+    def checkpoint(self) -> tuple:
+        """What processing a batch advances (stuck counters, drift, frame
+        count, sampled frames, estimator sums, adopted coefficients), for
+        ``rollback`` after a failed call of several sensors. References and
+        scalars only: every array here is replaced when it changes, never
+        written in place, so this costs a few attribute reads."""
+        drift, estimator, crosstalk = self.drift, self.estimator, self.crosstalk
+        state = (self._last_raw, self._same_count, self._frames_seen, self._sampled, len(self._sampled),
+                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since)
+        if estimator is None:
+            return state
+        slopes = tuple((s, s.xy, s.xx, s.events) for s in (estimator.mechanical, estimator.electrical))
+        return state + (slopes, crosstalk.electrical, crosstalk.mechanical, crosstalk._unmix)
+
+    def rollback(self, checkpoint: tuple) -> None:
+        """Back to a ``checkpoint`` taken before a batch."""
+        (self._last_raw, self._same_count, self._frames_seen, sampled, length, self.adopted_events,
+         self.drift.drift, self.drift._last_t, self.drift._frozen_since) = checkpoint[:9]
+        del sampled[length:]
+        self._sampled = sampled
+        if len(checkpoint) > 9:
+            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[9:]
+            for slope, xy, xx, events in slopes:
+                slope.xy, slope.xx, slope.events = xy, xx, events
+            self.estimator.mechanical, self.estimator.electrical = (slope for slope, _, _, _ in slopes)
 
     def noise(self, baseline_pF: np.ndarray, baseline_std_pF: np.ndarray) -> np.ndarray:
         """Noise of ΔC/C0 per taxel from the tare window's spread. The
@@ -127,13 +173,34 @@ class GridProcessor:
         if self.level == "full":
             return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
         flags = self._reading_flags(capacitance, baseline_std)
-        if self.level == "level0":
-            return GridResult(level0.grid_forces(capacitance, baseline, self.calibration), flags)
+        relative = level0.relative_change(capacitance, baseline)
+        if self.level == "level0":  # level0.grid_forces, on the checked ΔC/C0
+            implausible = level0.implausible(relative, *self._bounds)
+            if implausible is not None:  # no force, flagged
+                relative = np.where(implausible, np.nan, relative)
+                np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+            return GridResult(relative / self.calibration.sensitivity_per_N, flags)
         noise = self.noise(baseline, baseline_std)
-        forces, saturated, out_of_range = self.response.inverse(level0.relative_change(capacitance, baseline), noise)
-        np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
-        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
+        forces, saturated, out_of_range = self.response.inverse(relative, noise)
+        # Taxel by taxel, so an implausible reading is set aside afterwards.
+        # It lies above the table's top (saturated) or below −5σ (out of
+        # range) — unless the tare was absurdly noisy — so a frame with
+        # neither needs no test: the usual frame costs two counts.
+        if np.count_nonzero(saturated) or np.count_nonzero(out_of_range) or not self._low_flagged(noise):
+            np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
+            np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
+            implausible = level0.implausible(relative, *self._bounds)
+            if implausible is not None:  # no force, flagged out of range (not saturated)
+                forces[implausible] = np.nan
+                flags[implausible] = (flags[implausible] & ~np.uint8(SATURATED)) | OUT_OF_RANGE
         return GridResult(forces, flags)
+
+    def _low_flagged(self, noise: np.ndarray) -> bool:
+        """Whether every implausibly low ΔC/C0 is also below −5σ (flagged out
+        of range by the inversion); once per tare."""
+        if self._low_flagged_for is None or self._low_flagged_for[0] is not noise:
+            self._low_flagged_for = (noise, bool(np.all(OUT_OF_RANGE_SIGMAS * noise < -self.plausible[0])))
+        return self._low_flagged_for[1]
 
     def _reading_flags(self, capacitance: np.ndarray, baseline_std: np.ndarray) -> np.ndarray:
         """No-reading and stale bits of (N, n) frames. Flags are set with
@@ -291,11 +358,30 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     for (p, job, sl), r in zip(pieces, rows):
         if p._noisy_board(job.baseline_std):
             np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
-    if any(p.crosstalk.electrical for p, _, _ in pieces):
-        unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
-        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
+    # Implausible readings (level0.py) are made missing before any
+    # compensation, so they move none of their neighbours. Without leakage
+    # the reference is the baseline itself and the test reuses the ratio.
+    if len(pieces) == 1 or len({p.plausible for p, _, _ in pieces}) == 1:
+        low, high = first._ratio_bounds
+    else:
+        low, high = (np.repeat([p.plausible[i] + 1.0 for p, _, _ in pieces], counts)[:, None] for i in (0, 1))
+    leaky = any(p.crosstalk.electrical for p, _, _ in pieces)
+    if leaky:
+        implausible = level0.implausible(capacitance / baseline, low, high)
     else:
         ratio = capacitance / reference
+        implausible = level0.implausible(ratio, low, high)
+    if implausible is not None:
+        capacitance = np.where(implausible, np.nan, capacitance)
+        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+        if not leaky:
+            ratio = np.where(implausible, np.nan, ratio)
+    if leaky:
+        if implausible is None:
+            unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
+        else:
+            unleaked = [p.crosstalk.unleak(capacitance[r], job.baseline) for (p, job, _), r in zip(pieces, rows)]
+        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
     medians, enough = quiet_medians(ratio - 1.0, band)
     drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
     for (p, _, _), r in zip(pieces, rows):
@@ -313,7 +399,7 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     uncompensated = capacitance / (baseline * scale) - 1.0
     np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise)
     if np.count_nonzero(suspect):
-        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & NO_READING == 0))
+        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & (NO_READING | OUT_OF_RANGE) == 0))
     if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
         forces, saturated, out_of_range = first.response.inverse(compensated, noise, gain)
     else:

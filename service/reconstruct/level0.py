@@ -20,12 +20,75 @@ removes electrode-to-electrode C0 spread that eqs (19)/(30) would otherwise
 turn into force.
 
 All functions accept a leading batch axis.
+
+Plausible readings (every level, grid and quad). A channel whose reading
+cannot come from a working sensor — 1 aF on a 10 pF taxel, or the
+converter's top count 0xFFFFFFFE aF ≈ 4295 pF, which are not sentinels but
+would read −80 N and 32 000 N — gives no force (NaN, flagged
+``out_of_range``) and is treated like a missing channel by every
+compensation. With C0 the channel's tared baseline, a reading C is
+plausible when
+
+    PLAUSIBLE_LOW · C0 ≤ C ≤ (1 + r_top) · PLAUSIBLE_MARGIN · C0
+
+* PLAUSIBLE_LOW = 0.5: a compressive sensor only gains capacitance; drift
+  (temperature, creep) and crosstalk move it by a few % at most, so half
+  its zero-load value is a broken channel, not a force.
+* r_top: the largest ΔC/C0 the model explains — grid: the model table's top,
+  where the gap would close by half (0.785 flat, 0.785 curved mounting);
+  quad: the normal curve at its usable end plus the shear curve at its
+  own (0.360 with fits 34/35, QuadModel.top_relative). Between r_top and the
+  bound a grid taxel is held at the table's top and flagged ``saturated``
+  (a quad: ``normal_out_of_range``), as before.
+* PLAUSIBLE_MARGIN = 1.5 on top of it, for gap closure past the table and
+  drift: a grid taxel is plausible up to ΔC/C0 = 1.68 (C ≤ 2.68 C0, i.e.
+  26.8 pF on a 10 pF taxel), a quad electrode up to ΔC/C0 = 1.04 (C ≤
+  2.04 C0) with the paper's fits.
+
+The existing meaning of a small negative change stays: a grid ΔC/C0 below
+−5σ but above the plausible floor gives force 0, flagged ``out_of_range``
+(a value of 0, not null, tells the two apart). Before a tare the baseline
+has no C0 of its own: it then takes table 1's C0 (a quad: QUAD_NOMINAL_C0_PF,
+ε0·εr·S/d with εr = 5 assumed) as the reference, with the window widened by
+TARE_WIDEN = 3 on each side, since a board's zero is not the paper's
+(baseline.py): implausible readings take no part in a tare.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, GridCalibration
+
+PLAUSIBLE_LOW = 0.5  # C/C0 below this is no reading of a working sensor
+PLAUSIBLE_MARGIN = 1.5  # C/C0 above (1 + r_top) times this is none either
+TARE_WIDEN = 3.0  # before a tare (nominal C0, not the board's own) the window is this much wider each side
+
+
+def plausible_relative(top_relative: float) -> tuple[float, float]:
+    """(low, high) bounds of a plausible ΔC/C0 against the channel's own
+    baseline, for a model whose largest explained ΔC/C0 is ``top_relative``."""
+    return PLAUSIBLE_LOW - 1.0, (1.0 + top_relative) * PLAUSIBLE_MARGIN - 1.0
+
+
+def tare_window_pF(nominal_c0_pF: np.ndarray, top_relative: float) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) pF a reading must lie in to count in a tare, per channel,
+    against the nominal C0 (table 1 or the quad's), widened by TARE_WIDEN."""
+    nominal = np.asarray(nominal_c0_pF, dtype=float)
+    return nominal * PLAUSIBLE_LOW / TARE_WIDEN, nominal * (1.0 + top_relative) * PLAUSIBLE_MARGIN * TARE_WIDEN
+
+
+def implausible(relative: np.ndarray, low, high) -> np.ndarray | None:
+    """Mask of ΔC/C0 outside [low, high], or None when there is none (NaN
+    compares False: a missing reading is not implausible). The bounds may be
+    arrays broadcasting against ``relative``; as 0-d arrays (``bounds``) the
+    comparisons take numpy's fast path — this runs on every frame."""
+    mask = (relative < low) | (relative > high)
+    return mask if np.count_nonzero(mask) else None
+
+
+def bounds(low: float, high: float) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds as 0-d arrays, for ``implausible``."""
+    return np.array(float(low)), np.array(float(high))
 
 
 def relative_change(capacitance_pF: np.ndarray, baseline_pF: np.ndarray) -> np.ndarray:

@@ -4,6 +4,15 @@ The model and its closed-form inverse are physics (physics/quad_model.py);
 here each frame's flags come on top: out of the calibrated range, and an
 electrode fault when the redundant combination R (which the model says is
 0) stands beyond its noise.
+
+An electrode outside its plausible range (level0.py: ΔC/C0 against its own
+baseline outside [−0.5, (1 + r_top)·1.5 − 1], r_top = QuadModel.top_relative,
+1.04 with the paper's fits) leaves the frame without forces (all three
+null: every axis combines all four electrodes), flagged ``out_of_range``, at
+every level — the same rule and flag as a grid taxel's. ``electrode_fault``
+keeps its meaning: plausible electrodes that disagree with the model (the
+redundant combination R); it and the range flags are not raised on a frame
+without forces.
 """
 from __future__ import annotations
 
@@ -11,13 +20,15 @@ from dataclasses import astuple, dataclass, field
 
 import numpy as np
 
+from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N
 from ..physics.quad_model import QuadModel
 from .baseline import NOISE_FLOOR_PF
-from .level0 import quad_forces, relative_change
+from .level0 import bounds, implausible, plausible_relative, quad_axes, relative_change
 
 QUAD_LEVELS = ("level0", "table", "full")
 FAULT_SIGMAS = 8.0
 FAULT_RELATIVE = 0.05  # model mismatch allowed in R, as a share of |Z|
+_LEVEL0_SLOPES = np.array([QUAD_SHEAR_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, QUAD_NORMAL_SLOPE_PER_N])
 
 
 @dataclass
@@ -33,6 +44,8 @@ class QuadProcessor:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
         self.batch_key = (self.level, astuple(self.model))
+        self.plausible = plausible_relative(self.model.top_relative)
+        self._bounds = bounds(*self.plausible)
 
     def noise(self, baseline: np.ndarray, baseline_std: np.ndarray) -> float:
         """Noise of the combinations' ΔC/C0 from the tare spread (once per tare)."""
@@ -43,13 +56,22 @@ class QuadProcessor:
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float) -> tuple[np.ndarray, list[list[str]]]:
         """Capacitances (N, 4) pF against baselines (4,) or (N, 4) with the
         combinations' noise (scalar or (N,)) → forces (N, 3) and each frame's flags."""
-        if self.level == "level0":
-            return quad_forces(capacitance, baseline), [[] for _ in range(len(capacitance))]
         relative = relative_change(capacitance, baseline)
+        bad = implausible(relative, *self._bounds)
+        if bad is not None:  # a frame with an implausible electrode has no force
+            frames = bad.any(axis=-1)
+            relative = np.where(frames[..., None], np.nan, relative)
+        if self.level == "level0":  # level0.quad_forces, on the checked ΔC/C0
+            forces = quad_axes(relative) / _LEVEL0_SLOPES
+            if bad is None:
+                return forces, [[] for _ in range(len(capacitance))]
+            return forces, [["out_of_range"] if hit else [] for hit in frames.tolist()]
         forces, masks = self.model.inverse(relative)
         combinations = masks.pop("combinations")
         masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
-        if not any(np.count_nonzero(mask) for mask in masks.values()):  # the usual case: no flag on any frame
+        if bad is not None:
+            masks["out_of_range"] = frames
+        elif not any(np.count_nonzero(mask) for mask in masks.values()):  # the usual case: no flag on any frame
             return forces, [[] for _ in range(len(forces))]
         names = list(masks)
         table = np.stack([masks[name] for name in names], axis=-1)

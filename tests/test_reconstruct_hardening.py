@@ -1,0 +1,419 @@
+"""Hardening of the reconstruction: calibration uploads checked physically,
+one sensor's failure isolated from the others, implausible channels null and
+flagged at every level (and kept out of compensation and tare)."""
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.sensors import SimGrid, SimQuad
+from service.physics.paper_data import table1
+from service.protocol import Decoder
+from service.readings import Interpreter, Reading, SensorInfo
+from service.reconstruct import Reconstructor
+from service.reconstruct import reconstructor as reconstructor_module
+from service.reconstruct.grid import NO_READING, OUT_OF_RANGE, SATURATED, STALE
+
+GRID = SensorInfo(0, "grid", 8, 8)
+QUAD = SensorInfo(1, "quad", 2, 2)
+TOP_COUNT_PF = 0xFFFFFFFE / 1e6  # the converter's largest count that is not a sentinel, ~4295 pF
+ONE_AF_PF = 1e-6
+GOOD_SHEAR = [0.0077, 0.0004]
+GOOD_NORMAL = [-0.0009, 0.0343]
+
+
+def reading(info, capacitance, seq=0):
+    capacitance = np.asarray(capacitance, dtype=float)
+    return Reading(info, seq, seq * 1000, 0.0, 0, 0, capacitance, bool(np.isnan(capacitance).any()), False)
+
+
+def sim_readings(sensors, seconds, scene="press", seed=9):
+    data, _ = capture(BoardConfig(sensors=sensors, scene=scene, seed=seed), seconds)
+    interpreter = Interpreter(clock=lambda: 0.0)
+    return [r for r in (interpreter.interpret(f, 0.0) for f in Decoder().feed(data)) if r is not None]
+
+
+def quad_counts(rng, c0=2.2):
+    return c0 * (1 + rng.normal(0, 2e-4, 4))
+
+
+# --- 1. calibration uploads --------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("upload, field", [
+    ({"normal_fit": [-1e300, 0.0343], "shear_fit": GOOD_SHEAR}, "normal_fit"),
+    ({"normal_fit": [-0.0009, math.inf], "shear_fit": GOOD_SHEAR}, "normal_fit"),
+    ({"normal_fit": [-0.0009, 1e300], "shear_fit": GOOD_SHEAR}, "normal_fit"),
+    ({"normal_fit": [-math.inf, 0.0343], "shear_fit": GOOD_SHEAR}, "normal_fit"),
+    ({"normal_fit": [math.nan, 0.0343], "shear_fit": GOOD_SHEAR}, "normal_fit"),
+    ({"normal_fit": [-0.1, 0.0343], "shear_fit": GOOD_SHEAR}, "normal_fit"),  # turns over at 0.17 N
+    ({"normal_fit": [-0.0009, 1e-9], "shear_fit": GOOD_SHEAR}, "normal_fit"),  # c1 below (0.001, 1)
+    ({"normal_fit": [0.001, 0.0343], "shear_fit": GOOD_SHEAR}, "normal_fit"),  # c2 > 0
+    ({"normal_fit": GOOD_NORMAL, "shear_fit": [math.inf, 0.0004]}, "shear_fit"),
+    ({"normal_fit": GOOD_NORMAL, "shear_fit": [0.0077, 1e300]}, "shear_fit"),
+    ({"normal_fit": GOOD_NORMAL, "shear_fit": [1e300, 0.0]}, "shear_fit"),
+    ({"normal_fit": GOOD_NORMAL, "shear_fit": [0.0077, math.nan]}, "shear_fit"),
+    ({"normal_fit": GOOD_NORMAL, "shear_fit": [0.0077]}, "shear_fit"),
+])
+def test_quad_calibration_outside_the_physical_ranges_is_rejected_naming_the_field(upload, field):
+    rec = Reconstructor(tare_frames=2, level="table")
+    with pytest.raises(ValueError, match=field):
+        rec.set_calibration(QUAD, upload)
+
+
+@pytest.mark.parametrize("values", [[math.nan], [math.inf], [1e300], [-1e300], [0.05], ["x"]])
+def test_grid_calibration_outside_the_physical_ranges_is_rejected_naming_the_field(values):
+    rec = Reconstructor(tare_frames=2)
+    upload = {"sensitivity_pct_per_N": [1.25] * 63 + values}
+    with pytest.raises(ValueError, match="sensitivity_pct_per_N"):
+        rec.set_calibration(GRID, upload)
+
+
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+def test_a_linear_normal_calibration_is_accepted_and_inverted(level):
+    rec = Reconstructor(tare_frames=3, level=level)
+    applied = rec.set_calibration(QUAD, {"normal_fit": [0.0, 0.0343], "shear_fit": GOOD_SHEAR})
+    assert applied["normal_usable_N"] == 50.0 and applied["shear_usable_N"] == pytest.approx(0.9 * 0.0077 / 0.0008)
+    c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    for seq in range(3):
+        rec.process(reading(QUAD, c0, seq))
+    (frame,) = rec.process(reading(QUAD, c0 * (1 + 0.0343 * 5.0), 3))  # 5 N normal on a linear curve
+    np.testing.assert_allclose(frame.forces_N, [0.0, 0.0, 5.0], atol=1e-9)
+    assert frame.flags == []
+    if level == "level0":  # the paper's slopes, linear and unbounded
+        return
+    (frame,) = rec.process(reading(QUAD, c0 * (1 + 0.0343 * 60.0), 4))  # past its 50 N usable range
+    assert frame.forces_N[2] == pytest.approx(50.0) and "normal_out_of_range" in frame.flags
+
+
+def test_every_accepted_quad_calibration_answers_every_plausible_reading():
+    """Fuzz: whatever an upload is, either it is refused (ValueError) or every
+    later reading gets finite forces without raising."""
+    rng = np.random.default_rng(4)
+    specials = [0.0, -0.0, 1e-300, -1e-300, 1e300, -1e300, math.inf, -math.inf, math.nan, 1e-3, 1.0, 0.45 * 0.0343]
+    c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    accepted = 0
+    for trial in range(200):
+        def pick(scale):
+            if rng.random() < 0.25:
+                return float(rng.choice(specials))
+            return float(scale * 10 ** rng.uniform(-4, 0.5))
+
+        c1, a = pick(1.0), pick(1.0)
+        upload = {"normal_fit": [-pick(c1), c1], "shear_fit": [a, pick(a)]}
+        rec = Reconstructor(tare_frames=2, level="table")
+        try:
+            rec.set_calibration(QUAD, upload)
+        except ValueError:
+            continue
+        accepted += 1
+        for seq in range(2):
+            rec.process(reading(QUAD, c0, seq))
+        for seq, relative in enumerate(([0.01] * 4, [0.2, 0.3, 0.2, 0.3], [1.0] * 4, [-0.03] * 4, [0.0] * 4), start=2):
+            (frame,) = rec.process(reading(QUAD, c0 * (1 + np.array(relative)), seq))
+            assert "reconstruction_error" not in frame.flags
+            if "out_of_range" in frame.flags:  # implausible for this calibration's range: null
+                assert np.isnan(frame.forces_N).all()
+            else:
+                assert np.isfinite(frame.forces_N).all(), (upload, relative, frame.forces_N)
+    assert accepted > 20
+
+
+def test_a_rejected_upload_leaves_the_calibration_in_use():
+    rec = Reconstructor(tare_frames=2, level="table")
+    c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    for seq in range(2):
+        rec.process(reading(QUAD, c0, seq))
+    before = rec.process(reading(QUAD, c0 * 1.1, 2))[0].forces_N
+    with pytest.raises(ValueError):
+        rec.set_calibration(QUAD, {"normal_fit": [-1e300, 0.0343], "shear_fit": GOOD_SHEAR})
+    np.testing.assert_array_equal(rec.process(reading(QUAD, c0 * 1.1, 3))[0].forces_N, before)
+
+
+# --- 2. isolation per sensor -------------------------------------------------------------------------------------
+
+def _boom(*_args, **_kwargs):
+    raise RuntimeError("boom")
+
+
+def _run(readings, level, step=12, fail=None, fail_from=None, clock=None):
+    """Reconstruct ``readings`` in batches of ``step``; from reading index
+    ``fail_from`` on, ``fail(reconstructor)`` breaks a sensor."""
+    rec = Reconstructor(hold_until_tared=True, level=level, clock=clock or (lambda: 0.0))
+    out = []
+    for i in range(0, len(readings), step):
+        if fail is not None and i >= fail_from:
+            fail(rec)
+            fail = None
+        out += rec.process_many(readings[i : i + step])
+    out += rec.flush()
+    return rec, {(f.sensor.id, f.seq): f for f in out}
+
+
+@pytest.fixture(scope="module")
+def board_readings():
+    sensors = [SimGrid(0, electrical_leakage=0.01), SimGrid(1), SimQuad(2), SimQuad(3), SimGrid(4, mechanical_coupling=-0.004)]
+    return sim_readings(sensors, 0.6, scene="demo")
+
+
+def _assert_same(a, b):
+    np.testing.assert_array_equal(a.forces_N, b.forces_N)
+    if a.taxel_flags is None:
+        assert b.taxel_flags is None
+    else:
+        np.testing.assert_array_equal(a.taxel_flags, b.taxel_flags)
+    assert a.flags == b.flags
+
+
+@pytest.mark.parametrize("level, where", [("table", "_stuck"), ("full", "_stuck"), ("full", "drift")])
+def test_a_failing_grid_goes_out_null_and_flagged_and_the_others_are_unaffected(board_readings, level, where):
+    """Sensor 1 breaks mid-stream, inside the batched call — at ``full`` late
+    in it, after sensor 0's drift has already advanced (which the fallback
+    must undo): the others get exactly what they get without it."""
+    def fail(rec):
+        if where == "drift":
+            rec._sensors[1].processor.drift.follow = _boom
+        else:
+            rec._sensors[1].processor._stuck = _boom
+
+    fail_from = len(board_readings) // 2
+    rec, together = _run(board_readings, level, fail=fail, fail_from=fail_from)
+    _, without = _run([r for r in board_readings if r.sensor.id != 1], level)
+    assert len(together) == len(without) + len([r for r in board_readings if r.sensor.id == 1])
+    for key, frame in without.items():
+        _assert_same(together[key], frame)
+    broken = [f for (sid, _), f in together.items() if sid == 1 and "reconstruction_error" in f.flags]
+    assert broken and all(np.isnan(f.forces_N).all() for f in broken)
+    late = [f for (sid, _), f in together.items() if sid == 1 and f.seq >= board_readings[fail_from].seq + 12]
+    assert late and all("reconstruction_error" in f.flags for f in late)
+    errors = rec.errors()
+    assert set(errors) == {1}
+    assert "boom" in errors[1]["error"] and errors[1]["frames"] == len(broken) and errors[1]["count"] >= 1
+    assert errors[1]["active"] is True and errors[1]["first_s"] <= errors[1]["last_s"]
+
+
+def test_a_failing_quad_goes_out_null_and_flagged_and_its_batch_mate_is_unaffected(board_readings):
+    def fail(rec):  # the batched call uses sensor 2's processor, so break what only sensor 3 contributes
+        rec._sensors[3].processor.noise = _boom
+
+    rec, together = _run(board_readings, "full", fail=fail, fail_from=len(board_readings) // 2)
+    _, without = _run([r for r in board_readings if r.sensor.id != 3], "full")
+    for key, frame in without.items():
+        _assert_same(together[key], frame)
+    broken = [f for (sid, _), f in together.items() if sid == 3 and "reconstruction_error" in f.flags]
+    assert broken and all(np.isnan(f.forces_N).all() and f.forces_N.shape == (3,) for f in broken)
+    assert set(rec.errors()) == {3}
+
+
+def test_batching_is_kept_when_nothing_fails_and_for_the_others_when_one_does(board_readings, monkeypatch):
+    calls = []
+    original = reconstructor_module.process_full
+    monkeypatch.setattr(reconstructor_module, "process_full", lambda jobs: calls.append(len(jobs)) or original(jobs))
+    grid_ids = {0, 1, 4}
+    batches = [board_readings[i : i + 12] for i in range(0, len(board_readings), 12)]
+    rec = Reconstructor(level="full", clock=lambda: 0.0)
+    for batch in batches[:60]:
+        rec.process_many(batch)
+    assert calls and all(n == len({r.sensor.id for r in batch} & grid_ids) for n, batch in
+                         zip(calls, [b for b in batches[:60] if rec.baseline(0) is not None][-len(calls):]))
+    assert max(calls) == 3
+    calls.clear()
+    rec._sensors[1].processor._stuck = _boom
+    for batch in batches[60:70]:
+        rec.process_many(batch)
+    # the first failing batch: the batched call, then each alone; after: the healthy two together, sensor 1 alone
+    assert calls[:4] == [3, 1, 1, 1] and set(calls[4:]) == {2, 1}
+    assert calls[4:].count(2) == calls[4:].count(1)
+
+
+def test_a_failing_sensor_is_logged_at_most_once_a_minute_with_the_count(caplog):
+    now = [100.0]
+    rec = Reconstructor(tare_frames=2, level="table", clock=lambda: now[0])
+    c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    for seq in range(2):
+        rec.process(reading(QUAD, c0, seq))
+    rec._sensors[1].processor.process = _boom
+    with caplog.at_level(logging.WARNING, logger="service.reconstruct.reconstructor"):
+        for seq in range(2, 152):  # one failing read a second for 150 s
+            (frame,) = rec.process(reading(QUAD, c0, seq))
+            assert "reconstruction_error" in frame.flags and np.isnan(frame.forces_N).all()
+            now[0] += 1.0
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 3  # at 0 s, 60 s, 120 s
+    assert "1 time(s)" in lines[0] and "60 time(s)" in lines[1] and "(121 in all)" in lines[2]
+    assert all("Traceback" not in line for line in lines) and not any(r.exc_info for r in caplog.records)
+    error = rec.errors()[1]
+    assert error["count"] == 150 and error["frames"] == 150 and error["first_s"] == 100.0 and error["last_s"] == 249.0
+    assert error["age_s"] == 1.0 and "RuntimeError: boom" == error["error"]
+
+
+def test_a_sensor_recovers_and_rejoins(board_readings):
+    rec = Reconstructor(level="full", clock=lambda: 0.0)
+    batches = [board_readings[i : i + 12] for i in range(0, len(board_readings), 12)]
+    for batch in batches[:60]:
+        rec.process_many(batch)
+    processor = rec._sensors[1].processor
+    processor._stuck = _boom
+    for batch in batches[60:65]:
+        rec.process_many(batch)
+    assert rec.errors()[1]["active"] is True
+    del processor._stuck
+    frames = [f for batch in batches[65:70] for f in rec.process_many(batch) if f.sensor.id == 1]
+    assert frames and not any("reconstruction_error" in f.flags for f in frames)
+    assert rec.errors()[1]["active"] is False
+
+
+# --- 3. implausible channels ------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def leaky_press():
+    return sim_readings([SimGrid(0, electrical_leakage=0.01)], 0.5, scene="press", seed=3)
+
+
+def _with_channels(readings, values, start):
+    """Copies of ``readings`` with channels set from ``start`` on (values: {channel: value or callable(seq)})."""
+    out = []
+    for r in readings:
+        c = r.capacitance_pF.copy()
+        if r.seq >= start:
+            for channel, value in values.items():
+                c[channel] = value(r.seq) if callable(value) else value
+        out.append(Reading(r.sensor, r.seq, r.t_us, r.t_host, r.board_flags, r.gap, c,
+                           bool(np.isnan(c).any()), r.shorted_channel))
+    return out
+
+
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+def test_an_implausible_channel_is_null_flagged_and_moves_no_neighbour(leaky_press, level):
+    """1 aF and the top count read −80 N and 32 000 N at level0 today, and at
+    full put tens of N on the neighbours through the compensation: they must
+    give what a missing channel gives, flagged out_of_range."""
+    start = 200
+    # 26 is scanned just before the pressed taxel 27: its leakage flows into it
+    absurd = {26: lambda seq: TOP_COUNT_PF if seq % 2 else ONE_AF_PF, 40: ONE_AF_PF, 63: TOP_COUNT_PF}
+    missing = {channel: math.nan for channel in absurd}
+
+    def run(readings):
+        _, frames = _run(readings, level)
+        return [frames[(0, r.seq)] for r in readings]
+
+    bad, gone = run(_with_channels(leaky_press, absurd, start)), run(_with_channels(leaky_press, missing, start))
+    channels = sorted(absurd)
+    others = np.setdiff1d(np.arange(64), channels)
+    for a, b in zip(bad, gone):
+        np.testing.assert_array_equal(a.forces_N, b.forces_N)
+        if a.seq < start:
+            continue
+        assert np.isnan(a.forces_N[channels]).all()
+        assert (a.taxel_flags[channels] & OUT_OF_RANGE).all() and not (a.taxel_flags[channels] & NO_READING).any()
+        assert "out_of_range" in a.flags
+        np.testing.assert_array_equal(a.taxel_flags[others] & ~np.uint8(STALE), b.taxel_flags[others] & ~np.uint8(STALE))
+    assert np.nanmax(np.abs(np.stack([f.forces_N for f in bad]))) < 20.0
+
+
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+@pytest.mark.parametrize("value", [ONE_AF_PF, TOP_COUNT_PF])
+def test_an_implausible_quad_electrode_leaves_the_frame_null_and_flagged(level, value):
+    rec = Reconstructor(tare_frames=10, level=level)
+    rng = np.random.default_rng(2)
+    for seq in range(10):
+        rec.process(reading(QUAD, quad_counts(rng), seq))
+    counts = quad_counts(rng)
+    counts[1] = value
+    (frame,) = rec.process(reading(QUAD, counts, 10))
+    assert np.isnan(frame.forces_N).all() and frame.flags == ["out_of_range"]
+    (frame,) = rec.process(reading(QUAD, quad_counts(rng) * 1.05, 11))
+    assert np.isfinite(frame.forces_N).all() and "out_of_range" not in frame.flags
+
+
+@pytest.mark.parametrize("level", ["table", "full"])
+def test_saturation_and_a_small_negative_change_keep_their_meaning(level):
+    rec = Reconstructor(tare_frames=5, level=level)
+    c0 = table1().c0_pF
+    rng = np.random.default_rng(5)
+    for seq in range(5):
+        rec.process(reading(GRID, c0 * (1 + rng.normal(0, 1e-4, 64)), seq))
+    relative = np.zeros(64)
+    relative[[0, 9, 18, 45, 54, 63]] = [1.5, 1.8, -0.4, -0.6, 1.6, 0.3]
+    (frame,) = rec.process(reading(GRID, c0 * (1 + relative), 5))
+    flags = frame.taxel_flag_lists()
+    assert {0, 54} <= set(flags["saturated"]) and np.isfinite(frame.forces_N[[0, 54]]).all()  # held at the top
+    assert frame.forces_N[18] == 0 and 18 in flags["out_of_range"]  # below −5σ: 0, flagged
+    assert np.isnan(frame.forces_N[[9, 45]]).all() and {9, 45} <= set(flags["out_of_range"])  # implausible: null
+    assert not (frame.taxel_flags[[9, 45]] & SATURATED).any()
+
+
+@pytest.mark.parametrize("info, c0", [(GRID, table1().c0_pF), (QUAD, np.array([2.21, 2.18, 2.24, 2.20]))])
+def test_a_tare_takes_no_implausible_reading(info, c0):
+    rec = Reconstructor(tare_frames=10, level="full")
+    for seq in range(10):
+        counts = c0.copy()
+        if seq == 4:
+            counts[1], counts[2] = TOP_COUNT_PF, ONE_AF_PF
+        if seq == 7:
+            counts[1] = 100.0  # the simulator board's full scale
+        rec.process(reading(info, counts, seq))
+    np.testing.assert_allclose(rec.baseline(info.id), c0, rtol=1e-12)
+
+
+def test_a_channel_implausible_through_the_tare_gets_its_baseline_late():
+    rec = Reconstructor(tare_frames=5, level="table")
+    c0 = table1().c0_pF
+    for seq in range(5):
+        counts = c0.copy()
+        counts[3] = TOP_COUNT_PF
+        rec.process(reading(GRID, counts, seq))
+    assert np.isnan(rec.baseline(0)[3]) and np.isfinite(np.delete(rec.baseline(0), 3)).all()
+    for seq in range(5, 10):
+        rec.process(reading(GRID, c0, seq))
+    assert rec.baseline(0)[3] == pytest.approx(c0[3])
+
+
+def test_a_rolled_back_grid_processor_continues_as_if_the_batch_never_ran():
+    """checkpoint/rollback cover everything a batch advances, through an
+    estimator adoption (drift, stuck counters, sampled frames, slopes,
+    adopted coefficients)."""
+    import copy
+
+    from service.reconstruct.grid import GridJob, process_full
+
+    readings = sim_readings([SimGrid(0, electrical_leakage=0.01)], 2.2, scene="press", seed=3)
+    rec = Reconstructor(level="full")
+    for r in readings[:100]:
+        rec.process(r)
+    state = rec._sensors[0]
+
+    def job(processor, part):
+        return GridJob(processor, np.stack([r.capacitance_pF for r in part]), state.baseline.value, state.baseline.std,
+                       np.array([r.t_us * 1e-6 for r in part]))
+
+    reference = copy.deepcopy(state.processor)
+    processor = state.processor
+    first, second = readings[100:1200], readings[1200:2200]  # the first adoption: after ~1500 frames
+    process_full([job(reference, first)])
+    process_full([job(processor, first)])
+    checkpoint = processor.checkpoint()
+    process_full([job(processor, second)])
+    assert processor.adopted_events > 0  # the batch went through an adoption
+    processor.rollback(checkpoint)
+    expected, got = process_full([job(reference, second)])[0], process_full([job(processor, second)])[0]
+    np.testing.assert_array_equal(got.forces_N, expected.forces_N)
+    np.testing.assert_array_equal(got.taxel_flags, expected.taxel_flags)
+    assert processor.crosstalk.electrical == reference.crosstalk.electrical
+    assert processor.adopted_events == reference.adopted_events
+
+
+def test_an_implausible_reading_is_caught_at_table_level_even_after_a_noisy_tare():
+    """The table level tests only frames its inversion flagged, which covers
+    every implausibly low reading unless 5σ exceeds the 50 % floor."""
+    rec = Reconstructor(tare_frames=20, level="table")
+    c0 = table1().c0_pF
+    rng = np.random.default_rng(8)
+    for seq in range(20):  # a 15 % spread: 5σ = 0.75 in ΔC/C0
+        rec.process(reading(GRID, c0 * (1 + rng.normal(0, 0.15, 64)), seq))
+    counts = rec.baseline(0).copy()
+    counts[7] *= 0.45  # ΔC/C0 = −0.55: implausible, yet within 5σ
+    (frame,) = rec.process(reading(GRID, counts, 20))
+    assert np.isnan(frame.forces_N[7]) and 7 in frame.taxel_flag_lists()["out_of_range"]
+    assert np.isfinite(np.delete(frame.forces_N, 7)).all()
