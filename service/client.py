@@ -11,7 +11,8 @@
 REST over urllib, the stream over websockets (installed with uvicorn's
 standard extra). ``subscribe`` yields one dict per frame — the JSON message
 shape (docs/api.md), or the decoded binary record — and counts the frames
-the server dropped for this client in ``dropped``.
+the server dropped for this client in ``dropped`` and its notices (e.g. a
+subscription to sensors not announced yet) in ``notices``.
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ class TactileClient:
         self.token = token
         self.timeout = timeout
         self.dropped = 0
+        self.notices: list[str] = []
 
     def _request(self, method: str, path: str, body: dict | None = None):
         headers = {"Content-Type": "application/json"}
@@ -101,5 +103,7 @@ class TactileClient:
                     yield from doc["frames"]
                 elif doc["type"] == "dropped":
                     self.dropped += doc["frames"]
+                elif doc["type"] == "notice":
+                    self.notices.append(doc["detail"])
                 else:
                     raise TactileError(doc.get("detail", str(doc)))

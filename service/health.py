@@ -42,7 +42,19 @@ def _reconstruction(pipeline) -> dict:
         "mounting": reconstructor.mounting,
         "crosstalk": {str(sid): reconstructor.crosstalk_report(sid)
                       for sid, info in pipeline.interpreter.sensors.items() if info.kind == "grid"},
+        "errors": {str(sid): error for sid, error in reconstructor.errors().items()},
     }
+
+
+def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
+    """Why the status is degraded, one line each (empty when ok)."""
+    problems = []
+    if link["state"] != "up":
+        problems.append(f"link {link['state']}" + (f": {link['last_error']}" if link["last_error"] else ""))
+    problems += [f"sensor {sid} stale" for sid, sensor in sensors.items() if sensor["stale"]]
+    problems += [f"sensor {sid} reconstruction fails: {error['error']} ({error['count']} times)"
+                 for sid, error in errors.items() if error["active"]]
+    return problems
 
 
 def health_report(service) -> dict:
@@ -54,9 +66,12 @@ def health_report(service) -> dict:
     stale_after = stale_after_s(pipeline.interpreter.board)
     link_state = link.as_dict(now, stale_after)
     sensors = _sensors(pipeline, now, counters, stale_after)
-    healthy = link_state["state"] == "up" and not any(s["stale"] for s in sensors.values())
+    reconstruction = _reconstruction(pipeline)
+    failing = [sid for sid, error in reconstruction["errors"].items() if error["active"]]
+    healthy = link_state["state"] == "up" and not any(s["stale"] for s in sensors.values()) and not failing
     return {
         "status": "ok" if healthy else "degraded",
+        "problems": _problems(link_state, sensors, reconstruction["errors"]),
         "uptime_s": round(now - service.started_at, 1),
         "link": link_state,
         "level": pipeline.reconstructor.level,
@@ -73,5 +88,5 @@ def health_report(service) -> dict:
         "frames_published": service.hub.frames_published,
         "replay": service.source.startswith("replay://"),
         "recording": None if service.recorder is None else service.recorder.status(),
-        "reconstruction": _reconstruction(pipeline),
+        "reconstruction": reconstruction,
     }

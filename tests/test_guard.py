@@ -87,3 +87,18 @@ def test_a_subscription_to_sensors_the_board_has_not_announced_is_told_so(client
         notice = ws.receive_json()
         assert notice == {"type": "notice", "detail": "sensors 99 are not known (yet); known: 0, 1"}
         assert ws.receive_json()["type"] == "frames"  # sensor 0 streams all the same
+
+
+def test_a_calibration_upload_is_checked_physically_and_a_linear_one_works(client):
+    absurd = client.put("/sensors/1/calibration", json={"normal_fit": [-1e300, 0.0343], "shear_fit": [0.0077, 0.0004]})
+    assert absurd.status_code == 422 and "normal_fit" in absurd.json()["detail"]
+    linear = client.put("/sensors/1/calibration", json={"normal_fit": [0.0, 0.0343], "shear_fit": [0.0077, 0.0004]})
+    assert linear.status_code == 200
+    seq = client.get("/sensors/1/latest").json()["header"]["seq"]
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and client.get("/sensors/1/latest").json()["header"]["seq"] < seq + 50:
+        time.sleep(0.02)
+    latest = client.get("/sensors/1/latest").json()
+    assert latest["header"]["seq"] >= seq + 50 and "reconstruction_error" not in latest["flags"]
+    assert latest["wrench"]["force"]["z"] is not None
+    assert not client.get("/health").json()["reconstruction"]["errors"]

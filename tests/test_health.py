@@ -2,6 +2,7 @@
 import asyncio
 import time
 
+import numpy as np
 import orjson
 
 from firmware_sim.board import BoardConfig, capture
@@ -51,3 +52,39 @@ def test_the_end_of_a_replay_is_finished_not_ok(tmp_path):
     assert report["link"]["state"] == "finished" and report["replay"] is True
     assert report["status"] == "degraded" and report["link"]["connects"] == 1  # not reopened from the start
     assert orjson.dumps(report)
+
+
+def test_a_sensor_whose_reconstruction_fails_degrades_health_by_name_while_the_others_flow(monkeypatch):
+    from service.reconstruct import quad
+
+    def broken(self, capacitance, baseline, noise):
+        raise FloatingPointError("model out of its domain")
+
+    service = TactileService("sim://")
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="press"), 0.4)
+    now = time.time()
+    service.pipeline.feed(data[: len(data) // 2], now)
+    monkeypatch.setattr(quad.QuadProcessor, "process", broken)
+    frames = service.pipeline.feed(data[len(data) // 2:], now)
+    report = health_report(service)
+    quads = [f for f in frames if f.sensor.id == 1 and "taring" not in f.flags]
+    grids = [f for f in frames if f.sensor.id == 0]
+    assert quads and all("reconstruction_error" in f.flags and np.isnan(f.forces_N).all() for f in quads)
+    assert grids and not any("reconstruction_error" in f.flags for f in grids)
+    assert not np.isnan(grids[-1].forces_N).all()
+    assert report["status"] == "degraded"
+    assert any(p.startswith("sensor 1 reconstruction fails: FloatingPointError") for p in report["problems"])
+    assert report["reconstruction"]["errors"]["1"]["active"] is True and "0" not in report["reconstruction"]["errors"]
+
+
+def test_the_binary_encoding_carries_the_reconstruction_error_flag():
+    from service.fanout.encoding import FRAME_FLAG_BITS, decode_binary, to_binary
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    frame = ForceFrame(SensorInfo(1, "quad", 2, 2), 7, 7000, 1.0, np.full(3, np.nan), np.ones(4),
+                       ["reconstruction_error"], "full")
+    assert "reconstruction_error" in FRAME_FLAG_BITS
+    import struct
+    decoded = decode_binary(struct.pack("<H", 1) + to_binary(frame, frozenset({"force", "flags"})))
+    assert decoded[0]["flags"] == ["reconstruction_error"]

@@ -18,8 +18,9 @@ class GridCalibrationUpload(BaseModel):
 
 
 class QuadCalibrationUpload(BaseModel):
-    normal_fit: tuple[float, float] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1], c2 < 0 < c1")
-    shear_fit: tuple[float, float] = Field(description="ΔC/C0 = a F − b F²: [a, b], a > 0, b ≥ 0")
+    normal_fit: tuple[float, float] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1]; c2 ≤ 0 (0 = linear), "
+                                             "c1 in (0.001, 1) /N, |c2| ≤ 0.45·c1")
+    shear_fit: tuple[float, float] = Field(description="ΔC/C0 = a F − b F²: [a, b]; a in (0.001, 1) /N, 0 ≤ b ≤ 0.45·a")
 
 
 class Header(BaseModel):
