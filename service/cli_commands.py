@@ -6,6 +6,7 @@ bar on stderr (none when stderr is no terminal); what the link does while
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -177,12 +178,13 @@ def cmd_serve(args) -> int:
     app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
                      allow_origins=tuple(args.allow_origin))
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
-    announced = threading.Event()
+    listening = threading.Event()
+    done = threading.Event()
 
-    async def serving() -> None:
-        """uvicorn calls this once it listens (and every 30 s after): say where, once."""
-        if not announced.is_set():
-            announced.set()
+    def announce() -> None:
+        """Say where once uvicorn listens (the port was free: whoever answers on it now is us)."""
+        if _wait_until_listening(args.host, args.port, done):
+            listening.set()
             print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
             if token:
                 print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
@@ -190,13 +192,55 @@ def cmd_serve(args) -> int:
     quiet_readout_transitions()
     watcher = LinkWatcher(lambda: service.readout.link if service.readout is not None else None,
                           lambda: stale_after_s(service.pipeline.interpreter.board)).start()
+    threading.Thread(target=announce, name="tactile-announce", daemon=True).start()
+    interrupted = []
     try:
-        # No per-message deflate: compressing every 1 kHz message costs more CPU than loopback or a LAN saves.
-        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws_per_message_deflate=False,
-                    callback_notify=serving, timeout_notify=30)
+        with _noting_sigint(interrupted):
+            # No per-message deflate: compressing every 1 kHz message costs more CPU than loopback or a LAN saves.
+            # Connections get 1 s to close after Ctrl-C, so that the command ends promptly.
+            uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws_per_message_deflate=False,
+                        timeout_graceful_shutdown=1)
     finally:
+        done.set()
         watcher.stop(final_look=False)
+    if interrupted:
+        raise KeyboardInterrupt  # uvicorn stopped on Ctrl-C and swallowed it: end as every command does (130)
     return 0
+
+
+@contextlib.contextmanager
+def _noting_sigint(noted: list):
+    """uvicorn catches Ctrl-C, shuts down, re-raises it to the handler it found and
+    then swallows the KeyboardInterrupt: a handler of ours notes that it came.
+    (A SIGINT that is ignored, as in a background job, stays ignored.)"""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+
+    def note(signum, frame):
+        noted.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, note)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _wait_until_listening(host: str, port: int, done: threading.Event, poll_s: float = 0.05) -> bool:
+    """True once something accepts TCP connections on host:port, False if ``done`` is set first."""
+    target = {"0.0.0.0": "127.0.0.1", "::": "::1", "": "127.0.0.1"}.get(host, host)
+    while not done.is_set():
+        try:
+            with socket.create_connection((target, port), timeout=0.5):
+                return True
+        except OSError:
+            done.wait(poll_s)
+    return False
 
 
 def cmd_sim(args) -> int:
