@@ -238,13 +238,14 @@ class _InterruptWatchdog:
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
+    name = " ".join(filter(None, (args.command, getattr(args, "action", None))))  # e.g. "model check"
     watchdog = None
     if args.command not in _UVICORN_HANDLES_SIGINT and not getattr(args, "serve", False):
-        watchdog = _InterruptWatchdog(args.command, _INTERRUPT_GRACE_S.get(args.command, INTERRUPT_GRACE_S))
+        watchdog = _InterruptWatchdog(name, _INTERRUPT_GRACE_S.get(args.command, INTERRUPT_GRACE_S))
     try:
         return args.func(args)
     except KeyboardInterrupt:
-        print(_interrupted(args.command), file=sys.stderr, flush=True)
+        print(_interrupted(name), file=sys.stderr, flush=True)
         return 130
     except (ValueError, OSError) as exc:
         print(f"tactile {args.command}: error: {exc}", file=sys.stderr)

@@ -306,9 +306,11 @@ def cmd_record(args) -> int:
     if status["error"]:
         return 1
     if readout.link.last_data_time is None:  # not one byte came
-        removed = [p for p in new if p.exists() and _unlink(p)]
+        removed = [p for p in new if p.exists() and _unlink(p)]  # only files this command created
+        kept = [p for p in outputs if p not in new]
         why = f" ({readout.link.last_error})" if readout.link.last_error else ""
         note = f"; removed the empty {' and '.join(map(str, removed))}" if removed else ""
+        note += f"; {' and '.join(map(str, kept))} existed before and now hold an empty recording" if kept else ""
         print(f"tactile record: nothing recorded: no byte from {args.source} in {time.monotonic() - started:.1f} s"
               f"{why}{note}", file=sys.stderr)
         return 1
@@ -393,6 +395,11 @@ def cmd_replay(args) -> int:
         # The reader stopped (`| head`): end quietly, as a pipeline's tools do.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except (ValueError, OSError):  # not a recording after all: leave no empty export behind
+        if export_is_new:
+            out.close()
+            _unlink(Path(args.export))
+        raise
     finally:
         bar.close()
         if out is not None and not to_stdout:
