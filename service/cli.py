@@ -44,8 +44,25 @@ def _speed(text: str) -> float:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+class _SceneHelp(str):
+    """The --scene help, naming the simulator's scenes only when help is shown
+    (importing the simulator takes a second)."""
+
+    def __mod__(self, params):
+        return f"one of {' | '.join(commands.scene_names())} (default: {params['default']})"
+
+
+def _scene(text: str) -> str:
+    names = commands.scene_names()
+    if text not in names:
+        raise argparse.ArgumentTypeError(f"unknown scene {text!r}; known scenes: {', '.join(names)}")
+    return text
+
+
 def _add_reconstruction_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--level", default=DEFAULT_LEVEL, choices=LEVELS, help="fidelity level (default: %(default)s)")
+    parser.add_argument("--level", default=DEFAULT_LEVEL, choices=LEVELS,
+                        help="fidelity level; auto takes the cheapest meeting the scene's error budget and says which "
+                             "(default: %(default)s)")
     parser.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
                         help="grid mounting: picks the load-shape table (default: %(default)s)")
 
@@ -92,20 +109,23 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--pty", action="store_true", help="serve on a new pseudo-terminal and print its path")
     where.add_argument("--tcp", type=int, metavar="PORT", help="serve on TCP (0 picks a free port)")
     where.add_argument("--capture", metavar="FILE", help="write the simulator's exact bytes to FILE")
-    sim.add_argument("--host", default="127.0.0.1", help="TCP bind address")
-    sim.add_argument("--seconds", type=float, default=10.0, help="capture length")
-    sim.add_argument("--scene", default="demo", help="idle | press | slide | shear | demo")
-    sim.add_argument("--rate", type=float, default=1000.0, help="scans per second per sensor")
-    sim.add_argument("--noise", type=float, default=1.0, help="white capacitance noise, fF rms")
-    sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--sensors", default="grid,quad", help="e.g. grid,quad or grid8x8,grid4x4,quad")
+    sim.add_argument("--host", default="127.0.0.1", help="TCP bind address (default: %(default)s)")
+    sim.add_argument("--seconds", type=_positive, default=10.0, help="capture length, s (default: %(default)s)")
+    sim.add_argument("--scene", type=_scene, default="demo", help=_SceneHelp("scene"))
+    sim.add_argument("--rate", type=_positive, default=1000.0, help="scans per second per sensor (default: %(default)s)")
+    sim.add_argument("--noise", type=float, default=1.0, help="white capacitance noise, fF rms (default: %(default)s)")
+    sim.add_argument("--seed", type=int, default=0,
+                     help="seed of the simulator's noise: the same seed gives the same bytes (default: %(default)s)")
+    sim.add_argument("--sensors", default="grid,quad",
+                     help="sensors in id order, e.g. grid,quad or grid8x8,grid4x4,quad (default: %(default)s)")
     sim.set_defaults(func=commands.cmd_sim)
 
     record = sub.add_parser("record", help="record a source to MCAP (raw bytes, frames, forces, diagnostics)")
     record.add_argument("--source", default=DEFAULT_SOURCE, help="pyserial URL or device path (default: %(default)s)")
-    record.add_argument("--out", required=True, metavar="RUN.mcap")
+    record.add_argument("--out", required=True, metavar="RUN.mcap", help="the MCAP file to write")
     record.add_argument("--raw", metavar="RUN.bin", help="also write the raw bytes, exactly as received")
-    record.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    record.add_argument("--seconds", type=_positive, help="stop after this long (default: until Ctrl-C); "
+                                                           "exit 1 if not one byte came")
     _add_reconstruction_options(record)
     record.set_defaults(func=commands.cmd_record)
 
@@ -121,38 +141,118 @@ def build_parser() -> argparse.ArgumentParser:
 
     tables_cmd = sub.add_parser("tables", help="force tables of the taxel model").add_subparsers(dest="action", required=True)
     build = tables_cmd.add_parser("build", help="build the tables a configuration needs (skips up-to-date ones)")
-    build.add_argument("--shape", nargs="+", default=["uniform", "uneven", "shear"], choices=["uniform", "uneven", "shear"])
-    build.add_argument("--nu", type=float, default=0.49, help="PDMS Poisson ratio")
-    build.add_argument("--p", type=int, default=4, help="in-plane polynomial degree")
-    build.add_argument("--pz", type=int, default=3, help="polynomial degree across each layer")
+    build.add_argument("--shape", nargs="+", default=["uniform", "uneven", "shear"], choices=["uniform", "uneven", "shear"],
+                       help="load shapes to build (default: all)")
+    build.add_argument("--nu", type=float, default=0.49, help="PDMS Poisson ratio (default: %(default)s)")
+    build.add_argument("--p", type=int, default=4, help="in-plane polynomial degree (default: %(default)s)")
+    build.add_argument("--pz", type=int, default=3, help="polynomial degree across each layer (default: %(default)s)")
     build.add_argument("--out", help="directory (default: the service's shipped tables)")
     build.set_defaults(func=commands.cmd_tables_build)
     tables_cmd.add_parser("list", help="list the shipped tables").set_defaults(func=commands.cmd_tables_list)
 
     model = sub.add_parser("model", help="validate the forward models").add_subparsers(dest="action", required=True)
     check_cmd = model.add_parser("check", help="validation figures; exit 1 if any is out of tolerance")
-    check_cmd.add_argument("--json", action="store_true")
+    check_cmd.add_argument("--json", action="store_true", help="print the checks and the Poisson study as JSON")
     check_cmd.set_defaults(func=commands.cmd_model_check)
     conv = model.add_parser("convergence", help="error against order study (minutes); writes docs")
-    conv.add_argument("--out", default="docs")
+    conv.add_argument("--out", default="docs", metavar="DIR",
+                      help="directory for convergence.md and convergence.png (default: %(default)s; "
+                           "needs matplotlib: pip install -e \".[docs]\")")
     conv.set_defaults(func=commands.cmd_model_convergence)
 
     bench = sub.add_parser("bench", help="speed against error of every fidelity level on the simulator's scenes")
-    bench.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per scenario")
-    bench.add_argument("--json", action="store_true")
-    bench.add_argument("--out", help="also write bench.md and bench.png to this directory")
+    bench.add_argument("--seconds", type=_positive, default=10.0,
+                       help="simulated seconds per scenario (default: %(default)s)")
+    bench.add_argument("--json", action="store_true", help="print the whole report as JSON")
+    bench.add_argument("--out", metavar="DIR", help="also write bench.md and bench.png to this directory "
+                                                    "(needs matplotlib: pip install -e \".[docs]\")")
     bench.set_defaults(func=commands.cmd_bench)
     return parser
+
+
+# Commands that stop on Ctrl-C by design and need longer than the usual second to
+# finish what they wrote (the MCAP's summary), or that uvicorn stops itself.
+_INTERRUPT_GRACE_S = {"record": 10.0}
+_UVICORN_HANDLES_SIGINT = ("serve",)
+INTERRUPT_GRACE_S = 0.8
+
+
+def _interrupted(command: str) -> str:
+    return f"tactile {command}: interrupted"
+
+
+class _InterruptWatchdog:
+    """Ctrl-C ends the command within about a second even while the main thread
+    is inside a long computation (a sparse factorisation does not look at
+    signals): the C-level signal handler writes to a wake-up pipe, this thread
+    reads it and, if the main thread has not finished within the grace period,
+    says so and exits 130 without unwinding."""
+
+    def __init__(self, command: str, grace_s: float) -> None:
+        import os
+        import signal
+        import threading
+
+        self._command, self._grace_s = command, grace_s
+        self._done = threading.Event()
+        self._read, self._write = os.pipe()
+        os.set_blocking(self._write, False)
+        try:
+            self._previous = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        except ValueError:  # not the main thread (called from a test's thread): no watchdog
+            self._previous = None
+            os.close(self._read), os.close(self._write)
+            self._read = None
+            return
+        threading.Thread(target=self._run, name="tactile-interrupt", daemon=True).start()
+
+    def _run(self) -> None:
+        import os
+        import signal
+
+        while True:
+            try:
+                data = os.read(self._read, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if signal.SIGINT in data and not self._done.wait(self._grace_s):
+                print(_interrupted(self._command), file=sys.stderr, flush=True)
+                os._exit(130)
+
+    def close(self) -> None:
+        import os
+        import signal
+
+        self._done.set()
+        if self._read is None:
+            return
+        try:
+            signal.set_wakeup_fd(self._previous if self._previous is not None else -1)
+        except ValueError:
+            pass
+        os.close(self._write)
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
+    name = " ".join(filter(None, (args.command, getattr(args, "action", None))))  # e.g. "model check"
+    watchdog = None
+    if args.command not in _UVICORN_HANDLES_SIGINT and not getattr(args, "serve", False):
+        watchdog = _InterruptWatchdog(name, _INTERRUPT_GRACE_S.get(args.command, INTERRUPT_GRACE_S))
     try:
         return args.func(args)
+    except KeyboardInterrupt:
+        print(_interrupted(name), file=sys.stderr, flush=True)
+        return 130
     except (ValueError, OSError) as exc:
         print(f"tactile {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if watchdog is not None:
+            watchdog.close()
 
 
 if __name__ == "__main__":

@@ -1,21 +1,45 @@
 """A small client for robot controllers.
 
-    from service.client import TactileClient
+    from service.client import TactileClient, TactileError
 
     client = TactileClient("http://127.0.0.1:8000")
-    print(client.latest(0)["force_N"])                      # one grid frame
+    print(client.latest(0)["contact"])                      # one grid frame, every field
     for frame in client.subscribe(sensors=[1], binary=True):
         fx, fy, fz = frame["force_N"]                      # quad, 1 kHz
         ...
 
 REST over urllib, the stream over websockets (installed with uvicorn's
-standard extra). ``subscribe`` yields one dict per frame — the JSON message
-shape (docs/api.md), or the decoded binary record — and counts the frames
-the server dropped for this client in ``dropped`` and its notices (e.g. a
+standard extra). Every failure — the service not running, an HTTP error
+(with the service's detail), a reply that is no JSON, a connection refused,
+closed or timed out, a stream silent for ``timeout`` — is a ``TactileError``
+naming what failed.
+
+One frame shape, whichever the encoding (``latest``, ``history`` and
+``subscribe`` with ``binary`` False or True all give it):
+
+    {"header": {"sensor_id", "sensor_name", "kind", "seq", "board_time_us", "stamp"},
+     "rows", "cols",                          # grids
+     "force_N",                               # grid: rows*cols taxels, row-major;
+                                              # quad: [fx, fy, fz] (also as "wrench")
+     "wrench": {"force": {"x", "y", "z"}},    # quads
+     "raw": {"capacitance_pF": [...]},        # when fields include "raw"
+     "contact": {...},                        # grids, JSON only (see below)
+     "flags": [...],                          # when fields include "flags" (default)
+     "taxel_flags": {"saturated": [27]}}      # grids, JSON only
+
+Numbers: JSON gives lists with None for no value, binary numpy float32
+arrays with NaN (``wrench`` has None either way). The binary encoding does
+not carry the contact summary nor per-taxel flags: a binary grid frame has
+no ``contact`` and no ``taxel_flags`` key — subscribe in JSON (or ask
+``contact(id)``) where they are needed. ``subscribe`` counts the frames the
+server dropped for this client in ``dropped`` and keeps its notices (e.g. a
 subscription to sensors not announced yet) in ``notices``.
 """
 from __future__ import annotations
 
+import http.client
+import math
+import socket
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -23,11 +47,25 @@ from collections.abc import Iterator
 
 import orjson
 
-from .fanout.encoding import decode_binary
+from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 
 
 class TactileError(RuntimeError):
-    """The service answered with an error; the message is its detail."""
+    """Anything that went wrong talking to the service; the message says what
+    (the request or stream, and the service's detail or the network's error)."""
+
+
+def _none_if_nan(value) -> float | None:
+    return None if value is None or math.isnan(value) else float(value)
+
+
+def _normalized(frame: dict) -> dict:
+    """A JSON frame message, with a quad's force also as ``force_N`` [fx, fy, fz]."""
+    wrench = frame.get("wrench")
+    if wrench is not None and "force_N" not in frame:
+        force = wrench["force"]
+        frame["force_N"] = [force["x"], force["y"], force["z"]]
+    return frame
 
 
 class TactileClient:
@@ -37,19 +75,41 @@ class TactileClient:
         self.timeout = timeout
         self.dropped = 0
         self.notices: list[str] = []
+        self._sensors: dict[int, dict] = {}
 
     def _request(self, method: str, path: str, body: dict | None = None):
         headers = {"Content-Type": "application/json"}
         if self.token:
             headers["Authorization"] = f"Bearer {self.token}"
         data = orjson.dumps(body) if body is not None else None
+        what = f"{method} {self.base_url}{path}"
         request = urllib.request.Request(self.base_url + path, data=data, method=method, headers=headers)
         try:
             with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                return orjson.loads(response.read())
+                payload = response.read()
         except urllib.error.HTTPError as exc:
-            detail = orjson.loads(exc.read() or b"{}").get("detail", exc.reason)
+            try:
+                detail = orjson.loads(exc.read() or b"{}").get("detail") or exc.reason
+            except (orjson.JSONDecodeError, AttributeError, OSError, http.client.HTTPException):
+                detail = exc.reason
             raise TactileError(f"{method} {path}: {exc.code} {detail}") from None
+        except urllib.error.URLError as exc:
+            reason = exc.reason
+            if isinstance(reason, ConnectionRefusedError):
+                raise TactileError(f"{what}: connection refused (is tactile serve running there?)") from None
+            if isinstance(reason, (TimeoutError, socket.timeout)):
+                raise TactileError(f"{what}: no answer within {self.timeout} s") from None
+            raise TactileError(f"{what}: cannot reach the service: {reason}") from None
+        except (TimeoutError, socket.timeout):
+            raise TactileError(f"{what}: no answer within {self.timeout} s") from None
+        except (http.client.HTTPException, ConnectionError) as exc:
+            raise TactileError(f"{what}: connection closed before the answer ({type(exc).__name__}: {exc})") from None
+        except OSError as exc:
+            raise TactileError(f"{what}: {exc}") from None
+        try:
+            return orjson.loads(payload)
+        except orjson.JSONDecodeError as exc:
+            raise TactileError(f"{what}: the answer is no JSON ({exc}): {payload[:80]!r}") from None
 
     def health(self) -> dict:
         return self._request("GET", "/health")
@@ -59,22 +119,58 @@ class TactileClient:
         return self._request("GET", "/clients")["clients"]
 
     def sensors(self) -> list[dict]:
-        return self._request("GET", "/sensors")["sensors"]
+        sensors = self._request("GET", "/sensors")["sensors"]
+        self._sensors = {s["id"]: s for s in sensors}
+        return sensors
 
     def latest(self, sensor_id: int) -> dict:
-        return self._request("GET", f"/sensors/{sensor_id}/latest")
+        return _normalized(self._request("GET", f"/sensors/{sensor_id}/latest"))
+
+    def contact(self, sensor_id: int) -> dict:
+        return self._request("GET", f"/sensors/{sensor_id}/contact")
 
     def history(self, sensor_id: int, seconds: float = 2.0, max_points: int = 200) -> list[dict]:
-        return self._request("GET", f"/sensors/{sensor_id}/history?seconds={seconds}&max_points={max_points}")
+        frames = self._request("GET", f"/sensors/{sensor_id}/history?seconds={seconds}&max_points={max_points}")
+        return [_normalized(f) for f in frames]
 
     def tare(self, sensor_id: int | None = None) -> dict:
         return self._request("POST", "/tare" if sensor_id is None else f"/sensors/{sensor_id}/tare")
 
+    def _sensor(self, sensor_id: int) -> dict:
+        if sensor_id not in self._sensors:
+            self.sensors()  # a sensor announced since we last asked
+        try:
+            return self._sensors[sensor_id]
+        except KeyError:
+            raise TactileError(f"a frame from sensor {sensor_id}, which GET /sensors does not list") from None
+
+    def _from_binary(self, record: dict, fields: frozenset[str]) -> dict:
+        """A decoded binary record in the JSON frame shape."""
+        info = self._sensor(record["sensor_id"])
+        kind = record["kind"]
+        frame: dict = {"header": {"sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
+                                  "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],
+                                  "stamp": record["stamp"]}}
+        if kind == "grid":
+            frame["rows"], frame["cols"] = info["rows"], info["cols"]
+        if "force" in fields:
+            frame["force_N"] = record["force_N"]
+            if kind == "quad":
+                fx, fy, fz = (_none_if_nan(v) for v in record["force_N"])
+                frame["wrench"] = {"force": {"x": fx, "y": fy, "z": fz}}
+        if "raw" in fields:
+            frame["raw"] = {"capacitance_pF": record["capacitance_pF"]}
+        if "flags" in fields:
+            frame["flags"] = record["flags"]
+        return frame
+
     def subscribe(self, sensors: list[int] | None = None, fields: list[str] | None = None, max_rate: float | None = None,
                   batch_ms: float | None = None, binary: bool = False, timeout: float = 5.0) -> Iterator[dict]:
-        """Frames as they arrive. A controller must not wait forever on a
-        silent stream: TactileError when no message comes within ``timeout`` s."""
-        from websockets.exceptions import ConnectionClosedOK
+        """Frames as they arrive, in the one frame shape (module docstring).
+        A controller must not wait forever on a silent stream: TactileError
+        when no message comes within ``timeout`` s, and when the stream ends
+        (the service stopped, the network failed)."""
+        from websockets.exceptions import ConnectionClosed, ConnectionClosedOK, InvalidHandshake, InvalidURI
         from websockets.sync.client import connect
 
         query = {"encoding": "binary" if binary else "json"}
@@ -86,24 +182,52 @@ class TactileClient:
             query["max_rate"] = str(max_rate)
         if batch_ms is not None:
             query["batch_ms"] = str(batch_ms)
+        wanted = DEFAULT_FIELDS if fields is None else frozenset(fields)
         url = self.base_url.replace("http", "ws", 1) + "/ws?" + urllib.parse.urlencode(query)
-        with connect(url, max_size=None) as ws:
+        if binary:
+            self.sensors()  # rows, cols and channels, which binary records do not carry
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        try:
+            ws = connect(url, max_size=None, open_timeout=self.timeout, additional_headers=headers)
+        except ConnectionRefusedError:
+            raise TactileError(f"stream {url}: connection refused (is tactile serve running there?)") from None
+        except TimeoutError:
+            raise TactileError(f"stream {url}: no answer within {self.timeout} s") from None
+        except (InvalidHandshake, InvalidURI) as exc:
+            raise TactileError(f"stream {url}: refused: {exc}") from None
+        except OSError as exc:
+            raise TactileError(f"stream {url}: cannot reach the service: {exc}") from None
+        channels = {sid: s["rows"] * s["cols"] for sid, s in self._sensors.items()}
+        with ws:
             while True:
                 try:
                     message = ws.recv(timeout=timeout)
                 except TimeoutError:
                     raise TactileError(f"no message from {url} within {timeout} s") from None
-                except ConnectionClosedOK:
-                    return
+                except ConnectionClosedOK as exc:
+                    raise TactileError(f"stream {url} closed by the service ({exc})") from None
+                except ConnectionClosed as exc:
+                    raise TactileError(f"stream {url} lost: {exc}") from None
                 if isinstance(message, bytes):
-                    yield from decode_binary(message)
+                    try:
+                        records = decode_binary(message, channels)
+                    except Exception as exc:
+                        raise TactileError(f"stream {url}: a binary message that does not decode ({exc})") from None
+                    for record in records:
+                        yield self._from_binary(record, wanted)
                     continue
-                doc = orjson.loads(message)
-                if doc["type"] == "frames":
-                    yield from doc["frames"]
-                elif doc["type"] == "dropped":
+                try:
+                    doc = orjson.loads(message)
+                    kind = doc["type"]
+                except (orjson.JSONDecodeError, KeyError, TypeError) as exc:
+                    raise TactileError(f"stream {url}: a message that is no frame message ({exc}): "
+                                       f"{message[:80]!r}") from None
+                if kind == "frames":
+                    for frame in doc["frames"]:
+                        yield _normalized(frame)
+                elif kind == "dropped":
                     self.dropped += doc["frames"]
-                elif doc["type"] == "notice":
+                elif kind == "notice":
                     self.notices.append(doc["detail"])
                 else:
                     raise TactileError(doc.get("detail", str(doc)))

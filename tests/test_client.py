@@ -1,6 +1,10 @@
-"""The Python client against a real server on loopback."""
+"""The Python client against a real server on loopback, and against servers that fail."""
 import itertools
+import re
+import socket
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +16,7 @@ def history_by_seq(client, sensor_id):
     """The service's own record of the sensor's last 5 s: seq → (board time, forces)."""
     out = {}
     for m in client.history(sensor_id, seconds=5, max_points=5000):
-        force = m["force_N"] if "force_N" in m else [m["wrench"]["force"][axis] for axis in "xyz"]
+        force = m["force_N"]  # a quad's too: the client gives it as [fx, fy, fz] beside the wrench
         out[m["header"]["seq"]] = m["header"]["board_time_us"], np.array(force, dtype=float)  # None → NaN
     return out
 
@@ -29,13 +33,13 @@ def test_client_rest_and_subscriptions(served):
     produced = history_by_seq(client, 1)
     stream.close()
     assert len(mine) == 1 and mine[0]["encoding"] == "binary" and mine[0]["dropped_frames"] == 0
-    assert {f["sensor_id"] for f in frames} == {1} and frames[0]["force_N"].shape == (3,)
-    seqs = [f["seq"] for f in frames]
+    assert {f["header"]["sensor_id"] for f in frames} == {1} and frames[0]["force_N"].shape == (3,)
+    seqs = [f["header"]["seq"] for f in frames]
     assert seqs == list(range(seqs[0], seqs[0] + 50))  # unbatched, undecimated: every frame
     # Every frame the service produced for the sensor meanwhile, as it produced it (f32 on the wire) ...
     for frame in frames:
-        board_time_us, force = produced[frame["seq"]]
-        assert frame["board_time_us"] == board_time_us
+        board_time_us, force = produced[frame["header"]["seq"]]
+        assert frame["header"]["board_time_us"] == board_time_us
         np.testing.assert_array_equal(frame["force_N"], force.astype(np.float32))
     # ... in one message per frame, or fewer when merged (a client behind), each timed when sent.
     since = sum(1 for seq in produced if seq >= seqs[0])
@@ -63,3 +67,117 @@ def test_a_silent_stream_raises_and_the_server_forgets_the_client(served):
     while client.health()["websocket_clients"] and time.monotonic() < deadline:
         time.sleep(0.02)
     assert client.health()["websocket_clients"] == 0
+
+
+def first_frames(client, binary, **options):
+    """The first frame of each sensor kind in one encoding."""
+    by_kind = {}
+    for frame in client.subscribe(binary=binary, **options):
+        by_kind.setdefault(frame["header"]["kind"], frame)
+        if len(by_kind) == 2:
+            return by_kind
+
+
+@pytest.mark.parametrize("fields", [None, ["force", "raw", "flags"]])
+def test_json_and_binary_frames_have_one_shape(served, fields):
+    client = TactileClient(served[0])
+    as_json, as_binary = first_frames(client, False, fields=fields), first_frames(client, True, fields=fields)
+    json_only = {"contact", "taxel_flags"}  # the binary encoding carries neither
+    for kind in ("grid", "quad"):
+        j, b = as_json[kind], as_binary[kind]
+        assert set(b) == set(j) - json_only and j["header"].keys() == b["header"].keys()
+        assert len(j["force_N"]) == len(b["force_N"]) == (64 if kind == "grid" else 3)
+        if "raw" in j:
+            assert len(j["raw"]["capacitance_pF"]) == len(b["raw"]["capacitance_pF"]) == (64 if kind == "grid" else 4)
+    assert {"rows", "cols", "force_N", "flags"} <= set(as_binary["grid"]) and "wrench" in as_binary["quad"]
+    quad = as_json["quad"]
+    assert quad["force_N"] == [quad["wrench"]["force"][axis] for axis in "xyz"]
+    assert set(as_json["grid"]) >= {"contact", "taxel_flags"} if fields is None else True
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_the_readme_example_runs_in_either_encoding(served, binary, monkeypatch, capsys):
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    example = re.search(r"```python\n(from service.client import .*?)```", readme, re.S).group(1)
+    assert "binary=True" in example
+    example = example.replace("http://127.0.0.1:8000", served[0].rstrip("/"))
+    example = example.replace("binary=True", f"binary={binary}")
+    subscribe = TactileClient.subscribe
+    monkeypatch.setattr(TactileClient, "subscribe", lambda self, *a, **k: itertools.islice(subscribe(self, *a, **k), 20))
+    exec(compile(example, "README.md", "exec"), {})
+    assert "total_N" in capsys.readouterr().out
+
+
+def test_a_service_that_is_not_running_is_a_tactile_error():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # bound, never listening: refused
+        client = TactileClient(f"http://127.0.0.1:{port}")
+        with pytest.raises(TactileError, match=f"GET http://127.0.0.1:{port}/health: connection refused"):
+            client.health()
+        with pytest.raises(TactileError, match="connection refused"):
+            next(client.subscribe())
+
+
+class BrokenServer:
+    """A loopback TCP server answering every connection with ``reply`` (bytes;
+    None: close at once; "hang": say nothing)."""
+
+    def __init__(self, reply):
+        self.reply = reply
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen()
+        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
+        self.held = []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self):
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            conn.recv(65536)
+            if self.reply == "hang":
+                self.held.append(conn)
+                continue
+            if self.reply is not None:
+                conn.sendall(self.reply)
+            conn.close()
+
+    def close(self):
+        self.sock.close()
+        for conn in self.held:
+            conn.close()
+
+
+@pytest.mark.parametrize("reply, message", [
+    (b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 9\r\n\r\nnot json!", "the answer is no JSON"),
+    (b"HTTP/1.1 500 Internal Server Error\r\nContent-Length: 5\r\n\r\noops!", "GET /health: 500 Internal Server Error"),
+    (b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 24\r\n\r\n{\"detail\": \"not yet up\"}", "503 not yet up"),
+    (None, "connection closed before the answer"),
+    ("hang", "no answer within 0.3 s"),
+])
+def test_every_failure_of_a_request_is_a_tactile_error_naming_it(reply, message):
+    server = BrokenServer(reply)
+    try:
+        with pytest.raises(TactileError, match=message):
+            TactileClient(server.url, timeout=0.3).health()
+    finally:
+        server.close()
+
+
+def test_a_stream_the_server_refuses_or_drops_is_a_tactile_error():
+    server = BrokenServer(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\n\r\n")
+    try:
+        with pytest.raises(TactileError, match="stream ws://.*refused"):
+            next(TactileClient(server.url, timeout=0.5).subscribe())
+    finally:
+        server.close()
+    server = BrokenServer("hang")
+    try:
+        with pytest.raises(TactileError, match="no answer within 0.3 s"):
+            next(TactileClient(server.url, timeout=0.3).subscribe())
+    finally:
+        server.close()

@@ -15,6 +15,7 @@ import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -193,14 +194,30 @@ def live_path_figures(seconds: float, level: str = "full") -> dict:
     return {"level": level, "us_per_1ms_read": best * 1e6, "share_of_one_core_at_1kHz": best * config.rate_hz}
 
 
-def run(seconds: float = 10.0) -> dict:
-    rows = [row for scenario in SCENARIOS for row in run_scenario(scenario, seconds)]
+def _no_progress(done: int, total: int, what: str) -> None:
+    pass
+
+
+def run(seconds: float = 10.0, progress: Callable[[int, int, str], None] = _no_progress) -> dict:
+    """The whole bench; ``progress(done, total, what)`` after each of its steps
+    (a scenario, the decoder, the live path at one level)."""
+    total = len(SCENARIOS) + 1 + len(GRID_LEVELS)
+    rows = []
+    for i, scenario in enumerate(SCENARIOS, 1):
+        rows += run_scenario(scenario, seconds)
+        progress(i, total, scenario.name)
+    decoder = decoder_figures(seconds)
+    progress(len(SCENARIOS) + 1, total, "decoder")
+    live = []
+    for level in GRID_LEVELS:
+        live.append(live_path_figures(min(seconds, 6.0), level))
+        progress(len(SCENARIOS) + 1 + len(live), total, f"live path, {level}")
     report = {
         "machine": f"{platform.machine()} python {platform.python_version()}",
         "seconds": seconds,
         "noise_floor_N": noise_floor_N(),
-        "decoder": decoder_figures(seconds),
-        "live": [live_path_figures(min(seconds, 6.0), level) for level in GRID_LEVELS],
+        "decoder": decoder,
+        "live": live,
         "rows": rows,
     }
     report["text"] = render_text(report)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Callable
 
 from ..physics.capacitance import gap_field, sensitivity_per_N
 from ..physics.ritz import ConditioningError, RitzOptions, RitzSystem, Taxel, patch_load
@@ -45,21 +46,44 @@ def _run(options: RitzOptions) -> dict:
     }
 
 
-def run(progress=print) -> dict:
+P_SERIES = range(1, 6)
+PZ_SERIES = range(1, 5)
+MONOMIAL_SERIES = range(2, 16, 2)
+
+
+def _no_progress(done: int, total: int, what: str) -> None:
+    pass
+
+
+def run(progress: Callable[[int, int, str], None] = _no_progress) -> dict:
+    """Every series; ``progress(done, total, what)`` after each model solved
+    (the monomial series may end early, refused by the conditioning guard)."""
+    total = 1 + 2 * len(P_SERIES) + len(PZ_SERIES) + len(MONOMIAL_SERIES)
+    done = 0
+
+    def step(what: str) -> None:
+        nonlocal done
+        done += 1
+        progress(done, total, what)
+
     reference = _run(REFERENCE)
-    progress(f"reference p={REFERENCE.p} pz={REFERENCE.pz}: {reference}")
+    step(f"reference p={REFERENCE.p} pz={REFERENCE.pz}")
     series: dict[str, list[dict]] = {"graded p": [], "split-only p": [], "pz": [], "monomial p": []}
-    for p in range(1, 6):
+    for p in P_SERIES:
         series["graded p"].append(_run(RitzOptions(p=p, pz=4)))
+        step(f"graded p={p}")
         series["split-only p"].append(_run(RitzOptions(p=p, pz=4, breaks=SPLIT_ONLY)))
-        progress(f"p={p} done")
-    for pz in range(1, 5):
+        step(f"split-only p={p}")
+    for pz in PZ_SERIES:
         series["pz"].append(_run(RitzOptions(p=5, pz=pz)))
-    for p in range(2, 16, 2):
+        step(f"pz={pz}")
+    for p in MONOMIAL_SERIES:
         try:
             series["monomial p"].append(_run(RitzOptions(p=p, pz=2, family="monomial", breaks=SPLIT_ONLY)))
+            step(f"monomial p={p}")
         except ConditioningError as exc:
             series["monomial p"].append({"p": p, "pz": 2, "refused": str(exc)})
+            progress(total, total, f"monomial p={p} refused")
             break
     for rows in series.values():
         for row in rows:

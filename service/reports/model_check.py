@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from importlib import resources
+from typing import Callable
 
 import numpy as np
 import orjson
@@ -74,24 +75,36 @@ def _taxel_figures(taxel: Taxel, options: RitzOptions) -> tuple[float, float, fl
     return float(field.relative_change(0.9)[0]), sensitivity_per_N(field), float(-field.dgap_per_N.min() * 0.9), system.rcond
 
 
-def run() -> list[Check]:
+RUN_STEPS = 5  # progress calls of run(): one per model solved or fitted
+
+
+def _no_progress(done: int, total: int, what: str) -> None:
+    pass
+
+
+def run(progress: Callable[[int, int, str], None] = _no_progress) -> list[Check]:
+    """Every check; ``progress(done, RUN_STEPS, what)`` after each model solved or fitted."""
     checks: list[Check] = []
     taxel = Taxel()
     checks.append(Check("C0 with the paper's k = 9e9 (pF)", c0_pF(taxel, paper_constant=True), 10.66, 0.01, "abs",
                         note=f"exact ε0 gives {c0_pF(taxel):.3f} pF"))
     pdms, pet = taxel.stack[1], taxel.stack[0]
     exact = confined_compression()
+    progress(1, RUN_STEPS, "1-D confined compression")
     checks.append(Check("1-D confined compression, PDMS (µm)", exact["pdms_um"], Q0_MPA * pdms.thickness_um / pdms.confined_modulus, 1e-6))
     checks.append(Check("1-D confined compression, PET (µm)", exact["pet_upper_um"], Q0_MPA * pet.thickness_um / pet.confined_modulus, 1e-6))
 
     change, sensitivity, deflection, rcond = _taxel_figures(taxel, CHECK_OPTIONS)
+    progress(2, RUN_STEPS, "taxel model")
     fem = fem_reference()
     checks.append(Check("Ritz vs FEM: ΔC/C0 at 100 kPa", change, fem["dC_C0_100kPa"], 0.01, note=f"FEM {fem['source']}"))
     checks.append(Check("Ritz vs FEM: sensitivity 0–10 N (/N)", sensitivity, fem["sensitivity_per_N"], 0.01))
     checks.append(Check("Ritz: rcond of the equilibrated stiffness, at least the guard", rcond, CHECK_OPTIONS.rcond_min, mode="min"))
 
     lagrange = _taxel_figures(taxel, RitzOptions(p=3, pz=3, family="lagrange"))[0]
+    progress(3, RUN_STEPS, "Lagrange basis")
     legendre = _taxel_figures(taxel, RitzOptions(p=3, pz=3, family="legendre"))[0]
+    progress(4, RUN_STEPS, "Legendre basis")
     checks.append(Check("Same space, other basis (GLL Lagrange vs Legendre), ΔC/C0", lagrange, legendre, 1e-8))
 
     checks.append(Check("Paper: sensitivity predicted 1.25 %/N", sensitivity, PAPER_SENSITIVITY_PREDICTED, 0.1,
@@ -100,6 +113,7 @@ def run() -> list[Check]:
     checks.append(Check("Paper: maximum deflection 0.22 µm at 100 kPa", deflection, PAPER_MAX_DEFLECTION_UM, 0.15))
 
     _, reports = quad_fits.default_quad_calibration()
+    progress(5, RUN_STEPS, "quad fits")
     normal, shear = reports["normal_yeoh"], reports["shear"]
     checks.append(Check("Quad Yeoh fit to (34): residual RMS (N)", normal.residual_rms_N, 0.0, 0.5, "abs",
                         note=f"S·C10 {normal.parameters['c10_area_N']:.3f}±{normal.std_errors['c10_area_N']:.3f} N, "
@@ -112,11 +126,14 @@ def run() -> list[Check]:
     return checks
 
 
-def poisson_study(nus=(0.485, 0.49, 0.495), options: RitzOptions = RitzOptions(p=3, pz=3)) -> list[dict]:
-    """Sensitivity against the PDMS Poisson ratio (the dominant parameter)."""
+def poisson_study(nus=(0.485, 0.49, 0.495), options: RitzOptions = RitzOptions(p=3, pz=3),
+                  progress: Callable[[int, int, str], None] = _no_progress) -> list[dict]:
+    """Sensitivity against the PDMS Poisson ratio (the dominant parameter);
+    ``progress(done, len(nus), what)`` after each ratio."""
     rows = []
-    for nu in nus:
+    for i, nu in enumerate(nus, 1):
         change, sensitivity, deflection, _ = _taxel_figures(Taxel(stack=paper_stack(nu)), options)
+        progress(i, len(nus), f"ν = {nu}")
         rows.append({"nu": nu, "dC_C0_100kPa": change, "sensitivity_per_N": sensitivity, "max_deflection_um": deflection})
     return rows
 

@@ -1,0 +1,207 @@
+"""What a new user meets on the command line: exit codes and messages."""
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from service import cli
+from service.cli_commands import LinkWatcher, check_port_free
+from service.readout import LinkState
+
+TACTILE = str(Path(sys.executable).with_name("tactile"))
+ABSENT = "/dev/ttyUSB_tactile_absent"
+
+
+def interruptible(*argv: str) -> subprocess.Popen:
+    """``tactile`` in a subprocess that takes Ctrl-C as from a terminal (a shell's
+    background job, as a test run may be, starts it with SIGINT ignored)."""
+    return subprocess.Popen([TACTILE, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# 1. record and replay with nothing to read
+
+
+def test_record_from_an_absent_device_says_so_once_and_exits_1_removing_the_empty_file(tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    assert cli.main(["record", "--source", ABSENT, "--out", str(out), "--seconds", "1.2"]) == 1
+    captured = capsys.readouterr()
+    assert "Ctrl-C" not in captured.out and "for 1.2 s" in captured.out
+    assert captured.err.count(f"waiting for {ABSENT}: ") == 1
+    assert f"nothing recorded: no byte from {ABSENT}" in captured.err
+    assert f"removed the empty {out}" in captured.err and not out.exists()
+
+
+def test_record_of_a_source_that_delivers_keeps_its_file_and_exits_0(tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    assert cli.main(["record", "--source", "sim://?scene=idle", "--out", str(out), "--seconds", "0.8"]) == 0
+    assert out.stat().st_size > 0
+    assert "nothing recorded" not in capsys.readouterr().err
+
+
+def test_replay_of_a_file_without_a_valid_frame_exits_1_naming_it(tmp_path, capsys):
+    text = tmp_path / "notes.txt"
+    text.write_text("not a capture\n" * 100)
+    export = tmp_path / "out.jsonl"
+    assert cli.main(["replay", "--raw", str(text), "--export", str(export)]) == 1
+    err = capsys.readouterr().err
+    assert f"{text}: no valid frame" in err and not export.exists()
+
+
+def test_replay_level_auto_says_which_level_it_took(tmp_path, capsys):
+    raw = tmp_path / "run.bin"
+    assert cli.main(["sim", "--capture", str(raw), "--seconds", "0.3", "--scene", "press"]) == 0
+    assert cli.main(["replay", str(raw), "--level", "auto"]) == 0
+    err = capsys.readouterr().err
+    assert "level auto chose " in err and '"level_reason"' in err
+
+
+# 2. serve tells the terminal what the link does
+
+
+def test_link_watcher_says_each_change_once():
+    link, said = LinkState("/dev/ttyX"), []
+    watcher = LinkWatcher(lambda: link, out=None)
+    watcher.say = said.append
+    watcher.poll(100.0)  # not tried yet: nothing to say
+    link.last_error = "no such device"
+    for t in (100.5, 101.0, 101.5):  # every backoff attempt fails: said once
+        watcher.poll(t)
+    link.up, link.connects, link.connected_at, link.last_data_time = True, 1, 102.0, 102.0
+    watcher.poll(102.1)
+    watcher.poll(103.0)  # silent for 1 s: stale
+    link.last_data_time = 103.4
+    watcher.poll(103.5)
+    link.connects, link.connected_at, link.last_error = 2, 104.0, "read failed"  # lost and back between two looks
+    watcher.poll(104.1)
+    link.up = False
+    watcher.poll(105.0)
+    link.finished = True
+    watcher.poll(106.0)
+    assert said == [
+        "waiting for /dev/ttyX: no such device",
+        "connected to /dev/ttyX",
+        "no bytes from /dev/ttyX for 1.0 s (link stale)",
+        "bytes from /dev/ttyX again",
+        "link to /dev/ttyX lost (read failed); connected again",
+        "link to /dev/ttyX lost: read failed; waiting for it",
+        "replay of /dev/ttyX finished (the service keeps serving; Ctrl-C to stop)",
+    ]
+
+
+def test_serve_from_an_absent_device_says_so_once_prints_the_url_and_ends_on_ctrl_c():
+    port = free_port()
+    process = interruptible("serve", "--source", ABSENT, "--port", str(port))
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:  # serving, and a few reopen attempts later
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                time.sleep(0.1)
+        time.sleep(2.0)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=10)
+    finally:
+        process.kill()
+        process.communicate()
+    assert process.returncode == 130
+    assert f"dashboard at http://127.0.0.1:{port}/" in out
+    assert err.count(f"waiting for {ABSENT}: ") == 1, err
+    assert "tactile serve: interrupted" in err and "Traceback" not in err
+
+
+# 3. a port in use
+
+
+def test_serve_on_a_port_in_use_exits_2_before_printing_a_url(capsys):
+    with socket.socket() as other:
+        other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        assert cli.main(["serve", "--port", str(port)]) == 2
+    captured = capsys.readouterr()
+    assert f"port {port} on 127.0.0.1 is in use (another tactile serve?); choose --port" in captured.err
+    assert "dashboard" not in captured.out
+
+
+def test_a_free_port_passes_the_check():
+    check_port_free("127.0.0.1", free_port())
+
+
+# 5. Ctrl-C ends long commands at once, without a traceback
+
+
+@pytest.mark.parametrize("argv", [["model", "convergence", "--out", "{tmp}"], ["bench", "--seconds", "5"]])
+def test_ctrl_c_ends_a_long_command_within_a_second(argv, tmp_path):
+    process = interruptible(*(a.format(tmp=tmp_path) for a in argv))
+    try:
+        time.sleep(1.5)  # past the imports, in the middle of the work
+        assert process.poll() is None
+        process.send_signal(signal.SIGINT)
+        sent = time.monotonic()
+        _, err = process.communicate(timeout=5)
+        took = time.monotonic() - sent
+    finally:
+        process.kill()
+        process.communicate()
+    assert process.returncode == 130 and took < 2.0, (took, err)
+    name = "model convergence" if argv[0] == "model" else argv[0]
+    assert err.strip().endswith(f"tactile {name}: interrupted") and "Traceback" not in err
+
+
+def test_progress_bars_stay_off_the_output_when_stderr_is_no_terminal(tmp_path):
+    raw = tmp_path / "run.bin"
+    subprocess.run([TACTILE, "sim", "--capture", str(raw), "--seconds", "0.3"], check=True, capture_output=True)
+    result = subprocess.run([TACTILE, "replay", str(raw)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "%|" not in result.stderr and "\r" not in result.stderr
+
+
+# 6. help texts
+
+
+def help_of(*argv: str) -> str:
+    return subprocess.run([TACTILE, *argv, "--help"], capture_output=True, text=True, check=True).stdout
+
+
+def test_sim_help_names_every_scene_and_the_seed():
+    from firmware_sim.scenes import SCENES
+
+    text = " ".join(help_of("sim").split())
+    assert all(name in text for name in SCENES) and "--seed SEED seed of" in text
+
+
+def test_every_option_has_help_and_defaults_are_shown():
+    parser = cli.build_parser()
+    missing = []
+
+    def walk(p, path):
+        for action in p._actions:
+            if action.help is None:
+                missing.append(f"{path} {action.option_strings or action.dest}")
+            for name, sub in getattr(action, "choices", None).items() if isinstance(action.choices, dict) else ():
+                walk(sub, f"{path} {name}")
+
+    walk(parser, "tactile")
+    assert [m for m in missing if "file" not in m and "command" not in m and "action" not in m] == []
+    assert "(default: 10.0)" in " ".join(help_of("bench").split())
+
+
+def test_an_unknown_scene_is_refused_naming_the_known_ones(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["sim", "--capture", os.devnull, "--scene", "bogus"])
+    assert exit_.value.code == 2
+    assert "unknown scene 'bogus'; known scenes: idle, press, slow_press" in capsys.readouterr().err
