@@ -1,4 +1,4 @@
-"""Shared fixtures: a real server on loopback, reading the simulator."""
+"""Shared fixtures: a real server on loopback, reading the simulator; a headless browser."""
 import socket
 import threading
 import time
@@ -32,3 +32,14 @@ def served():
     yield f"http://127.0.0.1:{server.config.port}/", tares
     server.should_exit = True
     thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Debian Chromium (tests/chromium.py; skips where it is not installed)."""
+    from tests.chromium import launch, sync_api
+
+    with sync_api.sync_playwright() as p:
+        browser = launch(p)
+        yield browser
+        browser.close()

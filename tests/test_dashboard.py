@@ -1,27 +1,16 @@
 """The dashboard in headless Debian Chromium, driven by Playwright, against a
 live in-process service reading the simulator (press scene, three sensors).
 
-Uses /usr/bin/chromium (Debian's package, never a downloaded browser);
-skips with the reason when it is not installed. Saves /tmp/dashboard.png.
+Skips with the reason when Debian's chromium is not installed (tests/chromium.py).
+Saves /tmp/dashboard.png.
 """
-import shutil
 from pathlib import Path
 
 import pytest
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+from tests.chromium import VIEWPORT
+
 SCREENSHOT = Path("/tmp/dashboard.png")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-VIEWPORT = {"width": 1400, "height": 800}
-
-sync_api = pytest.importorskip("playwright.sync_api")
-if not Path(CHROMIUM).exists():
-    pytest.skip("Debian's chromium is not installed (apt-get install chromium)", allow_module_level=True)
-
-
-def launch(playwright):
-    return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
 
 
 def taxel_pixel(page, sensor, index, cols):
@@ -38,14 +27,6 @@ def taxel_pixel(page, sensor, index, cols):
 
 def panel_order(page):
     return [int(s) for s in page.eval_on_selector_all("section.panel", "els => els.map(e => e.dataset.sensor)")]
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        browser = launch(p)
-        yield browser
-        browser.close()
 
 
 @pytest.fixture(scope="module")

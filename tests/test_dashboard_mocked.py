@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_dashboard import VIEWPORT, launch, sync_api
+from tests.chromium import VIEWPORT
 
 WEB = Path(__file__).resolve().parents[1] / "web"
 BASE = "http://tactile.test/"
@@ -105,14 +105,6 @@ class ScriptedService:
 
     def poll(self):
         self.page.evaluate("() => pollHealth()")
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        browser = launch(p)
-        yield browser
-        browser.close()
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_dashboard import VIEWPORT, launch, sync_api
+from tests.chromium import VIEWPORT
 
 TACTILE = shutil.which("tactile", path=str(Path(sys.executable).parent)) or shutil.which("tactile")
 REPLAY_SCREENSHOT = Path("/tmp/dashboard-replay-finished.png")
@@ -56,14 +56,6 @@ def tactile(*args, cwd):
             process.kill()
             process.wait()
         log.close()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        browser = launch(p)
-        yield browser
-        browser.close()
 
 
 def test_record_button_shows_the_path_the_service_writes(browser, tmp_path):
