@@ -70,7 +70,7 @@ def test_history_reads_beyond_the_cap_are_told_to_retry(client):
     gate = client.app.state.heavy_reads
     held = [gate.acquire(blocking=False) for _ in range(2)]  # two long reads in flight
     try:
-        busy = client.get("/sensors/0/history?seconds=5&max_points=5000")
+        busy = client.get("/sensors/0/history?seconds=4.5&max_points=5000")
         assert busy.status_code == 429 and busy.headers["retry-after"] == "1"
     finally:
         for taken in held:
@@ -102,3 +102,17 @@ def test_a_calibration_upload_is_checked_physically_and_a_linear_one_works(clien
     assert latest["header"]["seq"] >= seq + 50 and "reconstruction_error" not in latest["flags"]
     assert latest["wrench"]["force"]["z"] is not None
     assert not client.get("/health").json()["reconstruction"]["errors"]
+
+
+def test_the_same_history_read_within_its_age_is_answered_once():
+    from service.api.routes_sensors import RecentReads
+
+    now = [100.0]
+    recent = RecentReads(max_age_s=0.2, clock=lambda: now[0])
+    recent.put(("a",), b"[1]")
+    now[0] += 0.15
+    assert recent.get(("a",)) == b"[1]" and recent.get(("b",)) is None
+    now[0] += 0.1
+    assert recent.get(("a",)) is None  # too old: encoded again
+    recent.put(("b",), b"[2]")
+    assert recent.get(("b",)) == b"[2]"

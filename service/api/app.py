@@ -49,6 +49,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     app.state.service = service
     app.state.token = token
     app.state.heavy_reads = threading.BoundedSemaphore(routes_sensors.MAX_HEAVY_READS)
+    app.state.recent_reads = routes_sensors.RecentReads()
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
         app.include_router(routes.router)
     dashboard.add_dashboard(app)

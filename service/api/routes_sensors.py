@@ -2,6 +2,8 @@
 latest frame, contact summary and recent history, and the stream clients."""
 from __future__ import annotations
 
+import threading
+import time
 from typing import TYPE_CHECKING
 
 import orjson
@@ -78,21 +80,28 @@ def history(
     """Runs in a worker thread, at most ``MAX_HEAVY_READS`` at once (429
     beyond), encoded in chunks: the event loop can take the interpreter
     between them (sched.SWITCH_INTERVAL_S), so a history read never holds
-    up the live stream for long."""
+    up the live stream for long. The same read asked again within
+    ``RecentReads.max_age_s`` (dashboards polling) gets the same answer."""
     known_sensor(sensor_id, service)  # after the query is validated: a bad query is 422 for any sensor
     try:
         wanted = parse_fields(fields)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
-    gate = request.app.state.heavy_reads
-    if not gate.acquire(blocking=False):
-        raise HTTPException(429, f"{MAX_HEAVY_READS} history reads are running; retry shortly", headers={"Retry-After": "1"})
-    try:
-        history = service.pipeline.history.get(sensor_id)
-        return Response(b"[]" if history is None else encode_history(history, seconds, max_points, wanted),
-                        media_type="application/json")
-    finally:
-        gate.release()
+    key = (sensor_id, seconds, max_points, wanted)
+    recent = request.app.state.recent_reads
+    body = recent.get(key)
+    if body is None:
+        gate = request.app.state.heavy_reads
+        if not gate.acquire(blocking=False):
+            raise HTTPException(429, f"{MAX_HEAVY_READS} history reads are running; retry shortly",
+                                headers={"Retry-After": "1"})
+        try:
+            history = service.pipeline.history.get(sensor_id)
+            body = b"[]" if history is None else encode_history(history, seconds, max_points, wanted)
+        finally:
+            gate.release()
+        recent.put(key, body)
+    return Response(body, media_type="application/json")
 
 
 def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
@@ -103,3 +112,24 @@ def encode_history(history, seconds: float, max_points: int, wanted: frozenset[s
         frames = history.frames_at(slots[start:start + HISTORY_CHUNK])
         parts.append(orjson.dumps([to_json_dict(f, wanted) for f in frames], option=orjson.OPT_SERIALIZE_NUMPY)[1:-1])
     return b"[" + b",".join(parts) + b"]"
+
+class RecentReads:
+    """Answers of heavy reads kept ``max_age_s``, so that many clients
+    polling the same window share one encoding (thread-safe)."""
+
+    def __init__(self, max_age_s: float = 0.2, clock=time.monotonic) -> None:
+        self.max_age_s = max_age_s
+        self._clock = clock
+        self._answers: dict[tuple, tuple[float, bytes]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple) -> bytes | None:
+        with self._lock:
+            kept = self._answers.get(key)
+        return kept[1] if kept is not None and self._clock() - kept[0] <= self.max_age_s else None
+
+    def put(self, key: tuple, body: bytes) -> None:
+        now = self._clock()
+        with self._lock:
+            self._answers = {k: v for k, v in self._answers.items() if now - v[0] <= self.max_age_s}
+            self._answers[key] = (now, body)
