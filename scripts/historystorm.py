@@ -1,6 +1,6 @@
 """History storm: many clients polling /history while the 1 kHz path runs (a script, not a unit test).
 
-    python scripts/historystorm.py --clients 20 --hz 5 --seconds 20
+    python scripts/historystorm.py --clients 20 --hz 5 --seconds 20 [--nice -10]
 
 Starts `tactile serve` on loopback (built-in simulator: one 8x8 grid and one
 quad at 1 kHz), lets it settle, then runs ``--clients`` threads each asking
@@ -58,10 +58,11 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=20)
     parser.add_argument("--hz", type=float, default=5.0)
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--nice", type=int, default=0, help="the service's niceness (the deployed set-up: -10; needs root)")
     args = parser.parse_args()
     port = free_port()
     base = f"http://127.0.0.1:{port}"
-    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
+    server = subprocess.Popen(["nice", "-n", str(args.nice), sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 20
@@ -88,7 +89,7 @@ def main() -> int:
         server.terminate()
         server.wait(10)
     print(json.dumps({"quiet_published": quiet, "storm_published": storm, "answers": dict(answers),
-                      "clients": args.clients, "hz": args.hz, "seconds": args.seconds}, indent=1))
+                      "clients": args.clients, "hz": args.hz, "seconds": args.seconds, "nice": args.nice}, indent=1))
     return 0
 
 

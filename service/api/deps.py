@@ -34,8 +34,10 @@ class JSONResponse(Response):
         return orjson.dumps(content, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
-def get_service(connection: HTTPConnection) -> TactileService:
-    """The service this app serves (HTTP requests and WebSockets alike)."""
+async def get_service(connection: HTTPConnection) -> TactileService:
+    """The service this app serves (HTTP requests and WebSockets alike).
+    Async, so that FastAPI resolves it on the event loop instead of handing
+    every request to a worker thread for it."""
     return connection.app.state.service
 
 

@@ -6,8 +6,11 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
+import anyio
 import orjson
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi.responses import StreamingResponse
+from starlette.background import BackgroundTask
 
 from ..fanout.encoding import FIELDS, to_json_dict
 from .deps import (
@@ -27,6 +30,7 @@ if TYPE_CHECKING:
 router = APIRouter()
 
 MAX_HEAVY_READS = 2
+SEND_PIECE_BYTES = 1 << 16
 HISTORY_CHUNK = 100  # frames encoded at a time: orjson holds the interpreter for one call
 
 
@@ -69,7 +73,7 @@ def contact(sensor_id: int, frame: ForceFrame = Depends(latest_frame)) -> JSONRe
 
 
 @router.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}, 429: {}})
-def history(
+async def history(
     request: Request,
     sensor_id: int,
     seconds: float = Query(2.0, gt=0, le=5, description="window length back from the latest frame (5 s kept at 1 kHz)"),
@@ -77,31 +81,67 @@ def history(
     fields: str = Query("force,contact,flags", description=f"comma-separated: {', '.join(FIELDS)}"),
     service: TactileService = Depends(get_service),
 ) -> Response:
-    """Runs in a worker thread, at most ``MAX_HEAVY_READS`` at once (429
-    beyond), encoded in chunks: the event loop can take the interpreter
-    between them (sched.SWITCH_INTERVAL_S), so a history read never holds
-    up the live stream for long. The same read asked again within
-    ``RecentReads.max_age_s`` (dashboards polling) gets the same answer."""
+    """A heavy read: checked on the event loop, encoded in a worker thread
+    in chunks the loop can take the interpreter between
+    (sched.SWITCH_INTERVAL_S), and sent in pieces. At most
+    ``MAX_HEAVY_READS`` are encoded or sent at once (429 beyond, answered on
+    the loop): twenty threads contending for the interpreter, or megabytes
+    written to twenty sockets, kept the 1 kHz path waiting. The same read
+    asked again within ``RecentReads.max_age_s`` (dashboards polling) is
+    not encoded again."""
     known_sensor(sensor_id, service)  # after the query is validated: a bad query is 422 for any sensor
     try:
         wanted = parse_fields(fields)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
+    gate = request.app.state.heavy_reads
+    if not gate.acquire(blocking=False):
+        raise HTTPException(429, f"{MAX_HEAVY_READS} history reads are running; retry shortly",
+                            headers={"Retry-After": "1"})
+    permit = Permit(gate)
+    try:
+        body = await encoded_history(request.app.state.recent_reads, service, sensor_id, seconds, max_points, wanted)
+    except BaseException:
+        permit.release()
+        raise
+    return StreamingResponse(pieces(body, permit), media_type="application/json",
+                             headers={"Content-Length": str(len(body))}, background=BackgroundTask(permit.release))
+
+
+async def encoded_history(recent, service, sensor_id: int, seconds: float, max_points: int,
+                          wanted: frozenset[str]) -> bytes:
     key = (sensor_id, seconds, max_points, wanted)
-    recent = request.app.state.recent_reads
     body = recent.get(key)
     if body is None:
-        gate = request.app.state.heavy_reads
-        if not gate.acquire(blocking=False):
-            raise HTTPException(429, f"{MAX_HEAVY_READS} history reads are running; retry shortly",
-                                headers={"Retry-After": "1"})
-        try:
-            history = service.pipeline.history.get(sensor_id)
-            body = b"[]" if history is None else encode_history(history, seconds, max_points, wanted)
-        finally:
-            gate.release()
+        history = service.pipeline.history.get(sensor_id)
+        body = b"[]" if history is None else await anyio.to_thread.run_sync(
+            encode_history, history, seconds, max_points, wanted)
         recent.put(key, body)
-    return Response(body, media_type="application/json")
+    return body
+
+
+class Permit:
+    """A heavy-read slot, given back once however the answer ends (sent,
+    or the client gone mid-way)."""
+
+    def __init__(self, gate) -> None:
+        self._gate = gate
+        self._held = True
+
+    def release(self) -> None:
+        if self._held:
+            self._held = False
+            self._gate.release()
+
+
+async def pieces(body: bytes, permit: Permit):
+    """An answer in 64 KiB pieces: the event loop sends one, serves the live
+    stream, then sends the next."""
+    try:
+        for start in range(0, len(body), SEND_PIECE_BYTES):
+            yield body[start:start + SEND_PIECE_BYTES]
+    finally:
+        permit.release()
 
 
 def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:

@@ -120,4 +120,4 @@ class StreamSession:
 async def stream(websocket: WebSocket) -> None:
     """Query: sensors=0,1 · fields=force,raw,contact,flags · max_rate=Hz ·
     batch_ms=ms · encoding=json|binary."""
-    await StreamSession(websocket, get_service(websocket)).run()
+    await StreamSession(websocket, await get_service(websocket)).run()
