@@ -9,14 +9,14 @@ active one of that sensor, or table 1) and are listed as carried.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
 import numpy as np
 
 from . import registry
 from .alignment import Alignment, align, total_response
-from .fit import TaxelError, TaxelFit, fit_taxel, taxel_name
+from .fit import TaxelError, TaxelFit, fit_taxel
 from .reference import Reference, read_reference
 from .segmentation import Press, noise_sigma, segment, taxel_samples
 from .session import BoardSession, file_sha256, load_session
@@ -27,7 +27,8 @@ FULL_SCALE_N = 10.0
 @dataclass
 class Calibration:
     """What one run found. ``fits`` by taxel (row-major); ``problems`` by
-    taxel (why it could not be fitted); ``timings_s`` per step."""
+    taxel (why it could not be fitted); ``samples`` the data fitted;
+    ``timings_s`` per step."""
 
     session: BoardSession
     reference: Reference
@@ -38,6 +39,7 @@ class Calibration:
     reference_noise_N: float
     mounting: str
     full_scale_N: float
+    samples: dict = field(default_factory=dict)  # taxel → segmentation.TaxelSamples
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -77,7 +79,8 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)))
     if not fits:
         raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
-    return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, timings)
+    return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,
+                       timings)
 
 
 def identity(session: BoardSession) -> dict:
@@ -153,4 +156,3 @@ def summary_lines(result: Calibration) -> list[str]:
     return lines
 
 
-__all__ = ["Calibration", "calibrate", "document", "identity", "summary_lines", "taxel_name", "asdict"]

@@ -90,6 +90,10 @@ def builtin_document(rows: int = 8, cols: int = 8) -> dict:
             "kind": "grid", "rows": rows, "cols": cols, "note": BUILTIN_NOTE, "sensor": None, "taxels": taxels}
 
 
+class UnknownCalibration(ValueError):
+    """No calibration (or more than one) answers to an id."""
+
+
 class Registry:
     """The store at ``path`` (default: default_path()); created on first use."""
 
@@ -127,12 +131,12 @@ class Registry:
         return cid
 
     def get(self, cid: str) -> dict:
-        """The document of ``cid`` (a unique prefix will do), with its id; KeyError naming it."""
+        """The document of ``cid`` (a unique prefix will do), with its id; UnknownCalibration naming it."""
         if cid == BUILTIN_ID:
             return builtin_document()
         rows = self._db.execute("SELECT id, document FROM calibrations WHERE id LIKE ? || '%'", (cid,)).fetchall()
         if len(rows) != 1:
-            raise KeyError(f"{'no' if not rows else 'more than one'} calibration {cid!r} in {self.path}")
+            raise UnknownCalibration(f"{'no' if not rows else 'more than one'} calibration {cid!r} in {self.path}")
         return {"id": rows[0][0], **json.loads(rows[0][1])}
 
     def list(self, sensor_key: str | None = None) -> list[dict]:
@@ -176,7 +180,7 @@ class Registry:
     def _activate(self, cid: str, key: str) -> None:
         self._db.execute("INSERT INTO active VALUES (?, ?, strftime('%Y-%m-%dT%H:%M:%SZ', 'now')) "
                          "ON CONFLICT (sensor_key) DO UPDATE SET calibration_id = excluded.calibration_id, "
-                         "activated = excluded.activated", (cid, key))
+                         "activated = excluded.activated", (key, cid))
 
     def _transaction(self):
         return _Transaction(self._db)
