@@ -164,3 +164,13 @@ def test_the_command_calibrates_stores_lists_exports_and_imports(run, tmp_path, 
     call("calibrations", "export", cid, tmp_path / "c.json", "--registry", registry)
     assert f"imported {cid}" in call("calibrations", "import", tmp_path / "c.json", "--registry", tmp_path / "o.sqlite3")
     assert json.loads(call("calibrations", "show", cid, "--registry", registry))["id"] == cid
+
+
+def test_the_registry_imports_nothing_above_the_physics_and_the_readings():
+    from pathlib import Path
+
+    from tests.test_layers import imports
+
+    path = Path(reg.__file__)
+    ours = [m for _, m in imports(path) if m.startswith("service")]
+    assert ours and all(m.startswith(("service.physics", "service.readings")) for m in ours), ours

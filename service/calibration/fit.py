@@ -23,7 +23,8 @@ through the origin (~2.8 % higher on this curve).
 Where the model cannot follow (reduced χ² of the force residuals against the
 expected noise above CHI2_MAX), a monotone empirical curve replaces it:
 binned means made monotone (pool-adjacent-violators) and PCHIP through them;
-the taxel is flagged ``empirical``.
+the taxel is flagged ``empirical``, and its sensitivities span 0 N to the
+largest force pressed (an empirical curve is not extrapolated to 10 N).
 """
 from __future__ import annotations
 

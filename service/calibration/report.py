@@ -81,7 +81,8 @@ def markdown(result: Calibration, document: dict, calibration_id: str) -> str:
              f"Reference noise {result.reference_noise_N:.4f} N.", "",
              "## Per taxel", "",
              "Sensitivity of the fitted curve over 0–10 N: least-squares slope with intercept (paper 000's reading, "
-             "what the service's per-taxel gain is solved from) and through the origin.", "",
+             "what the service's per-taxel gain is solved from) and through the origin; for an `empirical` curve "
+             "(the model could not follow the data: reduced χ² > 4) over 0 N to the largest force pressed.", "",
              "| taxel | C0 pF | sens. %/N (LS) | sens. %/N (origin) | gain κ ± 1σ | residual RMS N | presses | max N | curve |",
              "|---|---|---|---|---|---|---|---|---|"]
     for t in sorted(result.fits):
