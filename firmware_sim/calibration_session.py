@@ -186,3 +186,35 @@ def validation_capture(calibration: GridCalibration, seed: int = 7, rate_hz: flo
     truth = np.stack([t.values for t in sim.truth])
     gain = SimGrid(0, calibration=calibration).response.gain
     return Session(raw, "", calibration, gain, presses, 0.0, 0.0, 0, truth_t, truth)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m firmware_sim.calibration_session OUT_DIR [--rate HZ] [--seed N]``: writes
+    session.bin, reference.csv, validation.bin and truth.json (gains, sensitivities, C0, clocks)."""
+    import argparse
+    import json
+    from pathlib import Path
+
+    parser = argparse.ArgumentParser(prog="python -m firmware_sim.calibration_session")
+    parser.add_argument("out")
+    parser.add_argument("--rate", type=float, default=500.0, help="board scans per second (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sim = session(rate_hz=args.rate, seed=args.seed)
+    (out / "session.bin").write_bytes(sim.raw)
+    (out / "reference.csv").write_text(sim.reference_csv)
+    (out / "validation.bin").write_bytes(validation_capture(sim.calibration, rate_hz=args.rate).raw)
+    truth = {"offset_s": sim.offset_s, "rate_ppm": sim.rate_ppm, "gain": sim.gain.tolist(),
+             "sensitivity_pct_per_N": (100 * sim.calibration.sensitivity_per_N).tolist(),
+             "c0_pF": sim.calibration.c0_pF.tolist(), "garbage_lines": sim.garbage_lines,
+             "session_s": max(p.end_s for p in sim.presses) + QUIET_S}
+    (out / "truth.json").write_text(json.dumps(truth, indent=1))
+    print(f"{out}: session.bin ({len(sim.raw)} bytes, {truth['session_s']:.0f} s at {args.rate:g} Hz), reference.csv, "
+          "validation.bin, truth.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

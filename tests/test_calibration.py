@@ -174,3 +174,18 @@ def test_the_registry_imports_nothing_above_the_physics_and_the_readings():
     path = Path(reg.__file__)
     ours = [m for _, m in imports(path) if m.startswith("service")]
     assert ours and all(m.startswith(("service.physics", "service.readings")) for m in ours), ours
+
+
+def test_an_mcap_recording_calibrates_like_the_raw_capture(run, tmp_path):
+    from service.record.mcap_writer import McapLog
+
+    sim, _, ref, result = run
+    path = tmp_path / "session.mcap"
+    with open(path, "wb") as stream:
+        log = McapLog(stream)
+        for k in range(0, len(sim.raw), 1 << 16):  # receive times: any increasing clock
+            log.raw(sim.raw[k:k + (1 << 16)], 1000.0 + k * 1e-7)
+        log.close()
+    again = calibrate(path, ref)
+    assert again.alignment.offset_s == pytest.approx(result.alignment.offset_s, abs=1e-9)
+    assert again.fits[5].gain == pytest.approx(result.fits[5].gain, rel=1e-12)

@@ -122,3 +122,22 @@ def cmd_import(args) -> int:
             registry.activate(cid)
     print(f"imported {cid}{' (active)' if args.activate else ''}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m service.calibration.cli calibrate|calibrations ...``, the same commands on their own
+    (until service/cli.py registers them)."""
+    import sys
+
+    parser = argparse.ArgumentParser(prog="tactile")
+    add_parsers(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as exc:
+        print(f"tactile {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
