@@ -189,3 +189,23 @@ def test_an_mcap_recording_calibrates_like_the_raw_capture(run, tmp_path):
     again = calibrate(path, ref)
     assert again.alignment.offset_s == pytest.approx(result.alignment.offset_s, abs=1e-9)
     assert again.fits[5].gain == pytest.approx(result.fits[5].gain, rel=1e-12)
+
+
+@pytest.mark.slow
+def test_a_six_minute_session_at_1khz_calibrates_in_under_ten_seconds(tmp_path):
+    import time
+
+    sim = session(rate_hz=1000.0, seed=11)
+    (tmp_path / "s.bin").write_bytes(sim.raw)
+    (tmp_path / "r.csv").write_text(sim.reference_csv)
+    started = time.perf_counter()
+    result = calibrate(tmp_path / "s.bin", tmp_path / "r.csv")
+    elapsed = time.perf_counter() - started
+    capture = validation_capture(sim.calibration, rate_hz=1000.0)
+    upload = {"sensitivity_pct_per_N": [100 * result.fits[t].sensitivity_per_N for t in range(64)]}
+    before, after = reconstruction_rms(capture, None), reconstruction_rms(capture, upload)
+    a = result.alignment
+    print(f"{len(result.session.t_s)} frames calibrated in {elapsed:.2f} s ({result.timings_s}); alignment error "
+          f"{1e3 * (a.offset_s - sim.offset_s):+.3f} ms, {a.rate_ppm - sim.rate_ppm:+.2f} ppm; RMS table 1 "
+          f"{before:.4f} N, calibrated {after:.4f} N")
+    assert elapsed < 10.0 and after <= 0.015 and before >= 0.15

@@ -17,7 +17,9 @@ import numpy as np
 
 from ..protocol import FLAG_SATURATED, T_US_MODULUS, Decoder, FrameType
 from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Interpreter, SensorInfo
-from ..record.readers import timed_chunks
+from ..record.readers import is_timed_by_host, timed_chunks
+
+READ_BYTES = 1 << 20
 
 
 @dataclass
@@ -59,6 +61,20 @@ def _pick_grid(sensors: dict[int, SensorInfo], sensor_id: int | None, path: str)
     return next(iter(grids.values()))
 
 
+def _chunks(path: str):
+    """The file's bytes in order: a recording's reads, or a raw capture read
+    straight (its reader would decode every chunk once more to time it, and
+    the calibration needs no receive times)."""
+    if is_timed_by_host(path):
+        yield from (chunk for _, chunk in timed_chunks(path))
+        return
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no such recording: {path}")
+    with open(path, "rb") as source:
+        while block := source.read(READ_BYTES):
+            yield block
+
+
 def _frames(path: str) -> tuple[Interpreter, list]:
     """Every grid data frame as (sensor, t_us, flags, payload, board_restart);
     INFO and ERROR frames go to the interpreter (the board's description).
@@ -66,7 +82,7 @@ def _frames(path: str) -> tuple[Interpreter, list]:
     as decoding); their payloads become one array at the end."""
     decoder, interpreter = Decoder(), Interpreter(clock=lambda: 0.0)
     frames = []
-    for _, chunk in timed_chunks(path):
+    for chunk in _chunks(path):
         for frame in decoder.feed(chunk):
             if frame.type == FrameType.GRID:
                 frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart))
