@@ -138,3 +138,40 @@ def test_a_session_without_that_grid_names_the_grids_there(tmp_path):
     (tmp_path / "s.bin").write_bytes(raw)
     with pytest.raises(ValueError, match=r"no grid sensor 3 in the session \(grids: \[0\]\)"):
         load_session(tmp_path / "s.bin", 3)
+
+
+@pytest.mark.parametrize("rate_hz, offset_s, rate_ppm", [(10.0, -3600.5, -200.0), (1000.0, 0.75, 200.0)])
+def test_references_at_10_hz_and_1_khz_with_any_offset_and_200_ppm_align(tmp_path, rate_hz, offset_s, rate_ppm):
+    reference = {"rate_hz": rate_hz, "offset_s": offset_s, "rate_ppm": rate_ppm}
+    sim = session(None, probe_schedule(range(12), seed=4), rate_hz=RATE_HZ, seed=4, reference=reference)
+    result = calibrate(*write(tmp_path, sim.raw, sim.reference_csv))
+    a = result.alignment
+    assert abs(a.offset_s - offset_s) < 3e-3 and abs(a.rate_ppm - rate_ppm) < 40  # a 40 s session: ppm is loose
+    mid = 20.0
+    assert abs(a.offset_s + mid * a.rate_ppm * 1e-6 - offset_s - mid * rate_ppm * 1e-6) < 1e-3
+    gain = np.array([result.fits[t].gain for t in range(12)])
+    assert np.abs(gain / sim.gain[:12] - 1).max() < 2e-3
+
+
+def test_sensor_identity_follows_the_protocol():
+    from service.calibration.registry import sensor_identity
+    from service.readings import SensorInfo
+
+    grid = SensorInfo(2, "grid", 8, 8)
+    assert sensor_identity({"board": "b", "serial": "TMX-1"}, SensorInfo(2, "grid", 8, 8, "A8-9"))["key"] == "sensor:A8-9"
+    assert sensor_identity({"board": "b", "serial": "TMX-1"}, grid)["key"] == "board:TMX-1/sensor:2"
+    assert sensor_identity({"board": "b"}, grid)["key"] == "board:b/sensor:2"
+
+
+def test_the_report_lists_the_taxels_not_pressed(tmp_path):
+    from service.calibration.calibrate import document
+    from service.calibration.registry import builtin_document
+    from service.calibration.report import write_report
+
+    sim = session(None, probe_schedule(range(6), seed=1), rate_hz=RATE_HZ, seed=5)
+    result = calibrate(*write(tmp_path, sim.raw, sim.reference_csv))
+    doc = document(result, builtin_document())
+    text = write_report(result, doc, "0123abcd", tmp_path / "report").read_text()
+    assert "| r1c6 |" in text and "keep their previous calibration (builtin-table1): r1c7, r1c8, r2c1" in text
+    assert (tmp_path / "report" / "response.png").stat().st_size > 10_000
+    assert (tmp_path / "report" / "residuals.png").stat().st_size > 5_000

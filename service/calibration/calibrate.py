@@ -18,7 +18,7 @@ from . import registry
 from .alignment import Alignment, align, total_response
 from .fit import TaxelError, TaxelFit, fit_taxel
 from .reference import Reference, read_reference
-from .segmentation import Press, noise_sigma, segment, taxel_samples
+from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
 from .session import BoardSession, file_sha256, load_session
 
 FULL_SCALE_N = 10.0
@@ -67,11 +67,12 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
     presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
     samples = taxel_samples(presses, session.t_s, session.capacitance_pF, session.saturated, t_ref_board, reference.force_N)
     lap("segment")
-    noise = noise_sigma(reference.force_N)
+    noise = noise_sigma(reference.force_N[unloaded(presses, t_ref_board)])  # pauses: pure instrument noise
     fits, problems = {}, {}
     for taxel, data in samples.items():
         try:
-            fits[taxel] = fit_taxel(data, noise, full_scale_N, mounting, session.info.cols)
+            fits[taxel] = fit_taxel(data, noise, full_scale_N, mounting, session.info.cols,
+                                    reference.rate_hz / session.rate_hz)
         except TaxelError as exc:
             problems[taxel] = str(exc)
     lap("fit")

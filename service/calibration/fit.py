@@ -12,8 +12,9 @@ the reference's noise is in newtons; the board's ΔC/C0 noise enters g as
 well (~0.01 N per sample) but its errors-in-variables bias on b is
 σ_g²/mean(g²) ≈ 1e-5, far below the gain's standard error. Standard error
 from the Jacobian (J = g): var b = s²/Σg², s² = Σe²/(k − 1); κ's by
-propagation (se_κ = se_b/b²), assuming independent samples (one per
-reference reading).
+propagation (se_κ = se_b/b²), for independent samples (one per reference
+reading; a reference faster than the board shares each frame's noise among
+several samples, and the errors are widened by √(samples per frame)).
 
 Sensitivities of the fitted curve over 0–10 N in both readings: the
 least-squares slope with intercept (the paper's, and what
@@ -124,8 +125,10 @@ def check(samples: TaxelSamples, full_scale_N: float, top: float, cols: int) -> 
 
 
 def fit_taxel(samples: TaxelSamples, reference_noise_N: float, full_scale_N: float = 10.0,
-              mounting: str = "flat", cols: int = 8) -> TaxelFit:
-    """Fit one taxel's (force, ΔC/C0) samples (k,); TaxelError on bad data."""
+              mounting: str = "flat", cols: int = 8, per_frame: float = 1.0) -> TaxelFit:
+    """Fit one taxel's (force, ΔC/C0) samples (k,); TaxelError on bad data.
+    ``per_frame``: reference samples per board frame; above 1 several samples
+    share one frame's noise, and the standard errors grow by its square root."""
     unit = unit_response(mounting)
     check(samples, full_scale_N, unit.top, cols)
     F, r = samples.force_N, samples.relative
@@ -133,7 +136,7 @@ def fit_taxel(samples: TaxelSamples, reference_noise_N: float, full_scale_N: flo
     b = float((g * F).sum() / (g * g).sum())
     residual = F - b * g
     s2 = float((residual ** 2).sum() / max(F.size - 1, 1))
-    se_b = np.sqrt(s2 / (g * g).sum())
+    se_b = np.sqrt(max(per_frame, 1.0) * s2 / (g * g).sum())
     gain, gain_se = 1.0 / b, se_b / b ** 2
     slope, origin = sensitivities(lambda f: unit.forward(np.asarray(f)[:, None] * gain)[:, 0])
     slope_hi, _ = sensitivities(lambda f: unit.forward(np.asarray(f)[:, None] * (gain + gain_se))[:, 0])

@@ -9,7 +9,9 @@ COMPARABLE of the first is flagged (the probe straddled two taxels) and not
 used. Each taxel's C0 is the mean of its capacitance over the unloaded
 windows around its own presses (robust to slow drift across the session).
 The fit's samples are the reference samples of the taxel's presses (padded
-by PAD_S of unloaded reference on each side), with the taxel's ΔC/C0
+by PAD_S of unloaded reference on each side, so that which samples are
+used is decided by time, not by their force: selecting on the force near a
+threshold would bias the fit), with the taxel's ΔC/C0
 interpolated at their board times: one sample per reference reading, so
 their errors are independent.
 """
@@ -23,7 +25,7 @@ LOW_SIGMAS, HIGH_SIGMAS = 5.0, 20.0
 LOW_MIN_N, HIGH_MIN_N = 0.05, 0.5
 TOP_FRACTION = 0.8
 COMPARABLE = 0.3
-PAD_S = 0.1
+PAD_S = 0.25  # the pauses are ≥ 0.5 s: unloaded samples, and the ramps' feet below the threshold
 GUARD_S = 0.15  # unloaded windows keep this far from any press
 WINDOW_S = 0.5  # longest unloaded window used for a baseline
 
@@ -68,6 +70,26 @@ def noise_sigma(values: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(6.0)) if d.size else 0.0
 
 
+def threshold_sigma(values: np.ndarray, block: int = 8) -> float:
+    """σ of the noise of a signal (k,) with loaded stretches: the MAD
+    estimate of its second differences per block of ``block``, lower
+    quartile over blocks (pauses are pure noise; at 10 Hz a press's ramps
+    are not smooth on the sample scale and would inflate a global MAD)."""
+    d = np.abs(np.diff(values, 2))
+    if d.size < 4 * block:
+        return noise_sigma(values)
+    medians = np.median(d[: d.size // block * block].reshape(-1, block), axis=1)
+    return float(1.4826 * np.percentile(medians, 25) / np.sqrt(6.0))
+
+
+def unloaded(presses: list, t_ref_board: np.ndarray) -> np.ndarray:
+    """Mask (k,) of the reference samples outside every press (padded by GUARD_S)."""
+    mask = np.ones(t_ref_board.size, bool)
+    for p in presses:
+        mask &= ~((t_ref_board >= p.start_s - GUARD_S) & (t_ref_board <= p.end_s + GUARD_S))
+    return mask
+
+
 def find_runs(force_N: np.ndarray, low: float, high: float) -> list[tuple[int, int]]:
     """[start, end) index runs of ``force_N`` (k,) above ``low`` that reach ``high``."""
     above = np.r_[False, force_N > low, False]
@@ -95,7 +117,7 @@ def _quiet_windows(presses: list[Press], k: int, t_first: float, t_last: float) 
 def segment(t_board: np.ndarray, capacitance_pF: np.ndarray, t_ref_board: np.ndarray, force_N: np.ndarray) -> list[Press]:
     """Presses of a session: board frames (n,), (n, taxels); the reference's
     samples on the board clock (k,) and forces (k,)."""
-    sigma = noise_sigma(force_N)
+    sigma = threshold_sigma(force_N)
     low, high = max(LOW_MIN_N, LOW_SIGMAS * sigma), max(HIGH_MIN_N, HIGH_SIGMAS * sigma)
     presses = []
     for a, b in find_runs(force_N, low, high):
@@ -125,6 +147,14 @@ def _attribute(press: Press, k: int, presses: list[Press], t_board, capacitance_
                          f"({100 * press.runner_up_share:.0f} %)")
 
 
+def _padded(presses: list[Press], k: int) -> tuple[float, float]:
+    """Press ``k`` widened by PAD_S each side, never past half the pause to a neighbour."""
+    p = presses[k]
+    a = p.start_s - PAD_S if k == 0 else max(p.start_s - PAD_S, 0.5 * (presses[k - 1].end_s + p.start_s))
+    b = p.end_s + PAD_S if k + 1 == len(presses) else min(p.end_s + PAD_S, 0.5 * (p.end_s + presses[k + 1].start_s))
+    return a, b
+
+
 def taxel_samples(presses: list[Press], t_board, capacitance_pF, saturated_frames, t_ref_board, force_N) -> dict[int, TaxelSamples]:
     """Per taxel, its paired (force, ΔC/C0) samples over the presses attributed to it (unflagged)."""
     t_first, t_last = float(t_board[0]), float(t_board[-1])
@@ -138,7 +168,8 @@ def taxel_samples(presses: list[Press], t_board, capacitance_pF, saturated_frame
         relative = column / c0 - 1.0
         keep = np.zeros(t_ref_board.size, bool)
         for k in mine:
-            keep |= (t_ref_board >= presses[k].start_s - PAD_S) & (t_ref_board <= presses[k].end_s + PAD_S)
+            a, b = _padded(presses, k)
+            keep |= (t_ref_board >= a) & (t_ref_board <= b)
         keep &= (t_ref_board >= t_first) & (t_ref_board <= t_last)
         frames = np.searchsorted(t_board, t_ref_board[keep])
         bad = ~np.isfinite(column) | saturated_frames
