@@ -128,6 +128,18 @@ def test_registry_round_trip_activation_and_the_builtin(run, tmp_path):
         assert "table 1" in second.get(reg.BUILTIN_ID)["note"]
 
 
+def test_a_failed_write_leaves_nothing_behind(run, tmp_path, monkeypatch):
+    _, _, _, result = run
+    doc = document(result)
+    with reg.Registry(tmp_path / "r.sqlite3") as registry:
+        monkeypatch.setattr(registry, "_activate", lambda cid, key: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            registry.add(doc, activate=True)  # the insert ran; the transaction is rolled back
+        assert [r["id"] for r in registry.list()] == [reg.BUILTIN_ID]
+        with pytest.raises(ValueError):
+            registry.add({**doc, "statistics": {"x": float("nan")}})  # not JSON: refused before writing
+
+
 def test_registry_location_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("TACTILE_REGISTRY", raising=False)
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
