@@ -10,6 +10,7 @@ import argparse
 import json
 import time
 
+from ..physics.mountings import MOUNTINGS
 from .registry import Registry
 
 
@@ -28,7 +29,8 @@ def add_parsers(subparsers) -> None:
     _registry_option(cal)
     cal.add_argument("--report", metavar="DIR", help="write calibration.md, response.png, residuals.png here")
     cal.add_argument("--full-scale", type=float, default=10.0, metavar="N", help="full scale in N (default: %(default)s)")
-    cal.add_argument("--mounting", default="flat", help="model table's mounting (default: %(default)s)")
+    cal.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
+                     help="model table's mounting (default: %(default)s)")
     cal.add_argument("--partial", action="store_true",
                      help="store the taxels that fit even if others fail (those keep their previous calibration)")
     cal.add_argument("--no-activate", action="store_true", help="store without making it the sensor's active one")

@@ -84,6 +84,8 @@ class TaxelFit:
 @lru_cache(maxsize=4)
 def unit_response(mounting: str = "flat") -> TaxelResponse:
     """The mounting's model table as a one-taxel response of gain 1."""
+    if mounting not in MOUNTINGS:
+        raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
     table = load(TableSpec(MOUNTINGS[mounting]))
     return TaxelResponse(table.force_N, table.relative_change, np.ones(1))
 
