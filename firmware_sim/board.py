@@ -33,6 +33,7 @@ class BoardConfig:
     name: str = "tactile-sim-8x8-quad"
     fw: str = "sim-1.0.0"
     full_scale_pF: float = 100.0
+    serial: str | None = None  # the board's serial, announced in INFO when set
 
     def __post_init__(self) -> None:
         get_scene(self.scene)
@@ -78,12 +79,10 @@ class Board:
         return self._info_frame()
 
     def info(self) -> dict:
-        return {
-            "board": self.config.name,
-            "fw": self.config.fw,
-            "rate_hz": self.rate_hz,
-            "sensors": [s.info() for s in self.config.sensors],
-        }
+        doc = {"board": self.config.name, "fw": self.config.fw}
+        if self.config.serial is not None:
+            doc["serial"] = self.config.serial
+        return {**doc, "rate_hz": self.rate_hz, "sensors": [s.info() for s in self.config.sensors]}
 
     def advance(self, now: float, room: int | None = None) -> bytes:
         """Run every scan due by board time ``now``; return their frames.

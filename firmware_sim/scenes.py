@@ -124,7 +124,10 @@ SCENES: dict[str, Scene] = {
 }
 
 
-def get_scene(name: str) -> Scene:
+def get_scene(name: str | Scene) -> Scene:
+    """A scene by name, or ``name`` itself when it is already a scene (a callable)."""
+    if callable(name):
+        return name
     try:
         return SCENES[name]
     except KeyError:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service.physics.crosstalk_model import PAPER_MECHANICAL_COUPLING, CrosstalkModel
-from service.physics.paper_data import PITCH_MM, grid_calibration, taxel_centres_mm
+from service.physics.paper_data import PITCH_MM, GridCalibration, grid_calibration, taxel_centres_mm
 from service.physics.quad_model import QuadModel
 from service.physics.taxel_response import taxel_response
 
@@ -46,10 +46,14 @@ class SimGrid:
     mechanical_coupling: float = PAPER_MECHANICAL_COUPLING
     electrical_leakage: float = 0.0
     drift: Drift = field(default_factory=Drift)
+    calibration: GridCalibration | None = None  # None: table 1 (8x8) or its mean (other shapes)
+    serial: str | None = None  # announced in INFO when set (protocol: the sensor's own identity)
     kind: str = field(default="grid", init=False)
 
     def __post_init__(self) -> None:
-        calibration = grid_calibration(self.rows, self.cols)
+        calibration = self.calibration or grid_calibration(self.rows, self.cols)
+        if (calibration.rows, calibration.cols) != (self.rows, self.cols):
+            raise ValueError(f"calibration is {calibration.rows}x{calibration.cols}, the grid {self.rows}x{self.cols}")
         self.c0_pF = np.array(calibration.c0_pF)
         self.response = taxel_response(calibration, self.mounting)
         self.crosstalk = CrosstalkModel(self.rows, self.cols, self.mechanical_coupling, self.electrical_leakage)
@@ -67,7 +71,8 @@ class SimGrid:
         return self.crosstalk.leak(self.c0_pF * (1.0 + relative) * (1.0 + self.drift(t)))
 
     def info(self) -> dict:
-        return {"id": self.id, "kind": "grid", "rows": self.rows, "cols": self.cols}
+        doc = {"id": self.id, "kind": "grid", "rows": self.rows, "cols": self.cols}
+        return doc if self.serial is None else {**doc, "serial": self.serial}
 
 
 @dataclass

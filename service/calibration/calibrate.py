@@ -1,0 +1,159 @@
+"""A whole calibration run: session + reference → per-taxel fits → a registry document.
+
+``calibrate`` reads both files, aligns the clocks, segments the presses,
+fits every taxel that was pressed and returns a ``Calibration`` (with the
+timings of each step). ``document`` turns it into the registry's immutable
+record: taxels not pressed keep the previous calibration's values (the
+active one of that sensor, or table 1) and are listed as carried.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+
+from . import registry
+from .alignment import Alignment, align, total_response
+from .fit import TaxelError, TaxelFit, fit_taxel
+from .reference import Reference, read_reference
+from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
+from .session import BoardSession, file_sha256, load_session
+
+FULL_SCALE_N = 10.0
+
+
+@dataclass
+class Calibration:
+    """What one run found. ``fits`` by taxel (row-major); ``problems`` by
+    taxel (why it could not be fitted); ``samples`` the data fitted;
+    ``timings_s`` per step."""
+
+    session: BoardSession
+    reference: Reference
+    alignment: Alignment
+    presses: list[Press]
+    fits: dict[int, TaxelFit]
+    problems: dict[int, str]
+    reference_noise_N: float
+    mounting: str
+    full_scale_N: float
+    samples: dict = field(default_factory=dict)  # taxel → segmentation.TaxelSamples
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def flagged_presses(self) -> list[Press]:
+        return [p for p in self.presses if p.problem is not None]
+
+
+def calibrate(session_path, reference_path, sensor_id: int | None = None, full_scale_N: float = FULL_SCALE_N,
+              mounting: str = "flat", allow_partial: bool = False) -> Calibration:
+    """Calibrate one grid; ValueError naming every bad taxel unless
+    ``allow_partial`` (then they keep their previous calibration)."""
+    clock, timings = time.perf_counter(), {}
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name], clock = now - clock, now
+
+    session = load_session(session_path, sensor_id)
+    reference = read_reference(reference_path)
+    lap("read")
+    alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
+    lap("align")
+    t_ref_board = alignment.to_board(reference.t_s)
+    presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
+    samples = taxel_samples(presses, session.t_s, session.capacitance_pF, session.saturated, t_ref_board, reference.force_N)
+    lap("segment")
+    noise = noise_sigma(reference.force_N[unloaded(presses, t_ref_board)])  # pauses: pure instrument noise
+    fits, problems = {}, {}
+    for taxel, data in samples.items():
+        try:
+            fits[taxel] = fit_taxel(data, noise, full_scale_N, mounting, session.info.cols,
+                                    reference.rate_hz / session.rate_hz)
+        except TaxelError as exc:
+            problems[taxel] = str(exc)
+    lap("fit")
+    if problems and not allow_partial:
+        raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)))
+    if not fits:
+        raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
+    return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,
+                       timings)
+
+
+def identity(session: BoardSession) -> dict:
+    """The sensor's identity (protocol.md): its own serial, else the board's serial (or name) and its id."""
+    return registry.sensor_identity(session.board, session.info)
+
+
+def document(result: Calibration, previous: dict | None = None, created: str | None = None) -> dict:
+    """The registry record (without id) of ``result``; taxels not fitted keep
+    ``previous``'s values (a registry document; table 1's by default)."""
+    info = result.session.info
+    n = info.channels
+    previous = previous or registry.builtin_document(info.rows, info.cols)
+    old = previous["taxels"]
+    fields = ("c0_pF", "gain", "gain_se", "sensitivity_pct_per_N", "sensitivity_origin_pct_per_N",
+              "residual_rms_N", "presses", "max_force_N", "model", "source")
+    taxels = {name: list(old.get(name, [None] * n)) for name in fields}
+    taxels["source"] = [previous["id"] if previous.get("id") else "previous"] * n
+    taxels["curves"] = dict(old.get("curves", {}))
+    for t, fit in result.fits.items():
+        values = {"c0_pF": fit.c0_pF, "gain": fit.gain, "gain_se": fit.gain_se,
+                  "sensitivity_pct_per_N": 100 * fit.sensitivity_per_N,
+                  "sensitivity_origin_pct_per_N": 100 * fit.sensitivity_origin_per_N,
+                  "residual_rms_N": fit.residual_rms_N, "presses": fit.presses, "max_force_N": fit.max_force_N,
+                  "model": fit.model, "source": "this session"}
+        for name, value in values.items():
+            taxels[name][t] = value
+        taxels["curves"].pop(str(t), None)
+        if fit.model == "empirical":
+            taxels["curves"][str(t)] = {"force_N": fit.curve_force_N, "relative": fit.curve_relative}
+    a = result.alignment
+    return {
+        "schema": registry.SCHEMA,
+        "kind": "grid",
+        "rows": info.rows,
+        "cols": info.cols,
+        "sensor": identity(result.session),
+        "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "mounting": result.mounting,
+        "full_scale_N": result.full_scale_N,
+        "previous": previous.get("id"),
+        "sources": [{"role": "session", "name": str(result.session.path), "sha256": result.session.sha256},
+                    {"role": "reference", "name": result.reference.path, "sha256": file_sha256(result.reference.path)}],
+        "alignment": a.as_dict(),
+        "statistics": {"presses": len(result.presses), "flagged_presses": len(result.flagged_presses),
+                       "reference_noise_N": result.reference_noise_N, "reference_skipped_lines": result.reference.skipped,
+                       "taxels_fitted": sorted(result.fits), "taxels_failed": {str(t): m for t, m in result.problems.items()},
+                       "residual_rms_N_median": float(np.median([f.residual_rms_N for f in result.fits.values()]))},
+        "taxels": taxels,
+    }
+
+
+def summary_lines(result: Calibration) -> list[str]:
+    """What ``tactile calibrate`` prints: alignment, then one line per fitted taxel."""
+    a, cols = result.alignment, result.session.info.cols
+    lines = [f"session {result.session.path}: {len(result.session.t_s)} frames at {result.session.rate_hz:.1f} Hz; "
+             f"reference {result.reference.path}: {len(result.reference.t_s)} samples at {result.reference.rate_hz:.1f} Hz, "
+             f"{result.reference.skipped} lines skipped",
+             f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f} "
+             f"(runner-up lag {a.runner_up_lag_s:+.2f} s: {a.runner_up:.3f} against {a.coarse_best:.3f})",
+             f"presses: {len(result.presses)} ({len(result.flagged_presses)} set aside), reference noise "
+             f"{result.reference_noise_N:.4f} N",
+             "taxel     C0 pF   sens %/N (LS) (origin)   gain ± se          RMS N   presses  max N  model"]
+    for t in sorted(result.fits):
+        f = result.fits[t]
+        lines.append(f"r{t // cols + 1}c{t % cols + 1:<5} {f.c0_pF:7.3f}   {100 * f.sensitivity_per_N:7.4f}  "
+                     f"{100 * f.sensitivity_origin_per_N:7.4f}    {f.gain:.5f} ± {f.gain_se:.5f}   "
+                     f"{f.residual_rms_N:.4f}   {f.presses:5d}  {f.max_force_N:5.2f}  {f.model}")
+    for t, why in sorted(result.problems.items()):
+        lines.append(f"not calibrated: {why}")
+    for p in result.flagged_presses:
+        lines.append(f"press at {p.start_s:.2f} s set aside: {p.problem}")
+    return lines
+
+

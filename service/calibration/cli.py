@@ -1,0 +1,145 @@
+"""``tactile calibrate`` and ``tactile calibrations list|show|activate|export|import``.
+
+``add_parsers(subparsers)`` registers both on the ``tactile`` command's
+subparsers; each sets ``func`` to a function of the parsed arguments that
+returns the exit code and raises ValueError/OSError for the CLI to print.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from ..physics.mountings import MOUNTINGS
+from .registry import Registry
+
+
+def _registry_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--registry", metavar="PATH",
+                        help="calibration registry (default: $TACTILE_REGISTRY, else "
+                             "$XDG_DATA_HOME/tactile/registry.sqlite3)")
+
+
+def add_parsers(subparsers) -> None:
+    """Register ``calibrate`` and ``calibrations`` on ``subparsers``."""
+    cal = subparsers.add_parser("calibrate", help="calibrate a grid from a reference-load session")
+    cal.add_argument("session", metavar="SESSION", help="the board's bytes: raw capture (.bin) or recording (.mcap)")
+    cal.add_argument("--reference", required=True, metavar="REF.csv", help="the reference instrument's t_s,force_N log")
+    cal.add_argument("--sensor", type=int, metavar="ID", help="grid sensor id on the board (default: the only grid)")
+    _registry_option(cal)
+    cal.add_argument("--report", metavar="DIR", help="write calibration.md, response.png, residuals.png here")
+    cal.add_argument("--full-scale", type=float, default=10.0, metavar="N", help="full scale in N (default: %(default)s)")
+    cal.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
+                     help="model table's mounting (default: %(default)s)")
+    cal.add_argument("--partial", action="store_true",
+                     help="store the taxels that fit even if others fail (those keep their previous calibration)")
+    cal.add_argument("--no-activate", action="store_true", help="store without making it the sensor's active one")
+    cal.set_defaults(func=cmd_calibrate)
+
+    cals = subparsers.add_parser("calibrations", help="the calibration registry").add_subparsers(dest="action",
+                                                                                                required=True)
+    listing = cals.add_parser("list", help="every stored calibration, the active ones marked")
+    listing.add_argument("--sensor-key", help="only this sensor's (e.g. sensor:A8-2291)")
+    for name, helptext in (("show", "one calibration as JSON"), ("activate", "make it its sensor's active one")):
+        sub = cals.add_parser(name, help=helptext)
+        sub.add_argument("id")
+        _registry_option(sub)
+    _registry_option(listing)
+    export = cals.add_parser("export", help="write one calibration as JSON")
+    export.add_argument("id")
+    export.add_argument("out", metavar="OUT.json")
+    _registry_option(export)
+    imp = cals.add_parser("import", help="store a calibration exported elsewhere (same id)")
+    imp.add_argument("file", metavar="IN.json")
+    imp.add_argument("--activate", action="store_true")
+    _registry_option(imp)
+    listing.set_defaults(func=cmd_list)
+    for name, func in (("show", cmd_show), ("activate", cmd_activate), ("export", cmd_export), ("import", cmd_import)):
+        cals.choices[name].set_defaults(func=func)
+
+
+def cmd_calibrate(args) -> int:
+    from .calibrate import calibrate, document, summary_lines
+
+    if args.report:
+        from ..reports.plotting import require
+
+        require("the calibration report's PNGs")
+    started = time.perf_counter()
+    result = calibrate(args.session, args.reference, args.sensor, args.full_scale, args.mounting, args.partial)
+    with Registry(args.registry) as registry:
+        key = registry_key(result)
+        previous = registry.active(key, result.session.info.rows, result.session.info.cols)
+        doc = document(result, previous)
+        cid = registry.add(doc, activate=not args.no_activate)
+    elapsed = time.perf_counter() - started
+    print("\n".join(summary_lines(result)))
+    print(f"stored {cid} for {key} in {registry.path}{'' if args.no_activate else ' (active)'}; "
+          f"{len(result.fits)} taxels calibrated in {elapsed:.2f} s")
+    if args.report:
+        from .report import write_report
+
+        print(f"report: {write_report(result, doc, cid, args.report)}")
+    return 0
+
+
+def registry_key(result) -> str:
+    from .calibrate import identity
+
+    return identity(result.session)["key"]
+
+
+def cmd_list(args) -> int:
+    with Registry(args.registry) as registry:
+        for row in registry.list(args.sensor_key):
+            mark = "*" if row["active"] else " "
+            print(f"{mark} {row['id']:<16}  {row['created']:<25}  {row['sensor_key']}  {row.get('note', '')}".rstrip())
+    return 0
+
+
+def cmd_show(args) -> int:
+    with Registry(args.registry) as registry:
+        print(json.dumps(registry.get(args.id), indent=1, sort_keys=True))
+    return 0
+
+
+def cmd_activate(args) -> int:
+    with Registry(args.registry) as registry:
+        doc = registry.activate(args.id)
+    print(f"{doc['id']} is now active for {doc['sensor']['key']}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    with Registry(args.registry) as registry:
+        cid = registry.export(args.id, args.out)
+    print(f"{cid} → {args.out}")
+    return 0
+
+
+def cmd_import(args) -> int:
+    with Registry(args.registry) as registry:
+        cid = registry.import_(args.file)
+        if args.activate:
+            registry.activate(cid)
+    print(f"imported {cid}{' (active)' if args.activate else ''}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m service.calibration.cli calibrate|calibrations ...``, the same commands on their own
+    (until service/cli.py registers them)."""
+    import sys
+
+    parser = argparse.ArgumentParser(prog="tactile")
+    add_parsers(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as exc:
+        print(f"tactile {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,199 @@
+"""The calibration registry: immutable calibrations in SQLite, one active per sensor.
+
+A calibration is a JSON document (calibrate.py builds it); its id is the
+first ID_HEX hex digits of the sha256 of its canonical JSON (sorted keys, no
+spaces, the ``id`` field left out), so the same content always has the same
+id: export → import gives it back, and a document whose id does not match
+its content is refused. Rows are never updated nor deleted (triggers refuse
+it); ``activate`` only moves the sensor's pointer. Each write is one
+transaction (SQLite, WAL journal): a crash leaves the previous state, never
+half a calibration.
+
+A sensor is identified as protocol.md says: its own ``serial`` when INFO
+carries one, else the board's serial (or name) and the sensor's id. An 8x8
+array without a calibration of its own uses table 1 of paper 000, the
+built-in calibration BUILTIN_ID.
+
+Location: the ``path`` argument, else $TACTILE_REGISTRY, else
+$XDG_DATA_HOME/tactile/registry.sqlite3 (~/.local/share when unset).
+
+This module imports nothing above service.physics and service.readings: the
+live service loads calibrations through it.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+from pathlib import Path
+
+from ..physics.paper_data import grid_calibration
+from ..physics.taxel_response import taxel_response
+from ..readings import SensorInfo
+
+SCHEMA = 1
+ID_HEX = 16
+BUILTIN_ID = "builtin-table1"
+BUILTIN_NOTE = ("built-in: table 1 of Liang et al. 2015 (paper 000), the calibration every 8x8 array without "
+                "its own uses; not measured on this sensor")
+
+_DDL = """
+CREATE TABLE IF NOT EXISTS calibrations (
+    id TEXT PRIMARY KEY, sensor_key TEXT NOT NULL, created TEXT NOT NULL, document TEXT NOT NULL);
+CREATE INDEX IF NOT EXISTS calibrations_sensor ON calibrations (sensor_key, created);
+CREATE TABLE IF NOT EXISTS active (
+    sensor_key TEXT PRIMARY KEY, calibration_id TEXT NOT NULL REFERENCES calibrations (id), activated TEXT NOT NULL);
+CREATE TRIGGER IF NOT EXISTS calibrations_immutable BEFORE UPDATE ON calibrations
+    BEGIN SELECT RAISE(ABORT, 'calibrations are immutable'); END;
+CREATE TRIGGER IF NOT EXISTS calibrations_kept BEFORE DELETE ON calibrations
+    BEGIN SELECT RAISE(ABORT, 'calibrations are never deleted'); END;
+"""
+
+
+def default_path() -> Path:
+    """$TACTILE_REGISTRY, else $XDG_DATA_HOME (or ~/.local/share)/tactile/registry.sqlite3."""
+    if os.environ.get("TACTILE_REGISTRY"):
+        return Path(os.environ["TACTILE_REGISTRY"])
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "tactile" / "registry.sqlite3"
+
+
+def canonical(document: dict) -> bytes:
+    """The document without ``id`` as canonical JSON (sorted keys, compact, UTF-8, no NaN)."""
+    body = {k: v for k, v in document.items() if k != "id"}
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
+
+
+def calibration_id(document: dict) -> str:
+    return hashlib.sha256(canonical(document)).hexdigest()[:ID_HEX]
+
+
+def sensor_identity(board: dict, info: SensorInfo) -> dict:
+    """``key`` (what the registry indexes) and what it was made of."""
+    board_name = board.get("serial") or board.get("board") or "unknown-board"
+    key = f"sensor:{info.serial}" if info.serial else f"board:{board_name}/sensor:{info.id}"
+    return {"key": key, "sensor_serial": info.serial, "board_serial": board.get("serial"),
+            "board": board.get("board"), "sensor_id": info.id}
+
+
+def builtin_document(rows: int = 8, cols: int = 8) -> dict:
+    """Table 1 (8x8; the table's mean for other shapes) as a registry document, id BUILTIN_ID."""
+    base = grid_calibration(rows, cols)
+    n = rows * cols
+    gains = taxel_response(base).gain
+    taxels = {"c0_pF": [float(c) for c in base.c0_pF], "gain": [float(g) for g in gains], "gain_se": [None] * n,
+              "sensitivity_pct_per_N": [100 * float(s) for s in base.sensitivity_per_N],
+              "sensitivity_origin_pct_per_N": [None] * n, "residual_rms_N": [None] * n, "presses": [None] * n,
+              "max_force_N": [None] * n, "model": ["table"] * n, "source": [BUILTIN_ID] * n, "curves": {}}
+    return {"id": BUILTIN_ID if (rows, cols) == (8, 8) else f"builtin-mean-{rows}x{cols}", "schema": SCHEMA,
+            "kind": "grid", "rows": rows, "cols": cols, "note": BUILTIN_NOTE, "sensor": None, "taxels": taxels}
+
+
+class UnknownCalibration(ValueError):
+    """No calibration (or more than one) answers to an id."""
+
+
+class Registry:
+    """The store at ``path`` (default: default_path()); created on first use."""
+
+    def __init__(self, path: str | Path | None = None) -> None:
+        self.path = Path(path) if path is not None else default_path()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(self.path, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA foreign_keys=ON")
+        self._db.executescript(_DDL)
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> Registry:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def add(self, document: dict, activate: bool = False) -> str:
+        """Store ``document`` (idempotent); ValueError if it carries an id its content does not give."""
+        cid = calibration_id(document)
+        if document.get("id") not in (None, cid):
+            raise ValueError(f"calibration id {document['id']} does not match its content (which gives {cid}): "
+                             "edited or corrupt")
+        if document.get("schema") != SCHEMA or not (document.get("sensor") or {}).get("key"):
+            raise ValueError(f"not a calibration document of schema {SCHEMA} with a sensor key")
+        text = canonical(document).decode()
+        with self._transaction():
+            self._db.execute("INSERT OR IGNORE INTO calibrations VALUES (?, ?, ?, ?)",
+                             (cid, document["sensor"]["key"], document.get("created", ""), text))
+            if activate:
+                self._activate(cid, document["sensor"]["key"])
+        return cid
+
+    def get(self, cid: str) -> dict:
+        """The document of ``cid`` (a unique prefix will do), with its id; UnknownCalibration naming it."""
+        if cid == BUILTIN_ID:
+            return builtin_document()
+        rows = self._db.execute("SELECT id, document FROM calibrations WHERE id LIKE ? || '%'", (cid,)).fetchall()
+        if len(rows) != 1:
+            raise UnknownCalibration(f"{'no' if not rows else 'more than one'} calibration {cid!r} in {self.path}")
+        return {"id": rows[0][0], **json.loads(rows[0][1])}
+
+    def list(self, sensor_key: str | None = None) -> list[dict]:
+        """(id, sensor key, created, active) of every stored calibration, oldest first, then the built-in."""
+        rows = self._db.execute(
+            "SELECT c.id, c.sensor_key, c.created, a.calibration_id IS NOT NULL FROM calibrations c "
+            "LEFT JOIN active a ON a.calibration_id = c.id AND a.sensor_key = c.sensor_key "
+            "WHERE ? IS NULL OR c.sensor_key = ? ORDER BY c.created, c.id", (sensor_key, sensor_key)).fetchall()
+        out = [{"id": r[0], "sensor_key": r[1], "created": r[2], "active": bool(r[3])} for r in rows]
+        return out + [{"id": BUILTIN_ID, "sensor_key": "(any 8x8 array without its own)", "created": "",
+                       "active": False, "note": BUILTIN_NOTE}]
+
+    def activate(self, cid: str) -> dict:
+        """Make ``cid`` the active calibration of its sensor; returns the document."""
+        document = self.get(cid)
+        if document["id"].startswith("builtin"):
+            raise ValueError("the built-in calibration is what a sensor without an active one uses; it is not activated")
+        with self._transaction():
+            self._activate(document["id"], document["sensor"]["key"])
+        return document
+
+    def active(self, sensor_key: str, rows: int = 8, cols: int = 8) -> dict:
+        """The sensor's active calibration, or the built-in one (table 1 for 8x8)."""
+        row = self._db.execute("SELECT calibration_id FROM active WHERE sensor_key = ?", (sensor_key,)).fetchone()
+        return self.get(row[0]) if row else builtin_document(rows, cols)
+
+    def export(self, cid: str, path: str | Path) -> str:
+        document = self.get(cid)
+        Path(path).write_text(json.dumps(document, indent=1, sort_keys=True, allow_nan=False) + "\n")
+        return document["id"]
+
+    def import_(self, path: str | Path) -> str:
+        try:
+            document = json.loads(Path(path).read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not JSON: {exc}") from None
+        if not isinstance(document, dict):
+            raise ValueError(f"{path}: not a calibration document")
+        return self.add(document)
+
+    def _activate(self, cid: str, key: str) -> None:
+        self._db.execute("INSERT INTO active VALUES (?, ?, strftime('%Y-%m-%dT%H:%M:%SZ', 'now')) "
+                         "ON CONFLICT (sensor_key) DO UPDATE SET calibration_id = excluded.calibration_id, "
+                         "activated = excluded.activated", (key, cid))
+
+    def _transaction(self):
+        return _Transaction(self._db)
+
+
+class _Transaction:
+    """BEGIN IMMEDIATE … COMMIT, ROLLBACK on any exception."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def __enter__(self) -> None:
+        self._db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, kind, *exc) -> None:
+        self._db.execute("ROLLBACK" if kind else "COMMIT")

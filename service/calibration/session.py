@@ -1,0 +1,122 @@
+"""The board's side of a session: one grid's capacitance on the board clock.
+
+Reads a raw capture (.bin, any suffix) or an MCAP recording (.mcap) through
+the same decoder and interpreter as live data (not the reconstruction: the
+calibration works on capacitance). Board times are the frames' ``t_us``,
+unwrapped (it wraps every 2³² µs); a board restart inside the session
+(its clock steps back) is an error, since the session's clock would no
+longer be one line.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..protocol import FLAG_SATURATED, T_US_MODULUS, Decoder, FrameType
+from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Interpreter, SensorInfo
+from ..record.readers import is_timed_by_host, timed_chunks
+
+READ_BYTES = 1 << 20
+
+
+@dataclass
+class BoardSession:
+    """One grid over a session. ``t_s`` (n,) board seconds, unwrapped and
+    increasing; ``capacitance_pF`` (n, rows*cols), NaN for sentinels;
+    ``saturated`` (n,) the board's saturation flag per frame."""
+
+    path: str
+    sha256: str
+    info: SensorInfo
+    board: dict
+    t_s: np.ndarray
+    capacitance_pF: np.ndarray
+    saturated: np.ndarray
+
+    @property
+    def rate_hz(self) -> float:
+        return (len(self.t_s) - 1) / (self.t_s[-1] - self.t_s[0])
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as source:
+        while block := source.read(1 << 20):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _pick_grid(sensors: dict[int, SensorInfo], sensor_id: int | None, path: str) -> SensorInfo:
+    grids = {sid: info for sid, info in sensors.items() if info.kind == "grid"}
+    if sensor_id is not None:
+        if sensor_id not in grids:
+            raise ValueError(f"{path}: no grid sensor {sensor_id} in the session (grids: {sorted(grids) or 'none'})")
+        return grids[sensor_id]
+    if len(grids) != 1:
+        raise ValueError(f"{path}: {len(grids) or 'no'} grid sensors in the session; name one with --sensor "
+                         f"(grids: {sorted(grids)})" if grids else f"{path}: no grid sensor in the session")
+    return next(iter(grids.values()))
+
+
+def _chunks(path: str):
+    """The file's bytes in order: a recording's reads, or a raw capture read
+    straight (its reader would decode every chunk once more to time it, and
+    the calibration needs no receive times)."""
+    if is_timed_by_host(path):
+        yield from (chunk for _, chunk in timed_chunks(path))
+        return
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no such recording: {path}")
+    with open(path, "rb") as source:
+        while block := source.read(READ_BYTES):
+            yield block
+
+
+def _frames(path: str) -> tuple[Interpreter, list]:
+    """Every grid data frame as (sensor, t_us, flags, payload, board_restart);
+    INFO and ERROR frames go to the interpreter (the board's description).
+    Data frames skip the interpreter (one array per frame would cost as much
+    as decoding); their payloads become one array at the end."""
+    decoder, interpreter = Decoder(), Interpreter(clock=lambda: 0.0)
+    frames = []
+    for chunk in _chunks(path):
+        for frame in decoder.feed(chunk):
+            if frame.type == FrameType.GRID:
+                frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart))
+            elif frame.type in (FrameType.INFO, FrameType.ERROR):
+                interpreter.interpret(frame, 0.0)
+    for frame in decoder.finish():
+        if frame.type == FrameType.GRID:
+            frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart))
+    return interpreter, frames
+
+
+def load_session(path: str | Path, sensor_id: int | None = None) -> BoardSession:
+    """The frames of one grid sensor (``sensor_id``, or the only grid); a
+    grid announced by no INFO is taken as 8x8 when its payload is 256 bytes."""
+    path = str(path)
+    interpreter, frames = _frames(path)
+    sensors = dict(interpreter.sensors)
+    for sid in {f[0] for f in frames} - set(sensors):
+        sensors[sid] = SensorInfo(sid, "grid", 8, 8)
+    info = _pick_grid(sensors, sensor_id, path)
+    mine = [f for f in frames if f[0] == info.id and len(f[3]) == 4 * info.channels]
+    if len(mine) < 100:
+        raise ValueError(f"{path}: only {len(mine)} frames of grid sensor {info.id}; a session needs far more")
+    restart = next((i for i, f in enumerate(mine) if f[4]), None)
+    if restart is not None:
+        raise ValueError(f"{path}: the board restarted during the session (sensor {info.id}, frame {restart}); "
+                         "calibrate each part separately")
+    t = np.array([f[1] for f in mine], dtype=np.int64)
+    wraps = np.concatenate([[0], np.cumsum(np.diff(t) < -T_US_MODULUS // 2)])
+    t_s = (t + wraps * T_US_MODULUS) * 1e-6
+    if np.any(np.diff(t_s) <= 0):
+        raise ValueError(f"{path}: board times of sensor {info.id} do not increase")
+    raw = np.frombuffer(b"".join(f[3] for f in mine), dtype="<u4").reshape(len(mine), info.channels)
+    capacitance = raw / AF_PER_PF
+    capacitance[(raw == OPEN_SENTINEL) | (raw == SHORT_SENTINEL)] = np.nan
+    saturated = (np.array([f[2] for f in mine]) & FLAG_SATURATED) != 0
+    return BoardSession(path, file_sha256(path), info, dict(interpreter.board), t_s, capacitance, saturated)

@@ -1,0 +1,177 @@
+"""Bad calibration input: each gets a clear error (naming the taxel, the
+file or the line), and a sensor the model cannot follow gets an empirical
+curve, flagged. Short sessions of a few taxels, at 200 Hz."""
+import numpy as np
+import pytest
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.calibration_session import (Press, ScheduleScene, probe_schedule, reference_csv, run_presses,
+                                              session, user_grid_calibration)
+from firmware_sim.sensors import SimGrid
+from service.calibration.alignment import align, total_response
+from service.calibration.calibrate import calibrate
+from service.calibration.reference import parse_reference, read_reference
+from service.calibration.segmentation import segment
+from service.calibration.session import load_session
+from service.physics.paper_data import GridCalibration
+
+RATE_HZ = 200.0
+
+
+def write(tmp_path, raw: bytes, csv: str):
+    (tmp_path / "s.bin").write_bytes(raw)
+    (tmp_path / "r.csv").write_text(csv)
+    return tmp_path / "s.bin", tmp_path / "r.csv"
+
+
+def files(tmp_path, presses, calibration=None, **board):
+    sim = session(calibration, presses, rate_hz=RATE_HZ, seed=5, **board)
+    return write(tmp_path, sim.raw, sim.reference_csv)
+
+
+def custom_sensor_files(tmp_path, presses, forward):
+    """A session of a grid whose taxel response is ``forward`` (forces (64,) → ΔC/C0 (64,))."""
+    scene = ScheduleScene(presses)
+    grid = SimGrid(0, calibration=user_grid_calibration(4))
+
+    class Response:
+        def forward(self, forces):
+            return forward(np.asarray(forces, float))
+
+    grid.response = Response()
+    raw, _ = capture(BoardConfig(sensors=[grid], rate_hz=RATE_HZ, scene=scene, seed=2), scene.end_s)
+    return write(tmp_path, raw, reference_csv(scene, scene.end_s, seed=2)[0])
+
+
+def test_reference_lines_are_counted_and_errors_name_the_file_and_line(tmp_path):
+    ref = parse_reference("t_s,force_N\n0.0,1\n\nERR\n0.01,2\n1e9x,3\n0.02,nan\n0.03,4\n", "r.csv")
+    assert ref.skipped == 4 and ref.skipped_lines == (3, 4, 6, 7) and list(ref.force_N) == [1, 2, 4]
+    with pytest.raises(ValueError, match=r"r\.csv: the reference has no numeric line \(2 lines skipped\)"):
+        parse_reference("t_s,force_N\n\nfoo,bar\n", "r.csv")
+    with pytest.raises(ValueError, match=r"r\.csv:1: .*header"):
+        parse_reference("time,force\n0,1\n", "r.csv")
+    with pytest.raises(ValueError, match=r"r\.csv:4: time 0\.5 s does not follow 1\.0 s"):
+        parse_reference("t_s,force_N\n0.0,0\n1.0,0\n0.5,0\n", "r.csv")
+    with pytest.raises(FileNotFoundError, match="no such reference"):
+        read_reference(tmp_path / "missing.csv")
+
+
+def test_a_taxel_pressed_once_is_refused_by_name(tmp_path):
+    presses = probe_schedule(range(6), seed=1) + probe_schedule([12], repeats=1, start_s=40.0)
+    with pytest.raises(ValueError, match=r"taxel row 2, col 5 \(index 12\): 1 press \(need at least 2\)"):
+        calibrate(*files(tmp_path, presses))
+
+
+def test_a_taxel_pressed_to_under_half_of_full_scale_is_refused_by_name(tmp_path):
+    presses = probe_schedule(range(6), seed=1) + probe_schedule([7], peak_N=4.0, start_s=40.0)
+    with pytest.raises(ValueError, match=r"taxel row 1, col 8 \(index 7\): force range 0–4\.\d\d N is under half"):
+        calibrate(*files(tmp_path, presses))
+
+
+def test_saturated_samples_are_refused_by_name(tmp_path):
+    c0 = np.full(64, 10.0)
+    calibration = GridCalibration(8, 8, c0, user_grid_calibration(4).sensitivity_per_N)
+    presses = probe_schedule(range(5), peak_N=5.5, seed=1) + probe_schedule([9], start_s=40.0)
+    path, ref = files(tmp_path, presses, calibration, full_scale_pF=10.9)  # 9 %: taxel 9 reaches ~11 %
+    with pytest.raises(ValueError, match=r"taxel row 2, col 2 \(index 9\): \d+ saturated samples") as error:
+        calibrate(path, ref)
+    assert "index 0" not in str(error.value)
+    partial = calibrate(path, ref, allow_partial=True)
+    assert sorted(partial.fits) == [0, 1, 2, 3, 4] and list(partial.problems) == [9]
+
+
+def test_a_non_monotone_response_is_refused_by_name(tmp_path):
+    presses = probe_schedule(range(6), seed=1)
+
+    def forward(forces):
+        r = 0.0125 * forces
+        r[3] = 0.02 * forces[3] - 0.0016 * forces[3] ** 2  # turns over at 6.25 N
+        return r
+
+    with pytest.raises(ValueError, match=r"taxel row 1, col 4 \(index 3\): non-monotone response"):
+        calibrate(*custom_sensor_files(tmp_path, presses, forward))
+
+
+def test_a_response_the_model_cannot_follow_gets_a_flagged_empirical_curve(tmp_path):
+    presses = probe_schedule(range(6), seed=1)
+
+    def forward(forces):
+        return 0.02 * forces - 0.0008 * forces ** 2  # concave where the model is convex; monotone to 12.5 N
+
+    result = calibrate(*custom_sensor_files(tmp_path, presses, forward))
+    assert {f.model for f in result.fits.values()} == {"empirical"}
+    fit = result.fits[2]
+    assert fit.chi2_reduced > 4 and fit.residual_rms_N < 0.03
+    # the empirical curve is not extrapolated: its slopes span 0 to the largest force pressed
+    assert fit.sensitivity_per_N == pytest.approx(0.02 - 0.0008 * fit.max_force_N, rel=0.02)
+
+
+def test_a_press_on_two_taxels_at_once_is_flagged_and_set_aside():
+    t = np.arange(0.0, 6.0, 0.005)
+    force = np.where((t > 2) & (t < 4), 5 * np.sin(np.pi * (t - 2) / 2) ** 2, 0.0)
+    cap = np.full((t.size, 64), 10.0)
+    cap[:, 3] *= 1 + 0.012 * force
+    cap[:, 4] *= 1 + 0.010 * force
+    presses = segment(t, cap, t, force)
+    assert len(presses) == 1 and presses[0].taxel == 3 and "taxels 3 and 4 responded comparably" in presses[0].problem
+
+
+def test_a_periodic_schedule_on_alike_taxels_is_refused_as_ambiguous(tmp_path):
+    uniform = GridCalibration(8, 8, np.full(64, 10.0), np.full(64, 0.0125))
+    presses = probe_schedule(range(12), gap_jitter_s=0.0, peak_jitter=0.0)
+    sim = session(uniform, presses, rate_hz=RATE_HZ, reference={"head_s": 12.0, "tail_s": 12.0})
+    path, ref = write(tmp_path, sim.raw, sim.reference_csv)
+    board, reference = load_session(path), read_reference(ref)
+    with pytest.raises(ValueError, match="ambiguous alignment"):
+        align(board.t_s, total_response(board.capacitance_pF), reference.t_s, reference.force_N)
+
+
+def test_a_reference_of_another_session_is_refused(tmp_path):
+    mine = session(None, probe_schedule(range(8), seed=1), rate_hz=RATE_HZ)
+    other = session(None, probe_schedule(range(8), seed=2, gap_s=2.0), rate_hz=RATE_HZ)
+    with pytest.raises(ValueError, match="does not match|ambiguous"):
+        calibrate(*write(tmp_path, mine.raw, other.reference_csv))
+
+
+def test_a_session_without_that_grid_names_the_grids_there(tmp_path):
+    raw, _, _ = run_presses(user_grid_calibration(), [Press(0, 1.5, 9.0)], rate_hz=RATE_HZ)
+    (tmp_path / "s.bin").write_bytes(raw)
+    with pytest.raises(ValueError, match=r"no grid sensor 3 in the session \(grids: \[0\]\)"):
+        load_session(tmp_path / "s.bin", 3)
+
+
+@pytest.mark.parametrize("rate_hz, offset_s, rate_ppm", [(10.0, -3600.5, -200.0), (1000.0, 0.75, 200.0)])
+def test_references_at_10_hz_and_1_khz_with_any_offset_and_200_ppm_align(tmp_path, rate_hz, offset_s, rate_ppm):
+    reference = {"rate_hz": rate_hz, "offset_s": offset_s, "rate_ppm": rate_ppm}
+    sim = session(None, probe_schedule(range(12), seed=4), rate_hz=RATE_HZ, seed=4, reference=reference)
+    result = calibrate(*write(tmp_path, sim.raw, sim.reference_csv))
+    a = result.alignment
+    assert abs(a.offset_s - offset_s) < 3e-3 and abs(a.rate_ppm - rate_ppm) < 40  # a 40 s session: ppm is loose
+    mid = 20.0
+    assert abs(a.offset_s + mid * a.rate_ppm * 1e-6 - offset_s - mid * rate_ppm * 1e-6) < 1e-3
+    gain = np.array([result.fits[t].gain for t in range(12)])
+    assert np.abs(gain / sim.gain[:12] - 1).max() < 2e-3
+
+
+def test_sensor_identity_follows_the_protocol():
+    from service.calibration.registry import sensor_identity
+    from service.readings import SensorInfo
+
+    grid = SensorInfo(2, "grid", 8, 8)
+    assert sensor_identity({"board": "b", "serial": "TMX-1"}, SensorInfo(2, "grid", 8, 8, "A8-9"))["key"] == "sensor:A8-9"
+    assert sensor_identity({"board": "b", "serial": "TMX-1"}, grid)["key"] == "board:TMX-1/sensor:2"
+    assert sensor_identity({"board": "b"}, grid)["key"] == "board:b/sensor:2"
+
+
+def test_the_report_lists_the_taxels_not_pressed(tmp_path):
+    from service.calibration.calibrate import document
+    from service.calibration.registry import builtin_document
+    from service.calibration.report import write_report
+
+    sim = session(None, probe_schedule(range(6), seed=1), rate_hz=RATE_HZ, seed=5)
+    result = calibrate(*write(tmp_path, sim.raw, sim.reference_csv))
+    doc = document(result, builtin_document())
+    text = write_report(result, doc, "0123abcd", tmp_path / "report").read_text()
+    assert "| r1c6 |" in text and "keep their previous calibration (builtin-table1): r1c7, r1c8, r2c1" in text
+    assert (tmp_path / "report" / "response.png").stat().st_size > 10_000
+    assert (tmp_path / "report" / "residuals.png").stat().st_size > 5_000
