@@ -167,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", metavar="DIR", help="also write bench.md and bench.png to this directory "
                                                     "(needs matplotlib: pip install -e \".[docs]\")")
     bench.set_defaults(func=commands.cmd_bench)
+    from .calibration.cli import add_parsers as add_calibration_parsers
+
+    add_calibration_parsers(sub)
     return parser
 
 
