@@ -1,6 +1,8 @@
 """`tactile` command line: serve | sim | record | replay | tables | model | bench.
 
-This module only parses; cli_commands.py does the work.
+This module only parses; cli_serve.py (serve), cli_recordings.py (record,
+replay) and cli_commands.py (the others) do the work, cli_signals.py
+handles Ctrl-C.
 """
 from __future__ import annotations
 
@@ -9,6 +11,10 @@ import logging
 import sys
 
 from . import cli_commands as commands
+from .calibration.cli import add_parsers as add_calibration_parsers
+from .cli_recordings import cmd_record, cmd_replay
+from .cli_serve import cmd_serve
+from .cli_signals import interrupted, watchdog_for
 from .physics.mountings import MOUNTINGS
 from .reconstruct.levels import DEFAULT_LEVEL, LEVELS
 from .record.pacing import parse_speed
@@ -97,13 +103,21 @@ def _add_serving_options(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tactile", description="Capacitive tactile sensor service")
     sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_serve, _add_sim, _add_record, _add_replay, _add_tables, _add_model, _add_bench,
+                add_calibration_parsers):
+        add(sub)
+    return parser
 
+
+def _add_serve(sub) -> None:
     serve = sub.add_parser("serve", help="read a board and serve the API and dashboard")
     serve.add_argument("--source", default=DEFAULT_SOURCE,
                        help="pyserial URL or device path (default: %(default)s, the built-in simulator)")
     _add_serving_options(serve)
-    serve.set_defaults(func=commands.cmd_serve)
+    serve.set_defaults(func=cmd_serve)
 
+
+def _add_sim(sub) -> None:
     sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")
     where = sim.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a new pseudo-terminal and print its path")
@@ -120,6 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="sensors in id order, e.g. grid,quad or grid8x8,grid4x4,quad (default: %(default)s)")
     sim.set_defaults(func=commands.cmd_sim)
 
+
+def _add_record(sub) -> None:
     record = sub.add_parser("record", help="record a source to MCAP (raw bytes, frames, forces, diagnostics)")
     record.add_argument("--source", default=DEFAULT_SOURCE, help="pyserial URL or device path (default: %(default)s)")
     record.add_argument("--out", required=True, metavar="RUN.mcap", help="the MCAP file to write")
@@ -127,8 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--seconds", type=_positive, help="stop after this long (default: until Ctrl-C); "
                                                            "exit 1 if not one byte came")
     _add_reconstruction_options(record)
-    record.set_defaults(func=commands.cmd_record)
+    record.set_defaults(func=cmd_record)
 
+
+def _add_replay(sub) -> None:
     replay = sub.add_parser("replay", help="replay a recording (.mcap) or raw capture through the pipeline")
     replay.add_argument("file", nargs="?", help="recording (.mcap) or raw capture (any other suffix)")
     replay.add_argument("--raw", metavar="FILE", help="a raw capture (same as giving FILE)")
@@ -137,8 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout)")
     _add_serving_options(replay)
-    replay.set_defaults(func=commands.cmd_replay)
+    replay.set_defaults(func=cmd_replay)
 
+
+def _add_tables(sub) -> None:
     tables_cmd = sub.add_parser("tables", help="force tables of the taxel model").add_subparsers(dest="action", required=True)
     build = tables_cmd.add_parser("build", help="build the tables a configuration needs (skips up-to-date ones)")
     build.add_argument("--shape", nargs="+", default=["uniform", "uneven", "shear"], choices=["uniform", "uneven", "shear"],
@@ -150,6 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
     build.set_defaults(func=commands.cmd_tables_build)
     tables_cmd.add_parser("list", help="list the shipped tables").set_defaults(func=commands.cmd_tables_list)
 
+
+def _add_model(sub) -> None:
     model = sub.add_parser("model", help="validate the forward models").add_subparsers(dest="action", required=True)
     check_cmd = model.add_parser("check", help="validation figures; exit 1 if any is out of tolerance")
     check_cmd.add_argument("--json", action="store_true", help="print the checks and the Poisson study as JSON")
@@ -160,6 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "needs matplotlib: pip install -e \".[docs]\")")
     conv.set_defaults(func=commands.cmd_model_convergence)
 
+
+def _add_bench(sub) -> None:
     bench = sub.add_parser("bench", help="speed against error of every fidelity level on the simulator's scenes")
     bench.add_argument("--seconds", type=_positive, default=10.0,
                        help="simulated seconds per scenario (default: %(default)s)")
@@ -167,88 +191,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", metavar="DIR", help="also write bench.md and bench.png to this directory "
                                                     "(needs matplotlib: pip install -e \".[docs]\")")
     bench.set_defaults(func=commands.cmd_bench)
-    from .calibration.cli import add_parsers as add_calibration_parsers
-
-    add_calibration_parsers(sub)
-    return parser
-
-
-# Commands that stop on Ctrl-C by design and need longer than the usual second to
-# finish what they wrote (the MCAP's summary), or that uvicorn stops itself.
-_INTERRUPT_GRACE_S = {"record": 10.0}
-_UVICORN_HANDLES_SIGINT = ("serve",)
-INTERRUPT_GRACE_S = 0.8
-
-
-def _interrupted(command: str) -> str:
-    return f"tactile {command}: interrupted"
-
-
-class _InterruptWatchdog:
-    """Ctrl-C ends the command within about a second even while the main thread
-    is inside a long computation (a sparse factorisation does not look at
-    signals): the C-level signal handler writes to a wake-up pipe, this thread
-    reads it and, if the main thread has not finished within the grace period,
-    says so and exits 130 without unwinding."""
-
-    def __init__(self, command: str, grace_s: float) -> None:
-        import os
-        import signal
-        import threading
-
-        self._command, self._grace_s = command, grace_s
-        self._done = threading.Event()
-        self._read, self._write = os.pipe()
-        os.set_blocking(self._write, False)
-        try:
-            self._previous = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
-        except ValueError:  # not the main thread (called from a test's thread): no watchdog
-            self._previous = None
-            os.close(self._read), os.close(self._write)
-            self._read = None
-            return
-        threading.Thread(target=self._run, name="tactile-interrupt", daemon=True).start()
-
-    def _run(self) -> None:
-        import os
-        import signal
-
-        while True:
-            try:
-                data = os.read(self._read, 64)
-            except OSError:
-                return
-            if not data:
-                return
-            if signal.SIGINT in data and not self._done.wait(self._grace_s):
-                print(_interrupted(self._command), file=sys.stderr, flush=True)
-                os._exit(130)
-
-    def close(self) -> None:
-        import os
-        import signal
-
-        self._done.set()
-        if self._read is None:
-            return
-        try:
-            signal.set_wakeup_fd(self._previous if self._previous is not None else -1)
-        except ValueError:
-            pass
-        os.close(self._write)
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
     name = " ".join(filter(None, (args.command, getattr(args, "action", None))))  # e.g. "model check"
-    watchdog = None
-    if args.command not in _UVICORN_HANDLES_SIGINT and not getattr(args, "serve", False):
-        watchdog = _InterruptWatchdog(name, _INTERRUPT_GRACE_S.get(args.command, INTERRUPT_GRACE_S))
+    watchdog = watchdog_for(args, name)
     try:
         return args.func(args)
     except KeyboardInterrupt:
-        print(_interrupted(name), file=sys.stderr, flush=True)
+        print(interrupted(name), file=sys.stderr, flush=True)
         return 130
     except (ValueError, OSError) as exc:
         print(f"tactile {args.command}: error: {exc}", file=sys.stderr)

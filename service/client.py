@@ -170,8 +170,7 @@ class TactileClient:
         A controller must not wait forever on a silent stream: TactileError
         when no message comes within ``timeout`` s, and when the stream ends
         (the service stopped, the network failed)."""
-        from websockets.exceptions import ConnectionClosed, ConnectionClosedOK, InvalidHandshake, InvalidURI
-        from websockets.sync.client import connect
+        from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
 
         query = {"encoding": "binary" if binary else "json"}
         if sensors is not None:
@@ -186,17 +185,7 @@ class TactileClient:
         url = self.base_url.replace("http", "ws", 1) + "/ws?" + urllib.parse.urlencode(query)
         if binary:
             self.sensors()  # rows, cols and channels, which binary records do not carry
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
-        try:
-            ws = connect(url, max_size=None, open_timeout=self.timeout, additional_headers=headers)
-        except ConnectionRefusedError:
-            raise TactileError(f"stream {url}: connection refused (is tactile serve running there?)") from None
-        except TimeoutError:
-            raise TactileError(f"stream {url}: no answer within {self.timeout} s") from None
-        except (InvalidHandshake, InvalidURI) as exc:
-            raise TactileError(f"stream {url}: refused: {exc}") from None
-        except OSError as exc:
-            raise TactileError(f"stream {url}: cannot reach the service: {exc}") from None
+        ws = self._connect(url)
         channels = {sid: s["rows"] * s["cols"] for sid, s in self._sensors.items()}
         with ws:
             while True:
@@ -208,26 +197,49 @@ class TactileClient:
                     raise TactileError(f"stream {url} closed by the service ({exc})") from None
                 except ConnectionClosed as exc:
                     raise TactileError(f"stream {url} lost: {exc}") from None
-                if isinstance(message, bytes):
-                    try:
-                        records = decode_binary(message, channels)
-                    except Exception as exc:
-                        raise TactileError(f"stream {url}: a binary message that does not decode ({exc})") from None
-                    for record in records:
-                        yield self._from_binary(record, wanted)
-                    continue
-                try:
-                    doc = orjson.loads(message)
-                    kind = doc["type"]
-                except (orjson.JSONDecodeError, KeyError, TypeError) as exc:
-                    raise TactileError(f"stream {url}: a message that is no frame message ({exc}): "
-                                       f"{message[:80]!r}") from None
-                if kind == "frames":
-                    for frame in doc["frames"]:
-                        yield _normalized(frame)
-                elif kind == "dropped":
-                    self.dropped += doc["frames"]
-                elif kind == "notice":
-                    self.notices.append(doc["detail"])
-                else:
-                    raise TactileError(doc.get("detail", str(doc)))
+                yield from self._frames_in(message, url, channels, wanted)
+
+    def _connect(self, url: str):
+        """The stream's WebSocket, open; TactileError naming why not."""
+        from websockets.exceptions import InvalidHandshake, InvalidURI
+        from websockets.sync.client import connect
+
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        try:
+            return connect(url, max_size=None, open_timeout=self.timeout, additional_headers=headers)
+        except ConnectionRefusedError:
+            raise TactileError(f"stream {url}: connection refused (is tactile serve running there?)") from None
+        except TimeoutError:
+            raise TactileError(f"stream {url}: no answer within {self.timeout} s") from None
+        except (InvalidHandshake, InvalidURI) as exc:
+            raise TactileError(f"stream {url}: refused: {exc}") from None
+        except OSError as exc:
+            raise TactileError(f"stream {url}: cannot reach the service: {exc}") from None
+
+    def _frames_in(self, message: str | bytes, url: str, channels: dict[int, int],
+                   wanted: frozenset[str]) -> Iterator[dict]:
+        """The frames one stream message carries; counts ``dropped`` and keeps
+        ``notices`` on the way."""
+        if isinstance(message, bytes):
+            try:
+                records = decode_binary(message, channels)
+            except Exception as exc:
+                raise TactileError(f"stream {url}: a binary message that does not decode ({exc})") from None
+            for record in records:
+                yield self._from_binary(record, wanted)
+            return
+        try:
+            doc = orjson.loads(message)
+            kind = doc["type"]
+        except (orjson.JSONDecodeError, KeyError, TypeError) as exc:
+            raise TactileError(f"stream {url}: a message that is no frame message ({exc}): "
+                               f"{message[:80]!r}") from None
+        if kind == "frames":
+            for frame in doc["frames"]:
+                yield _normalized(frame)
+        elif kind == "dropped":
+            self.dropped += doc["frames"]
+        elif kind == "notice":
+            self.notices.append(doc["detail"])
+        else:
+            raise TactileError(doc.get("detail", str(doc)))

@@ -20,7 +20,8 @@ LAYERS = [
     ("service.pipeline", 4), ("service.handover", 4), ("service.readout", 4),
     ("service.live_service", 5), ("service.health", 5), ("service.replay", 5),
     ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.calibration", 6),
-    ("service.cli", 7), ("service.cli_commands", 7),
+    ("service.cli", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7), ("service.cli_serve", 7),
+    ("service.cli_signals", 7),
 ]
 # Peers that must not know each other.
 APART = [("service.api", "service.reports"), ("service.reports", "service.api"), ("service.client", "service.api")]

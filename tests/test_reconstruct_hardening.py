@@ -376,7 +376,7 @@ def test_a_rolled_back_grid_processor_continues_as_if_the_batch_never_ran():
     adopted coefficients)."""
     import copy
 
-    from service.reconstruct.grid import GridJob, process_full
+    from service.reconstruct.grid_full import GridJob, process_full
 
     readings = sim_readings([SimGrid(0, electrical_leakage=0.01)], 2.2, scene="press", seed=3)
     rec = Reconstructor(level="full")

@@ -29,7 +29,6 @@ import sqlite3
 from pathlib import Path
 
 from ..physics.paper_data import grid_calibration
-from ..physics.taxel_response import taxel_response
 from ..readings import SensorInfo
 
 SCHEMA = 1
@@ -79,6 +78,8 @@ def sensor_identity(board: dict, info: SensorInfo) -> dict:
 
 def builtin_document(rows: int = 8, cols: int = 8) -> dict:
     """Table 1 (8x8; the table's mean for other shapes) as a registry document, id BUILTIN_ID."""
+    from ..physics.taxel_response import taxel_response  # the model tables: only when table 1 is asked for
+
     base = grid_calibration(rows, cols)
     n = rows * cols
     gains = taxel_response(base).gain

@@ -1,4 +1,5 @@
-"""Grid reconstruction at every fidelity level, per frame or in batches.
+"""Grid reconstruction at every fidelity level, per frame or in batches (the
+full level's batches of several sensors at once: grid_full.py).
 
 Levels (cheapest first):
 
@@ -30,7 +31,6 @@ so it moves none of its neighbours.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from itertools import accumulate
 
 import numpy as np
 
@@ -39,7 +39,7 @@ from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS, TaxelResponse, table_t
 from . import level0
 from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
-from .drift import DriftTracker, quiet_medians
+from .drift import DriftTracker
 from .levels import GRID_LEVELS
 
 NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE = (1 << i for i in range(6))
@@ -52,7 +52,6 @@ TAXEL_FLAG_NAMES = {
     STALE: "stale",
 }
 STUCK_FRAMES = 50
-CORRECTION_SIGMAS = 3.0
 ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior
 ADOPT_PERIOD_FRAMES = 256  # estimates are adopted only at multiples of this frame count
 ESTIMATE_EVERY = 4
@@ -171,6 +170,8 @@ class GridProcessor:
         """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
         per-taxel flags (N, n). A single frame is a batch of one."""
         if self.level == "full":
+            from .grid_full import GridJob, process_full  # grid_full builds on this module
+
             return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
         flags = self._reading_flags(capacitance, baseline_std)
         relative = level0.relative_change(capacitance, baseline)
@@ -292,119 +293,3 @@ class GridProcessor:
         crosstalk.set_mechanical(float(np.clip(report["mechanical"]["estimate"], -0.02, 0.0)))
         self.adopted_events += estimator.electrical.events
         estimator.electrical = type(estimator.electrical)()
-
-
-@dataclass
-class GridJob:
-    """One grid sensor's share of a batch: frames (N, n) pF at board times
-    (N,) s, with the sensor's tare baseline and spread (n,)."""
-
-    processor: GridProcessor
-    capacitance: np.ndarray
-    baseline: np.ndarray
-    baseline_std: np.ndarray
-    t_s: np.ndarray
-
-
-def process_full(jobs: list[GridJob]) -> list[GridResult]:
-    """The full level for several grid sensors at once (each result equals,
-    bit for bit, what the sensor's frames would give alone).
-
-    Leakage → drift → mechanical unmixing → table inversion. Every step
-    except the drift's exponential average and the estimator's bookkeeping
-    works row by row, so the frames of all sensors go through one call per
-    step: at 1 kHz the per-call cost, not the per-frame arithmetic,
-    dominates. A sensor whose batch crosses its adoption point is split there
-    and the rest goes through the next round, with the adopted coefficients.
-    """
-    shapes: dict[tuple[int, int], list[int]] = {}
-    for k, job in enumerate(jobs):
-        shapes.setdefault((job.processor.calibration.rows, job.processor.calibration.cols), []).append(k)
-    if len(shapes) > 1:  # rows of one pass must have one length
-        results: list[GridResult | None] = [None] * len(jobs)
-        for ks in shapes.values():
-            for k, result in zip(ks, process_full([jobs[k] for k in ks])):
-                results[k] = result
-        return results
-    parts: list[list[GridResult]] = [[] for _ in jobs]
-    pending = [(k, 0) for k in range(len(jobs))]
-    while pending:
-        spans = [(k, start, min(len(jobs[k].capacitance), start + jobs[k].processor.frames_to_adoption())) for k, start in pending]
-        for (k, start, end), result in zip(spans, _full_rows(jobs, spans)):
-            parts[k].append(result)
-            jobs[k].processor._advance(end - start)
-        pending = [(k, end) for k, _, end in spans if end < len(jobs[k].capacitance)]
-    return [part[0] if len(part) == 1 else GridResult(np.concatenate([r.forces_N for r in part]),
-                                                       np.concatenate([r.taxel_flags for r in part])) for part in parts]
-
-
-def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[GridResult]:
-    """One pass over rows ``start:end`` of each job (none crossing an adoption point)."""
-    pieces = [(jobs[k].processor, jobs[k], slice(start, end)) for k, start, end in spans]
-    counts = [end - start for _, start, end in spans]
-    bounds = list(accumulate(counts, initial=0))
-    rows = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
-    first = pieces[0][0]
-    params = [p._row_parameters(job.baseline, job.baseline_std) for p, job, _ in pieces]
-    if len(pieces) == 1:
-        capacitance, t_s = pieces[0][1].capacitance[pieces[0][2]], pieces[0][1].t_s[pieces[0][2]]
-        baseline, noise, reference, band, gain = params[0]
-    else:
-        capacitance = np.concatenate([job.capacitance[sl] for _, job, sl in pieces])
-        t_s = np.concatenate([job.t_s[sl] for _, job, sl in pieces])
-        stacked = first._stacked(params)
-        baseline, noise, reference, band, gain = stacked if max(counts) == 1 else (np.repeat(a, counts, axis=0) for a in stacked)
-    flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
-    for (p, job, sl), r in zip(pieces, rows):
-        if p._noisy_board(job.baseline_std):
-            np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
-    # Implausible readings (level0.py) are made missing before any
-    # compensation, so they move none of their neighbours. Without leakage
-    # the reference is the baseline itself and the test reuses the ratio.
-    if len(pieces) == 1 or len({p.plausible for p, _, _ in pieces}) == 1:
-        low, high = first._ratio_bounds
-    else:
-        low, high = (np.repeat([p.plausible[i] + 1.0 for p, _, _ in pieces], counts)[:, None] for i in (0, 1))
-    leaky = any(p.crosstalk.electrical for p, _, _ in pieces)
-    if leaky:
-        implausible = level0.implausible(capacitance / baseline, low, high)
-    else:
-        ratio = capacitance / reference
-        implausible = level0.implausible(ratio, low, high)
-    if implausible is not None:
-        capacitance = np.where(implausible, np.nan, capacitance)
-        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
-        if not leaky:
-            ratio = np.where(implausible, np.nan, ratio)
-    if leaky:
-        if implausible is None:
-            unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
-        else:
-            unleaked = [p.crosstalk.unleak(capacitance[r], job.baseline) for (p, job, _), r in zip(pieces, rows)]
-        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
-    medians, enough = quiet_medians(ratio - 1.0, band)
-    drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
-    for (p, _, _), r in zip(pieces, rows):
-        drift[r], suspect[r] = p.drift.follow(t_s[r], enough[r], medians[r])
-    scale = 1.0 + drift[:, None]
-    relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
-    for (p, job, _), r, (_, n, _, _, _) in zip(pieces, rows, params):
-        p._sample(relative[r], n, job.baseline)
-    # Sensors with the same coupling share the unmixing matrix, and sensors
-    # on the same model table the inversion, so their rows go through one call.
-    if all(p.crosstalk.mechanical == first.crosstalk.mechanical for p, _, _ in pieces):
-        compensated = first.crosstalk.unmix_mechanical(relative)
-    else:
-        compensated = np.concatenate([p.crosstalk.unmix_mechanical(relative[r]) for (p, _, _), r in zip(pieces, rows)])
-    uncompensated = capacitance / (baseline * scale) - 1.0
-    np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise)
-    if np.count_nonzero(suspect):
-        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & (NO_READING | OUT_OF_RANGE) == 0))
-    if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
-        forces, saturated, out_of_range = first.response.inverse(compensated, noise, gain)
-    else:
-        inverted = [p.response.inverse(compensated[r], n) for (p, _, _), r, (_, n, _, _, _) in zip(pieces, rows, params)]
-        forces, saturated, out_of_range = (np.concatenate(arrays) for arrays in zip(*inverted))
-    np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
-    np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
-    return [GridResult(forces[r], flags[r]) for r in rows]

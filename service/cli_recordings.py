@@ -1,0 +1,168 @@
+"""``tactile record`` and ``tactile replay``: a source into a recording, and a
+recording back through the pipeline (exported, or served with ``--serve``).
+
+Both exit 1 when nothing came (no byte, no valid frame) and leave no empty
+file behind that they created; ``record`` says on stderr what the link does
+(a LinkWatcher), ``replay`` shows its progress through the file.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from .cli_commands import progress_bar
+from .cli_serve import LinkWatcher, cmd_serve, quiet_readout_transitions
+from .sources import check_source
+
+
+def cmd_record(args) -> int:
+    from .handover import ThreadSink
+    from .pipeline import Pipeline
+    from .readout import Readout
+    from .reconstruct import Reconstructor
+    from .record.recorder import Recorder
+
+    check_source(args.source)
+    pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting))
+    outputs = [Path(p) for p in (args.out, args.raw) if p]
+    new = [p for p in outputs if not p.exists()]
+    recorder = Recorder(args.out, args.raw)
+    recorder.attach(pipeline)
+    readout = Readout(args.source, ThreadSink(pipeline.feed, pipeline.link_lost))
+    quiet_readout_transitions()
+    watcher = LinkWatcher(lambda: readout.link)
+    readout.start()
+    watcher.start()
+    until = f"for {args.seconds:g} s" if args.seconds else "Ctrl-C to stop"
+    print(f"recording {args.source} to {args.out}" + (f" and {args.raw}" if args.raw else "") + f"; {until}",
+          flush=True)
+    started = time.monotonic()
+    try:
+        deadline = started + args.seconds if args.seconds else None
+        while recorder.active and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        readout.stop()
+        watcher.stop(final_look=False)
+        status = recorder.stop()
+    print(json.dumps(status, indent=1))
+    if status["error"]:
+        return 1
+    if readout.link.last_data_time is None:  # not one byte came
+        removed = [p for p in new if p.exists() and _unlink(p)]  # only files this command created
+        kept = [p for p in outputs if p not in new]
+        why = f" ({readout.link.last_error})" if readout.link.last_error else ""
+        note = f"; removed the empty {' and '.join(map(str, removed))}" if removed else ""
+        note += f"; {' and '.join(map(str, kept))} existed before and now hold an empty recording" if kept else ""
+        print(f"tactile record: nothing recorded: no byte from {args.source} in {time.monotonic() - started:.1f} s"
+              f"{why}{note}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _unlink(path: Path) -> bool:
+    try:
+        path.unlink()
+        return True
+    except OSError:
+        return False
+
+
+class _ProgressPacer:
+    """A Pacer that also moves a bar by bytes of the file: a raw capture is read
+    in CHUNK_BYTES chunks, one wait each; an MCAP recording's progress is its
+    recorded time against the span its summary gives, scaled to the file's size."""
+
+    def __init__(self, pacer, bar, path: Path) -> None:
+        from .record.readers import CHUNK_BYTES, is_timed_by_host
+
+        self._pacer, self._bar = pacer, bar
+        self._size = path.stat().st_size
+        self._chunk = CHUNK_BYTES
+        self._span = _mcap_span(path) if is_timed_by_host(path) else None
+        self._timed = is_timed_by_host(path)
+
+    def wait(self, t_recorded: float) -> None:
+        self._pacer.wait(t_recorded)
+        if not self._timed:
+            done = self._bar.n + self._chunk
+        elif self._span is not None:
+            t0, t1 = self._span
+            done = self._size * min(max((t_recorded - t0) / (t1 - t0), 0.0), 1.0) if t1 > t0 else self._bar.n
+        else:
+            return
+        self._bar.update(min(done, self._size) - self._bar.n)
+
+
+def _mcap_span(path: Path) -> tuple[float, float] | None:
+    """(first, last) message time in s from an MCAP's summary; None without one (a file cut short)."""
+    try:
+        from mcap.reader import make_reader
+
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is None or summary.statistics is None:
+            return None
+        return summary.statistics.message_start_time * 1e-9, summary.statistics.message_end_time * 1e-9
+    except Exception:  # no summary is no reason to refuse the replay
+        return None
+
+
+def cmd_replay(args) -> int:
+    from .record.pacing import Pacer
+    from .replay import replay
+
+    path = args.file or args.raw
+    if path is None:
+        raise ValueError("name a recording: tactile replay FILE (or --raw FILE)")
+    if args.serve:
+        import math
+        import urllib.parse
+
+        speed = 1.0 if args.speed is None else args.speed
+        args.source = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if math.isinf(speed) else speed}"
+        return cmd_serve(args)
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no such recording: {path}")
+    speed = args.speed if args.speed is not None else float("inf")
+    to_stdout = args.export == "-"
+    export_is_new = bool(args.export) and not to_stdout and not Path(args.export).exists()
+    out = sys.stdout.buffer if to_stdout else open(args.export, "wb") if args.export else None
+    bar = progress_bar(total=Path(path).stat().st_size, unit="B", unit_scale=True, desc=Path(path).name)
+    try:
+        pipeline = replay(path, out, level=args.level, mounting=args.mounting,
+                          pacer=_ProgressPacer(Pacer(speed), bar, Path(path)))
+    except BrokenPipeError:
+        if not to_stdout:
+            raise
+        # The reader stopped (`| head`): end quietly, as a pipeline's tools do.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except (ValueError, OSError):  # not a recording after all: leave no empty export behind
+        if export_is_new:
+            out.close()
+            _unlink(Path(args.export))
+        raise
+    finally:
+        bar.close()
+        if out is not None and not to_stdout:
+            out.close()
+    counters = pipeline.decoder.counters.as_dict()
+    reconstructor = pipeline.reconstructor
+    summary = {"stream": {k: v for k, v in counters.items() if k != "sensors"}, "sensors": counters["sensors"],
+               "rejected": pipeline.interpreter.rejected,
+               "level": reconstructor.level, "level_reason": reconstructor.level_reason}
+    print(json.dumps(summary, indent=1), file=sys.stderr)
+    if args.level == "auto":
+        print(f"tactile replay: level auto chose {reconstructor.level}: {reconstructor.level_reason}", file=sys.stderr)
+    if counters["frames"] == 0:
+        removed = export_is_new and _unlink(Path(args.export))
+        print(f"tactile replay: {path}: no valid frame in {counters['bytes_in']} bytes (is it a capture of the "
+              f"board?)" + (f"; removed the empty {args.export}" if removed else ""), file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,185 @@
+"""``tactile serve`` (and ``replay --serve``): the port checked before anything
+is said, the dashboard's URL announced once uvicorn listens, the link's
+changes said on stderr by a LinkWatcher (``record`` uses one too), and
+Ctrl-C, which uvicorn handles itself, ending the command as any other.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import secrets
+import socket
+import sys
+import threading
+import time
+
+from .cli_signals import noting_sigint
+from .sources import check_source
+
+
+class LinkWatcher:
+    """Says on stderr what a readout's link does, once per change: waiting for
+    a source that is not there (once per outage, with the error), connected,
+    lost and back within one look, stale (connected, silent), finished (a
+    replay's end). ``link`` returns the readout's LinkState (or None before
+    there is one); ``poll`` looks once, ``start`` every ``period_s`` from a
+    daemon thread."""
+
+    def __init__(self, link, stale_after_s=lambda: 0.5, out=None, period_s: float = 0.5) -> None:
+        self._link = link
+        self._stale_after_s = stale_after_s
+        self._out = out
+        self._period_s = period_s
+        self._shown: str | None = None
+        self._connects = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="tactile-link-watcher", daemon=True)
+
+    def say(self, text: str) -> None:
+        print(f"tactile: {text}", file=self._out or sys.stderr, flush=True)
+
+    def poll(self, now: float | None = None) -> None:
+        link = self._link()
+        if link is None:
+            return
+        now = time.time() if now is None else now
+        state = link.state(now, self._stale_after_s())
+        connects, url = link.connects, link.url
+        if connects > self._connects:
+            if self._connects and self._shown in ("up", "stale"):  # lost and back between two looks
+                self.say(f"link to {url} lost ({link.last_error}); connected again")
+            else:
+                self.say(f"connected to {url}")
+            self._connects = connects
+            self._shown = "up"
+        if state == "down" and self._shown != "down":
+            if link.last_error is None:  # not tried yet
+                return
+            if self._connects:
+                self.say(f"link to {url} lost: {link.last_error}; waiting for it")
+            else:
+                self.say(f"waiting for {url}: {link.last_error}")
+            self._shown = "down"
+        elif state == "stale" and self._shown == "up":
+            silent = link.silent_s(now)
+            self.say(f"no bytes from {url} for {silent:.1f} s (link stale)")
+            self._shown = "stale"
+        elif state == "up" and self._shown == "stale":
+            self.say(f"bytes from {url} again")
+            self._shown = "up"
+        elif state == "finished" and self._shown != "finished":
+            self.say(f"replay of {url} finished (the service keeps serving; Ctrl-C to stop)")
+            self._shown = "finished"
+
+    def start(self) -> "LinkWatcher":
+        self._thread.start()
+        return self
+
+    def stop(self, final_look: bool = True) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2)
+        if final_look:  # what happened since the last look
+            self.poll()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            try:
+                self.poll()
+            except Exception as exc:  # a watcher must never take the command down
+                self.say(f"link watcher failed: {exc!r}")
+                return
+
+
+def quiet_readout_transitions() -> None:
+    """The LinkWatcher says when the link comes up or is lost; drop the readout's
+    own log lines for those two events, keep its others (asking INFO?, …)."""
+    import logging
+
+    logger = logging.getLogger("service.readout")
+    if _drop_transitions not in logger.filters:
+        logger.addFilter(_drop_transitions)
+
+
+def _drop_transitions(record) -> bool:
+    return not str(record.msg).startswith(("connected to ", "link to "))
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Bind ``host:port`` as uvicorn will (SO_REUSEADDR) and let go; OSError
+    naming the port and what to do when another process holds it."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise OSError(f"cannot bind {host}: {exc.strerror}") from None
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind(address)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    raise OSError(f"port {port} on {host} is in use (another tactile serve?); choose --port") from None
+                if exc.errno == errno.EADDRNOTAVAIL and family == socket.AF_INET6 and len(infos) > 1:
+                    continue  # 'localhost' without IPv6: uvicorn binds what it can
+                raise OSError(f"cannot bind {host}:{port}: {exc.strerror}") from None
+
+
+def cmd_serve(args) -> int:
+    import uvicorn
+
+    from .api.app import create_app
+    from .health import stale_after_s
+    from .live_service import TactileService
+
+    check_source(args.source)
+    check_port_free(args.host, args.port)  # before anything is printed: not a URL that points at another instance
+    token = args.token or os.environ.get("TACTILE_TOKEN")
+    if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
+        token = secrets.token_urlsafe(16)
+    service = TactileService(args.source, level=args.level, mounting=args.mounting,
+                             sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
+                             silence_s=args.silence_s)
+    app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
+                     allow_origins=tuple(args.allow_origin))
+    url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
+    listening = threading.Event()
+    done = threading.Event()
+
+    def announce() -> None:
+        """Say where once uvicorn listens (the port was free: whoever answers on it now is us)."""
+        if _wait_until_listening(args.host, args.port, done):
+            listening.set()
+            print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
+            if token:
+                print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
+
+    quiet_readout_transitions()
+    watcher = LinkWatcher(lambda: service.readout.link if service.readout is not None else None,
+                          lambda: stale_after_s(service.pipeline.interpreter.board)).start()
+    threading.Thread(target=announce, name="tactile-announce", daemon=True).start()
+    interrupted = []
+    try:
+        with noting_sigint(interrupted):
+            # No per-message deflate: compressing every 1 kHz message costs more CPU than loopback or a LAN saves.
+            # Connections get 1 s to close after Ctrl-C, so that the command ends promptly.
+            uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws_per_message_deflate=False,
+                        timeout_graceful_shutdown=1)
+    finally:
+        done.set()
+        watcher.stop(final_look=False)
+    if interrupted:
+        raise KeyboardInterrupt  # uvicorn stopped on Ctrl-C and swallowed it: end as every command does (130)
+    return 0
+
+
+def _wait_until_listening(host: str, port: int, done: threading.Event, poll_s: float = 0.05) -> bool:
+    """True once something accepts TCP connections on host:port, False if ``done`` is set first."""
+    target = {"0.0.0.0": "127.0.0.1", "::": "::1", "": "127.0.0.1"}.get(host, host)
+    while not done.is_set():
+        try:
+            with socket.create_connection((target, port), timeout=0.5):
+                return True
+        except OSError:
+            done.wait(poll_s)
+    return False

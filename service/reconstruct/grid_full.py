@@ -1,0 +1,165 @@
+"""The full grid level for several sensors at once, row by row.
+
+Leakage → drift → mechanical unmixing → table inversion (grid.py describes
+the levels and the flags; GridProcessor keeps each sensor's state). Every
+step except the drift's exponential average and the estimator's
+bookkeeping works row by row, so the frames of all sensors go through one
+call per step: at 1 kHz the per-call cost, not the per-frame arithmetic,
+dominates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import accumulate
+
+import numpy as np
+
+from . import level0
+from .drift import quiet_medians
+from .grid import (CROSSTALK_CORRECTED, DRIFT_SUSPECT, NO_READING, OUT_OF_RANGE, SATURATED, STALE, GridProcessor,
+                   GridResult)
+
+CORRECTION_SIGMAS = 3.0
+
+# One sensor's rows in a pass: its processor, its job, and which of the job's frames.
+Piece = tuple[GridProcessor, "GridJob", slice]
+
+
+@dataclass
+class GridJob:
+    """One grid sensor's share of a batch: frames (N, n) pF at board times
+    (N,) s, with the sensor's tare baseline and spread (n,)."""
+
+    processor: GridProcessor
+    capacitance: np.ndarray
+    baseline: np.ndarray
+    baseline_std: np.ndarray
+    t_s: np.ndarray
+
+
+def process_full(jobs: list[GridJob]) -> list[GridResult]:
+    """The full level for several grid sensors at once (each result equals,
+    bit for bit, what the sensor's frames would give alone).
+
+    A sensor whose batch crosses its adoption point is split there and the
+    rest goes through the next round, with the adopted coefficients.
+    """
+    shapes: dict[tuple[int, int], list[int]] = {}
+    for k, job in enumerate(jobs):
+        shapes.setdefault((job.processor.calibration.rows, job.processor.calibration.cols), []).append(k)
+    if len(shapes) > 1:  # rows of one pass must have one length
+        results: list[GridResult | None] = [None] * len(jobs)
+        for ks in shapes.values():
+            for k, result in zip(ks, process_full([jobs[k] for k in ks])):
+                results[k] = result
+        return results
+    parts: list[list[GridResult]] = [[] for _ in jobs]
+    pending = [(k, 0) for k in range(len(jobs))]
+    while pending:
+        spans = [(k, start, min(len(jobs[k].capacitance), start + jobs[k].processor.frames_to_adoption())) for k, start in pending]
+        for (k, start, end), result in zip(spans, _full_rows(jobs, spans)):
+            parts[k].append(result)
+            jobs[k].processor._advance(end - start)
+        pending = [(k, end) for k, _, end in spans if end < len(jobs[k].capacitance)]
+    return [part[0] if len(part) == 1 else GridResult(np.concatenate([r.forces_N for r in part]),
+                                                       np.concatenate([r.taxel_flags for r in part])) for part in parts]
+
+
+def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[GridResult]:
+    """One pass over rows ``start:end`` of each job (none crossing an adoption point)."""
+    pieces = [(jobs[k].processor, jobs[k], slice(start, end)) for k, start, end in spans]
+    counts = [end - start for _, start, end in spans]
+    bounds = list(accumulate(counts, initial=0))
+    rows = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    params = [p._row_parameters(job.baseline, job.baseline_std) for p, job, _ in pieces]
+    capacitance, t_s, (baseline, noise, reference, band, gain) = _stacked_rows(pieces, counts, params)
+    flags = _reading_flags(pieces, rows, capacitance)
+    capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags)
+    medians, enough = quiet_medians(ratio - 1.0, band)
+    drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
+    for (p, _, _), r in zip(pieces, rows):
+        drift[r], suspect[r] = p.drift.follow(t_s[r], enough[r], medians[r])
+    scale = 1.0 + drift[:, None]
+    relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
+    for (p, job, _), r, (_, n, _, _, _) in zip(pieces, rows, params):
+        p._sample(relative[r], n, job.baseline)
+    compensated = _unmixed(pieces, rows, relative)
+    uncompensated = capacitance / (baseline * scale) - 1.0
+    np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise)
+    if np.count_nonzero(suspect):
+        np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & (NO_READING | OUT_OF_RANGE) == 0))
+    forces, saturated, out_of_range = _inverted(pieces, rows, params, compensated, noise, gain)
+    np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
+    np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
+    return [GridResult(forces[r], flags[r]) for r in rows]
+
+
+def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -> tuple:
+    """(capacitance (R, n), times (R,), row parameters): the pieces' frames
+    one after the other, and (baseline, noise, reference, band, gain) per row."""
+    if len(pieces) == 1:
+        _, job, sl = pieces[0]
+        return job.capacitance[sl], job.t_s[sl], params[0]
+    capacitance = np.concatenate([job.capacitance[sl] for _, job, sl in pieces])
+    t_s = np.concatenate([job.t_s[sl] for _, job, sl in pieces])
+    stacked = pieces[0][0]._stacked(params)
+    return capacitance, t_s, stacked if max(counts) == 1 else tuple(np.repeat(a, counts, axis=0) for a in stacked)
+
+
+def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> np.ndarray:
+    """No-reading and stale bits of the stacked rows."""
+    flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
+    for (p, job, sl), r in zip(pieces, rows):
+        if p._noisy_board(job.baseline_std):
+            np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
+    return flags
+
+
+def _plausible_ratio(pieces: list[Piece], rows: list[slice], counts: list[int], capacitance: np.ndarray,
+                     baseline: np.ndarray, reference: np.ndarray, flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(capacitance, ratio to the un-leaked reference), implausible readings
+    (level0.py) made missing and flagged out of range before any
+    compensation, so they move none of their neighbours. Without leakage
+    the reference is the baseline itself and the test reuses the ratio."""
+    if len(pieces) == 1 or len({p.plausible for p, _, _ in pieces}) == 1:
+        low, high = pieces[0][0]._ratio_bounds
+    else:
+        low, high = (np.repeat([p.plausible[i] + 1.0 for p, _, _ in pieces], counts)[:, None] for i in (0, 1))
+    leaky = any(p.crosstalk.electrical for p, _, _ in pieces)
+    if leaky:
+        implausible = level0.implausible(capacitance / baseline, low, high)
+    else:
+        ratio = capacitance / reference
+        implausible = level0.implausible(ratio, low, high)
+    if implausible is not None:
+        capacitance = np.where(implausible, np.nan, capacitance)
+        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+        if not leaky:
+            ratio = np.where(implausible, np.nan, ratio)
+    if leaky:
+        if implausible is None:
+            unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
+        else:
+            unleaked = [p.crosstalk.unleak(capacitance[r], job.baseline) for (p, job, _), r in zip(pieces, rows)]
+        ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
+    return capacitance, ratio
+
+
+def _unmixed(pieces: list[Piece], rows: list[slice], relative: np.ndarray) -> np.ndarray:
+    """Mechanical unmixing; sensors with the same coupling share the matrix,
+    so their rows go through one call."""
+    first = pieces[0][0]
+    if all(p.crosstalk.mechanical == first.crosstalk.mechanical for p, _, _ in pieces):
+        return first.crosstalk.unmix_mechanical(relative)
+    return np.concatenate([p.crosstalk.unmix_mechanical(relative[r]) for (p, _, _), r in zip(pieces, rows)])
+
+
+def _inverted(pieces: list[Piece], rows: list[slice], params: list[tuple], compensated: np.ndarray,
+              noise: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(forces, saturated, out of range) from the model tables; sensors on
+    the same table share the inversion, so their rows go through one call."""
+    first = pieces[0][0]
+    if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
+        return first.response.inverse(compensated, noise, gain)
+    inverted = [p.response.inverse(compensated[r], n) for (p, _, _), r, (_, n, _, _, _) in zip(pieces, rows, params)]
+    return tuple(np.concatenate(arrays) for arrays in zip(*inverted))
