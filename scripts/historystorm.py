@@ -42,8 +42,8 @@ def published(base: str) -> dict:
     return json.loads(get(f"{base}/health")[1])["latency"]["published"]
 
 
-def poll(base: str, hz: float, until: float, answers: Counter, lock: threading.Lock) -> None:
-    url = f"{base}/sensors/0/history?seconds=5&max_points=5000"
+def poll(base: str, hz: float, until: float, answers: Counter, lock: threading.Lock, max_points: int) -> None:
+    url = f"{base}/sensors/0/history?seconds=5&max_points={max_points}"
     next_due = time.monotonic()
     while next_due < until:
         status, _ = get(url)
@@ -58,6 +58,7 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=20)
     parser.add_argument("--hz", type=float, default=5.0)
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--max-points", type=int, default=5000, help="frames per answer (5000: 5 s of an 8x8 grid, ~3.5 MB)")
     parser.add_argument("--nice", type=int, default=0, help="the service's niceness (the deployed set-up: -10; needs root)")
     args = parser.parse_args()
     port = free_port()
@@ -77,7 +78,7 @@ def main() -> int:
         answers: Counter = Counter()
         lock = threading.Lock()
         until = time.monotonic() + args.seconds
-        threads = [threading.Thread(target=poll, args=(base, args.hz, until, answers, lock), daemon=True)
+        threads = [threading.Thread(target=poll, args=(base, args.hz, until, answers, lock, args.max_points), daemon=True)
                    for _ in range(args.clients)]
         for thread in threads:
             thread.start()

@@ -116,3 +116,13 @@ def test_the_same_history_read_within_its_age_is_answered_once():
     assert recent.get(("a",)) is None  # too old: encoded again
     recent.put(("b",), b"[2]")
     assert recent.get(("b",)) == b"[2]"
+
+
+def test_heavy_reads_beyond_the_admitted_rate_are_refused_before_the_routes():
+    from service.api.admission import Admission
+
+    now = [0.0]
+    admission = Admission(app=None, rate_per_s=10.0, burst=5.0, clock=lambda: now[0])
+    assert [admission.admit() for _ in range(6)] == [True] * 5 + [False]  # the burst, then empty
+    now[0] += 0.1  # one token back every 0.1 s
+    assert admission.admit() and not admission.admit()

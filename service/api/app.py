@@ -22,6 +22,7 @@ from . import (
     routes_sensors,
     routes_stream,
 )
+from .admission import Admission
 from .deps import JSONResponse
 from .guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 
@@ -53,6 +54,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
         app.include_router(routes.router)
     dashboard.add_dashboard(app)
+    app.add_middleware(Admission)
     app.add_middleware(RequestGuard, bind_host=bind_host, token=token, allow_hosts=allow_hosts,
                        allow_origins=allow_origins, max_body_bytes=max_body_bytes)
     return app

@@ -2,11 +2,11 @@
 latest frame, contact summary and recent history, and the stream clients."""
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from typing import TYPE_CHECKING
 
-import anyio
 import orjson
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
@@ -31,7 +31,7 @@ router = APIRouter()
 
 MAX_HEAVY_READS = 2
 SEND_PIECE_BYTES = 1 << 16
-HISTORY_CHUNK = 100  # frames encoded at a time: orjson holds the interpreter for one call
+HISTORY_CHUNK = 20  # frames encoded between two turns of the event loop (~0.5 ms)
 
 
 @router.get("/clients")
@@ -81,12 +81,13 @@ async def history(
     fields: str = Query("force,contact,flags", description=f"comma-separated: {', '.join(FIELDS)}"),
     service: TactileService = Depends(get_service),
 ) -> Response:
-    """A heavy read: checked on the event loop, encoded in a worker thread
-    in chunks the loop can take the interpreter between
-    (sched.SWITCH_INTERVAL_S), and sent in pieces. At most
-    ``MAX_HEAVY_READS`` are encoded or sent at once (429 beyond, answered on
-    the loop): twenty threads contending for the interpreter, or megabytes
-    written to twenty sockets, kept the 1 kHz path waiting. The same read
+    """A heavy read, bounded three ways so that it never holds up the 1 kHz
+    path for long: admitted at a bounded rate (admission.py), at most
+    ``MAX_HEAVY_READS`` encoded or sent at once (429 beyond), and encoded on
+    the event loop ``HISTORY_CHUNK`` frames at a time and sent in pieces,
+    so that the live stream's callbacks run between two steps (encoding in
+    a worker thread was worse: the thread held the interpreter for
+    milliseconds at a time whatever the switch interval). The same read
     asked again within ``RecentReads.max_age_s`` (dashboards polling) is
     not encoded again."""
     known_sensor(sensor_id, service)  # after the query is validated: a bad query is 422 for any sensor
@@ -114,8 +115,7 @@ async def encoded_history(recent, service, sensor_id: int, seconds: float, max_p
     body = recent.get(key)
     if body is None:
         history = service.pipeline.history.get(sensor_id)
-        body = b"[]" if history is None else await anyio.to_thread.run_sync(
-            encode_history, history, seconds, max_points, wanted)
+        body = b"[]" if history is None else await encode_history(history, seconds, max_points, wanted)
         recent.put(key, body)
     return body
 
@@ -144,14 +144,17 @@ async def pieces(body: bytes, permit: Permit):
         permit.release()
 
 
-def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
-    """A JSON list of frames, built ``HISTORY_CHUNK`` frames at a time."""
+async def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
+    """A JSON list of frames, built ``HISTORY_CHUNK`` frames at a time on
+    the event loop, which runs whatever else is due between two chunks."""
     slots = history.window_slots(seconds, max_points)
     parts = []
     for start in range(0, len(slots), HISTORY_CHUNK):
         frames = history.frames_at(slots[start:start + HISTORY_CHUNK])
         parts.append(orjson.dumps([to_json_dict(f, wanted) for f in frames], option=orjson.OPT_SERIALIZE_NUMPY)[1:-1])
+        await asyncio.sleep(0)
     return b"[" + b",".join(parts) + b"]"
+
 
 class RecentReads:
     """Answers of heavy reads kept ``max_age_s``, so that many clients
