@@ -20,7 +20,7 @@ def is_heavy(scope) -> bool:
 
 
 class Admission:
-    def __init__(self, app, rate_per_s: float = 10.0, burst: float = 5.0, clock=time.monotonic) -> None:
+    def __init__(self, app, rate_per_s: float = 4.0, burst: float = 4.0, clock=time.monotonic) -> None:
         self.app = app
         self.rate_per_s = rate_per_s
         self.burst = burst
