@@ -7,6 +7,8 @@ publishes to the hub and the recorder. /health is assembled in health.py.
 from __future__ import annotations
 
 import asyncio
+import re
+import threading
 import time
 from pathlib import Path
 
@@ -22,18 +24,19 @@ from .sched import SliceRequest, current_slice_us, tune_for_latency
 from .sources import DEFAULT_SOURCE
 
 
-MAX_NAME_CHARS = 128
+RECORDING_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,122}\.mcap")
 
 
 def recording_name(name: str | None) -> str:
-    """A bare file name ending in .mcap (no directory, no leading dot), or a
-    timestamped default; ValueError naming what is wrong."""
+    """A bare file name ending in .mcap — letters, digits, '.', '_', '-', at
+    most 128 characters, not starting with a dot: nothing a file system could
+    read as a directory, a device or a stream — or a timestamped default;
+    ValueError naming what is wrong."""
     if name is None:
         return time.strftime("recording-%Y%m%d-%H%M%S.mcap")
-    if not 6 <= len(name) <= MAX_NAME_CHARS or not name.isprintable():
-        raise ValueError(f"{name[:MAX_NAME_CHARS]!r} must be 6 to {MAX_NAME_CHARS} printable characters")
-    if "/" in name or "\\" in name or name.startswith(".") or not name.endswith(".mcap"):
-        raise ValueError(f"{name!r} must be a bare file name ending in .mcap (no directory, no leading dot)")
+    if not RECORDING_NAME.fullmatch(name):
+        raise ValueError(f"{name[:130]!r} must be a bare file name ending in .mcap: letters, digits, '.', '_', '-' "
+                         f"(not first), at most 128 characters")
     return name
 
 
@@ -55,6 +58,7 @@ class TactileService:
         self.readout: Readout | None = None
         self.started_at = time.time()
         self.recorder: Recorder | None = None
+        self._recording_lock = threading.Lock()  # start and stop come from the API's worker threads
 
     def start(self) -> None:
         """On the event loop: tune, wire the listeners, start reading."""
@@ -78,16 +82,18 @@ class TactileService:
         recordings directory, the raw bytes beside it (.bin). ValueError for a
         name that is not a bare .mcap name, FileExistsError for one taken,
         RuntimeError while recording."""
-        if self.recorder is not None and self.recorder.active:
-            raise RuntimeError(f"already recording to {self.recorder.path}")
         path = self.recordings_dir / recording_name(name)
-        self.recordings_dir.mkdir(parents=True, exist_ok=True)
-        self.recorder = Recorder(path, path.with_suffix(".bin"), exclusive=True)
-        self.recorder.attach(self.pipeline)
-        return self.recorder.status()
+        with self._recording_lock:
+            if self.recorder is not None and self.recorder.active:
+                raise RuntimeError(f"already recording to {self.recorder.path}")
+            self.recordings_dir.mkdir(parents=True, exist_ok=True)
+            self.recorder = Recorder(path, path.with_suffix(".bin"), exclusive=True)
+            self.recorder.attach(self.pipeline)
+            return self.recorder.status()
 
     def stop_recording(self) -> dict | None:
-        return None if self.recorder is None else self.recorder.stop()
+        with self._recording_lock:
+            return None if self.recorder is None else self.recorder.stop()
 
     async def let_urgent_go_first(self) -> None:
         """Called by a batched client's sender before each send. Twenty

@@ -106,8 +106,9 @@ class Pipeline:
             return self.reconstructor.tare(sensor_id)
 
     def set_calibration(self, info, upload: dict) -> dict:
+        prepared = self.reconstructor.prepare_calibration(info, upload)  # validation: tens of ms, not under the lock
         with self._lock:
-            return self.reconstructor.set_calibration(info, upload)
+            return self.reconstructor.apply_calibration(info, prepared)
 
     def diagnostics(self) -> dict:
         """The decoder's counters and the interpreter's rejections (a recording's /diagnostics)."""

@@ -40,6 +40,7 @@ BOARD_SENSOR_ID = 255
 SEQ_MODULUS = 1 << 16
 T_US_MODULUS = 1 << 32
 RECENT_SCANS = 256  # per sensor, fingerprints of its last frames, to recognise a repeat
+RESTART_JUMP_US = 1_000_000  # a clock that jumps more than this after an INFO, back towards 0
 _HALF_CLOCK = 1 << 31  # a board clock step beyond this is a step back (wrapped)
 
 FLAG_SATURATED = 0x01
@@ -262,6 +263,10 @@ class Decoder:
                             sensor_counters.duplicates += 1
                             return None
                         restart = step != 0
+                elif state.infos != self._infos and t_us < state.t_us and step > RESTART_JUMP_US:
+                    # After an INFO the clock fell back towards 0: a board that had run
+                    # more than half the clock's period restarted (not a forward step).
+                    restart = True
                 if restart:
                     sensor_counters.board_restarts += 1
                 else:

@@ -61,9 +61,10 @@ class LinkState:
         """up | stale (connected, no bytes for ``stale_after_s``) | down | finished (a recording's end)."""
         if self.finished:
             return "finished"
-        if not self.up:
+        silent = self.silent_s(now)  # once: the readout thread may drop the link meanwhile
+        if silent is None:
             return "down"
-        return "stale" if self.silent_s(now) > stale_after_s else "up"
+        return "stale" if silent > stale_after_s else "up"
 
     def as_dict(self, now: float, stale_after_s: float = MIN_STALE_S) -> dict:
         silent = self.silent_s(now)
@@ -155,6 +156,9 @@ class Readout:
             except OSError as exc:
                 self.link.last_error = str(exc)
                 log.warning("link to %s lost: %s", self.link.url, exc)
+            except Exception as exc:  # a bug downstream must not end the readout for good: reopen and say why
+                self.link.last_error = f"{type(exc).__name__}: {exc}"
+                log.exception("reading %s failed; reopening", self.link.url)
             finally:
                 self.link.up = False
                 self._source.close()

@@ -147,8 +147,9 @@ def test_websocket_decimates_and_batches_on_request(client):
             t += [f["header"]["stamp"] for f in orjson.loads(ws.receive_text())["frames"]]
     assert min(b - a for a, b in zip(t, t[1:])) >= 0.045  # 20 Hz, minus scheduling slack
     with client.websocket_connect("ws://localhost/ws?sensors=0&batch_ms=100") as ws:
-        frames = orjson.loads(ws.receive_text())["frames"]
-    assert len(frames) >= 50  # ~100 frames of 1 kHz in one message
+        sizes = [len(orjson.loads(ws.receive_text())["frames"]) for _ in range(3)]
+    # ~100 frames of 1 kHz per batch, sent as messages of at most MERGE_FRAMES (each is encoded in one go)
+    assert sizes == [MERGE_FRAMES] * 3
 
 
 @pytest.mark.parametrize(
@@ -267,6 +268,27 @@ def test_a_batch_is_sent_when_its_oldest_frame_has_waited_batch_ms():
 
     seqs, waited = asyncio.run(scenario())
     assert seqs == [0, 1, 2] and 0.025 < waited < 0.2
+
+
+def test_a_long_batch_goes_out_as_messages_of_at_most_merge_frames():
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    info = SensorInfo(1, "quad", 2, 2)
+
+    async def scenario():
+        subscriber = Subscriber(batch_ms=20.0)
+        received = time.time()
+        subscriber.take([Outgoing(ForceFrame(info, seq, seq, received, np.zeros(3), np.ones(4), [], "full"))
+                         for seq in range(3 * MERGE_FRAMES + 5)])  # a second's batch of a fast sensor, say
+        await asyncio.sleep(0.05)
+        sizes = []
+        while subscriber.pending:
+            message, _, _ = await subscriber.next_message()
+            sizes.append(len(orjson.loads(message)["frames"]))
+        return sizes
+
+    assert asyncio.run(scenario()) == [MERGE_FRAMES] * 3 + [5]
 
 
 

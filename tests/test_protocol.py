@@ -246,6 +246,30 @@ def test_a_board_in_a_boot_loop_restarts_within_256_scans_and_nothing_is_dropped
     assert (counters.board_restarts, counters.duplicates, counters.seq_gaps, counters.missed_frames) == (2, 0, 0, 0)
 
 
+def test_a_board_up_for_over_half_its_clock_period_that_restarts_is_no_gap():
+    # Up 50 min (3e9 µs: past half the 71.6 min period), then a power-up: its
+    # INFO, and scans from seq 0 and t_us ~0, which modulo the clock look like
+    # a step forward of 21.6 min.
+    decoder = Decoder()
+    before = b"".join(hand_frame(seq=s, t_us=3_000_000_000 + 1000 * s) for s in range(5))
+    after = info(0) + b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5))
+    frames = [f for f in decoder.feed(before + after) if f.type == FrameType.QUAD]
+    assert [f.board_restart for f in frames] == [False] * 5 + [True] + [False] * 4
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.seq_gaps, counters.missed_frames) == (1, 0, 0)
+
+
+def test_a_clock_wrapping_through_an_info_reply_is_no_restart():
+    decoder = Decoder()
+    top = (1 << 32) - 2500
+    # An INFO? reply between the last scan before the wrap and the first after it.
+    frames = decoder.feed(hand_frame(seq=7, t_us=top) + hand_frame(seq=8, t_us=top + 1000) + info(top + 1500)
+                          + hand_frame(seq=9, t_us=(top + 3000) % (1 << 32)) + hand_frame(seq=10, t_us=(top + 4000) % (1 << 32)))
+    data = [f for f in frames if f.type == FrameType.QUAD]
+    assert [f.t_us for f in data][2:] == [500, 1500]  # wrapped
+    assert [f.board_restart for f in data] == [False] * 4 and decoder.counters.sensor(1).seq_gaps == 0
+
+
 def test_a_power_up_identical_to_the_last_one_is_a_restart_not_repeats():
     # A deterministic board (the simulator with one seed) that powers up
     # twice sends the same bytes twice; the INFO between makes it a restart.

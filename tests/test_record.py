@@ -153,7 +153,8 @@ def test_record_from_the_api_into_the_recordings_directory_only(tmp_path):
     with TestClient(create_app(service), base_url="http://localhost") as client:
         assert client.post("/record/stop").status_code == 409
         for body in ({"path": str(victim)}, {"name": str(victim)}, {"name": "../victim.mcap"}, {"name": ".hidden.mcap"},
-                     {"name": "run.txt"}, {"raw_path": str(victim)}):
+                     {"name": "run.txt"}, {"raw_path": str(victim)}, {"name": "x:y.mcap"}, {"name": "a\\b.mcap"},
+                     {"name": "run\x00.mcap"}, {"name": "é" * 130 + ".mcap"}, {"name": "CON .mcap"}):
             refused = client.post("/record/start", json=body)
             assert refused.status_code == 422, body
         assert victim.read_text() == "precious" and not (tmp_path / "victim.mcap").exists()

@@ -96,7 +96,7 @@ class RequestGuard:
     async def _read_body(self, headers: dict[str, str], receive):
         """Read a state-changing request's body up to the limit; (refusal, receive)."""
         declared = headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_body_bytes):
+        if declared is not None and (not (declared.isascii() and declared.isdigit()) or int(declared) > self.max_body_bytes):
             return (413, f"a request body is at most {self.max_body_bytes} bytes (Content-Length: {declared})"), receive
         chunks, size = [], 0
         while True:
@@ -110,10 +110,10 @@ class RequestGuard:
             if not message.get("more_body", False):
                 break
         body = b"".join(chunks)
+        media = headers.get("content-type", "").split(";")[0].strip().lower()
+        if (body or media) and media != "application/json":  # a form's type is refused even with no body
+            return (415, f"send the body as application/json, not {media or 'no type'!r}"), receive
         if body:
-            media = headers.get("content-type", "").split(";")[0].strip().lower()
-            if media != "application/json":
-                return (415, f"send the body as application/json, not {media or 'no type'!r}"), receive
             try:
                 orjson.loads(body)
             except orjson.JSONDecodeError as exc:

@@ -148,8 +148,12 @@ async def encode_history(history, seconds: float, max_points: int, wanted: froze
     """A JSON list of frames, built ``HISTORY_CHUNK`` frames at a time on
     the event loop, which runs whatever else is due between two chunks."""
     slots = history.window_slots(seconds, max_points)
+    capacity = history.capacity
     parts = []
     for start in range(0, len(slots), HISTORY_CHUNK):
+        if history.capacity != capacity:  # a new sensor shrank the ring meanwhile: the slots mean other frames
+            raise HTTPException(503, "the history was resized while it was read (a sensor appeared); retry",
+                                headers={"Retry-After": "1"})
         frames = history.frames_at(slots[start:start + HISTORY_CHUNK])
         parts.append(orjson.dumps([to_json_dict(f, wanted) for f in frames], option=orjson.OPT_SERIALIZE_NUMPY)[1:-1])
         await asyncio.sleep(0)

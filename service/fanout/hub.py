@@ -130,8 +130,11 @@ class Subscriber:
             self._flush_timer.cancel()
 
     def _flush(self) -> None:
-        self._offer(self._batch)
-        self._batch, self._flush_timer = [], None
+        """The batch, as messages of at most ``MERGE_FRAMES`` frames: a
+        message is encoded in one go on the loop."""
+        batch, self._batch, self._flush_timer = self._batch, [], None
+        for start in range(0, len(batch), MERGE_FRAMES):
+            self._offer(batch[start:start + MERGE_FRAMES])
 
     def _offer(self, frames: list[Outgoing]) -> None:
         if not frames:

@@ -6,8 +6,8 @@ electrode fault when the redundant combination R (which the model says is
 0) stands beyond its noise.
 
 An electrode outside its plausible range (level0.py: ΔC/C0 against its own
-baseline outside [−0.5, (1 + r_top)·1.5 − 1], r_top = QuadModel.top_relative,
-1.04 with the paper's fits) leaves the frame without forces (all three
+baseline outside [−0.5, (1 + r_top)·1.5 − 1], r_top = QuadModel.top_relative
+= 0.360 with the paper's fits, so an upper bound of 1.04) leaves the frame without forces (all three
 null: every axis combines all four electrodes), flagged ``out_of_range``, at
 every level — the same rule and flag as a grid taxel's. ``electrode_fault``
 keeps its meaning: plausible electrodes that disagree with the model (the

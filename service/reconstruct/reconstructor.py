@@ -77,21 +77,23 @@ class Reconstructor:
 
     def set_calibration(self, info: SensorInfo, upload: dict) -> dict:
         """Replace a sensor's calibration; ValueError names the bad field and
-        why (the API answers 422; calibration.validated_upload lists the
-        checks). The baseline is kept. Returns what is applied."""
+        why (the API answers 422; calibration_upload.validated_upload lists
+        the checks). The baseline is kept. Returns what is applied."""
+        return self.apply_calibration(info, self.prepare_calibration(info, upload))
+
+    def prepare_calibration(self, info: SensorInfo, upload: dict) -> tuple:
+        """The slow half of ``set_calibration`` (validation, the new
+        processor), which touches no state: it may run while frames are
+        being reconstructed."""
         uploaded, applied = validated_upload(info, upload, self.mounting)
-        previous = self._uploaded.get(info.id)
+        return uploaded, processor_for(info, self.level, self.mounting, uploaded), applied
+
+    def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
+        """The quick half: swap the calibration and the sensor's processor in."""
+        uploaded, processor, applied = prepared
         self._uploaded[info.id] = uploaded
         state = self._sensors.get(info.id)
         if state is not None:
-            try:
-                processor = self._processor(info)
-            except Exception:  # keep the calibration in use
-                if previous is None:
-                    del self._uploaded[info.id]
-                else:
-                    self._uploaded[info.id] = previous
-                raise
             state.processor = processor
             self._isolation.failing.discard(info.id)
         return applied
@@ -220,8 +222,7 @@ class Reconstructor:
         ``full`` each sensor is processed on its own; ``isolated`` then turns
         a sensor's exception into its null, flagged frames."""
         if self.level == "full":
-            jobs = [GridJob(state.processor, np.stack([r.capacitance_pF for r in rs]), state.baseline.value,
-                            state.baseline.std, np.array([r.t_us * 1e-6 for r in rs])) for state, rs in members]
+            jobs = [self._job(state, rs) for state, rs in members]
             return [self._grid_frames(rs, result) for (_, rs), result in zip(members, process_full(jobs))]
         out = []
         for state, rs in members:

@@ -48,6 +48,8 @@ class Recorder:
             self._raw = open(self.raw_path, mode) if self.raw_path else None
         except OSError:
             self._stream.close()
+            if exclusive:  # we made it: leave no empty .mcap behind
+                self.path.unlink(missing_ok=True)
             raise
         self._log = McapLog(self._stream)
         self._diagnostics: Callable[[], dict] | None = None
@@ -69,15 +71,16 @@ class Recorder:
         (``pipeline.diagnostics()``) once per second of frames."""
         self._pipeline = pipeline
         self._diagnostics = pipeline.diagnostics
-        pipeline.byte_listeners.append(self.on_bytes)
-        pipeline.listeners.append(self.on_frames)
+        # New lists, not appends: the pipeline may be iterating the old ones on another thread.
+        pipeline.byte_listeners = [*pipeline.byte_listeners, self.on_bytes]
+        pipeline.listeners = [*pipeline.listeners, self.on_frames]
 
     def detach(self) -> None:
         pipeline, self._pipeline = self._pipeline, None
         if pipeline is None:
             return
-        pipeline.byte_listeners.remove(self.on_bytes)
-        pipeline.listeners.remove(self.on_frames)
+        pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != self.on_bytes]
+        pipeline.listeners = [f for f in pipeline.listeners if f != self.on_frames]
 
     @property
     def active(self) -> bool:
@@ -137,8 +140,8 @@ class Recorder:
                         last_sync = now
             self._log.close()
             self._flush(sync=True)
-        except OSError as exc:
-            self.error = f"recording to {self.path} failed: {exc}"
+        except Exception as exc:  # the thread's last word: a recording that stops says why, never hangs "active"
+            self.error = f"recording to {self.path} failed: {type(exc).__name__}: {exc}"
             log.error(self.error)
         finally:
             for stream in (self._stream, self._raw):

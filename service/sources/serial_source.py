@@ -4,6 +4,7 @@ from __future__ import annotations
 import io
 
 import serial
+from serial.urlhandler import protocol_socket
 
 from . import Source, handlers
 
@@ -45,9 +46,16 @@ class SerialSource(Source):
     def finished(self) -> bool:
         return bool(getattr(self._port, "finished", False))  # replay:// says so
 
+    def _plain_socket(self):
+        """The socket of pyserial's socket:// port (private there, without
+        fileno()); None for any other port (rfc2217:// has a socket too, but
+        its own reader thread drains it)."""
+        if isinstance(self._port, protocol_socket.Serial):
+            return self._port._socket
+        return None
+
     def fileno(self) -> int | None:
-        # pyserial's socket:// handler keeps its socket private and has no fileno().
-        sock = getattr(self._port, "_socket", None)
+        sock = self._plain_socket()
         if sock is not None:
             return sock.fileno()
         try:
@@ -66,7 +74,7 @@ class SerialSource(Source):
             raise OSError(f"{self.url}: {exc}") from None
 
     def close(self) -> None:
-        sock = getattr(self._port, "_socket", None)
+        sock = self._plain_socket()
         if sock is not None:
             # pyserial's socket:// close() leaks the socket when shutdown() fails
             # (a peer that reset) and then sleeps 0.3 s "for quick reconnects":
