@@ -16,7 +16,7 @@ import numpy as np
 
 from . import registry
 from .alignment import Alignment, align, total_response
-from .fit import TaxelError, TaxelFit, fit_taxel
+from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, read_reference
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
 from .session import BoardSession, file_sha256, load_session
@@ -146,10 +146,8 @@ def summary_lines(result: Calibration) -> list[str]:
              f"{result.reference_noise_N:.4f} N",
              "taxel     C0 pF   sens %/N (LS) (origin)   gain ± se          RMS N   presses  max N  model"]
     for t in sorted(result.fits):
-        f = result.fits[t]
-        lines.append(f"r{t // cols + 1}c{t % cols + 1:<5} {f.c0_pF:7.3f}   {100 * f.sensitivity_per_N:7.4f}  "
-                     f"{100 * f.sensitivity_origin_per_N:7.4f}    {f.gain:.5f} ± {f.gain_se:.5f}   "
-                     f"{f.residual_rms_N:.4f}   {f.presses:5d}  {f.max_force_N:5.2f}  {f.model}")
+        name, c0, sens, origin, gain, rms, presses, max_n, model = table_cells(t, cols, result.fits[t])
+        lines.append(f"{name:<9}{c0:>7}   {sens:>7}  {origin:>7}    {gain}   {rms}   {presses:>5}  {max_n:>5}  {model}")
     for t, why in sorted(result.problems.items()):
         lines.append(f"not calibrated: {why}")
     for p in result.flagged_presses:

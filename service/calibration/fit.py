@@ -183,3 +183,12 @@ def empirical(fit: TaxelFit, samples: TaxelSamples, reference_noise_N: float) ->
     fit.residual_rms_N = float(np.sqrt(np.mean(residual ** 2)))
     fit.curve_force_N, fit.curve_relative = f_bin.tolist(), r_mono.tolist()
     return fit
+
+
+def table_cells(taxel: int, cols: int, fit: TaxelFit) -> tuple[str, ...]:
+    """One row of the table-1-like table, formatted (the terminal summary
+    and the Markdown report lay the same cells out): taxel, C0 pF,
+    sensitivity %/N (LS, origin), gain ± 1σ, residual RMS N, presses, max N, curve."""
+    return (f"r{taxel // cols + 1}c{taxel % cols + 1}", f"{fit.c0_pF:.3f}", f"{100 * fit.sensitivity_per_N:.4f}",
+            f"{100 * fit.sensitivity_origin_per_N:.4f}", f"{fit.gain:.5f} ± {fit.gain_se:.5f}",
+            f"{fit.residual_rms_N:.4f}", f"{fit.presses}", f"{fit.max_force_N:.2f}", fit.model)

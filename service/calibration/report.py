@@ -15,7 +15,7 @@ import numpy as np
 
 from ..reports import plotting
 from .calibrate import Calibration
-from .fit import unit_response
+from .fit import table_cells, unit_response
 
 
 def _curve(result: Calibration, taxel: int, forces: np.ndarray) -> np.ndarray:
@@ -85,11 +85,7 @@ def markdown(result: Calibration, document: dict, calibration_id: str) -> str:
              "(the model could not follow the data: reduced χ² > 4) over 0 N to the largest force pressed.", "",
              "| taxel | C0 pF | sens. %/N (LS) | sens. %/N (origin) | gain κ ± 1σ | residual RMS N | presses | max N | curve |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for t in sorted(result.fits):
-        f = result.fits[t]
-        lines.append(f"| r{t // info.cols + 1}c{t % info.cols + 1} | {f.c0_pF:.3f} | {100 * f.sensitivity_per_N:.4f} | "
-                     f"{100 * f.sensitivity_origin_per_N:.4f} | {f.gain:.5f} ± {f.gain_se:.5f} | {f.residual_rms_N:.4f} | "
-                     f"{f.presses} | {f.max_force_N:.2f} | {f.model} |")
+    lines += ["| " + " | ".join(table_cells(t, info.cols, result.fits[t])) + " |" for t in sorted(result.fits)]
     carried = [t for t in range(info.channels) if t not in result.fits]
     lines += ["", "## Not calibrated in this session", ""]
     if not carried:
