@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimQuad
-from service.protocol import Decoder, FrameType, encode_frame
+from service.protocol import RESTART_JUMP_US, Decoder, FrameType, encode_frame
 
 frame_specs = st.one_of(
     st.tuples(st.just(FrameType.QUAD), st.integers(0, 255), st.binary(min_size=16, max_size=16)),
@@ -50,7 +50,8 @@ def passed_on(expected):
     last one is the first after a restart when an INFO the board sent before
     it came since that last frame; otherwise it is a repeat, dropped, when it
     equals one of the sensor's last 256 frames, and a restart when the clock
-    went back."""
+    went back. After an INFO, a clock that fell back by more than
+    RESTART_JUMP_US (yet "forward" modulo 2^32) is a restart too."""
     last, recent, kept = {}, {}, []
     for spec in expected:
         ftype, sensor, flags, seq, t_us, payload = spec
@@ -66,6 +67,8 @@ def passed_on(expected):
                     if not restart and spec in recent[sensor][-256:]:
                         continue
                     restart = restart or step != 0
+                elif info_t_us is not None and t_us < last_t_us and step > RESTART_JUMP_US:
+                    restart = True  # after an INFO the clock fell back: a restart past half the clock's period
                 if not restart:
                     gap = (seq - last_seq - 1) % 2**16
             last[sensor] = (seq, t_us, None)

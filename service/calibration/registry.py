@@ -1,8 +1,8 @@
 """The calibration registry: immutable calibrations in SQLite, one active per sensor.
 
 A calibration is a JSON document (calibrate.py builds it); its id is the
-first ID_HEX hex digits of the sha256 of its canonical JSON (sorted keys, no
-spaces, the ``id`` field left out), so the same content always has the same
+first 16 hex digits of the sha256 of its canonical JSON (sorted keys, no
+spaces, the ``id`` field left out; reconstruct/sensor_calibration.py), so the same content always has the same
 id: export → import gives it back, and a document whose id does not match
 its content is refused. Rows are never updated nor deleted (triggers refuse
 it); ``activate`` only moves the sensor's pointer. Each write is one
@@ -17,23 +17,23 @@ built-in calibration BUILTIN_ID.
 Location: the ``path`` argument, else $TACTILE_REGISTRY, else
 $XDG_DATA_HOME/tactile/registry.sqlite3 (~/.local/share when unset).
 
-This module imports nothing above service.physics and service.readings: the
+This module imports nothing above service.physics, service.readings and the
+calibration's reconstruction side (reconstruct/sensor_calibration.py): the
 live service loads calibrations through it.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sqlite3
 from pathlib import Path
 
-from ..physics.paper_data import grid_calibration
+from ..physics.paper_data import BUILTIN_GRID_ID, grid_calibration
 from ..readings import SensorInfo
+from ..reconstruct.sensor_calibration import calibration_id, canonical
 
 SCHEMA = 1
-ID_HEX = 16
-BUILTIN_ID = "builtin-table1"
+BUILTIN_ID = BUILTIN_GRID_ID
 BUILTIN_NOTE = ("built-in: table 1 of Liang et al. 2015 (paper 000), the calibration every 8x8 array without "
                 "its own uses; not measured on this sensor")
 
@@ -56,16 +56,6 @@ def default_path() -> Path:
         return Path(os.environ["TACTILE_REGISTRY"])
     base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
     return Path(base) / "tactile" / "registry.sqlite3"
-
-
-def canonical(document: dict) -> bytes:
-    """The document without ``id`` as canonical JSON (sorted keys, compact, UTF-8, no NaN)."""
-    body = {k: v for k, v in document.items() if k != "id"}
-    return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
-
-
-def calibration_id(document: dict) -> str:
-    return hashlib.sha256(canonical(document)).hexdigest()[:ID_HEX]
 
 
 def sensor_identity(board: dict, info: SensorInfo) -> dict:
@@ -161,8 +151,16 @@ class Registry:
 
     def active(self, sensor_key: str, rows: int = 8, cols: int = 8) -> dict:
         """The sensor's active calibration, or the built-in one (table 1 for 8x8)."""
+        return self.active_or_none(sensor_key) or builtin_document(rows, cols)
+
+    def active_or_none(self, sensor_key: str) -> dict | None:
+        """The sensor's active calibration, None when it has none."""
         row = self._db.execute("SELECT calibration_id FROM active WHERE sensor_key = ?", (sensor_key,)).fetchone()
-        return self.get(row[0]) if row else builtin_document(rows, cols)
+        return self.get(row[0]) if row else None
+
+    def activated_at(self, sensor_key: str) -> str | None:
+        row = self._db.execute("SELECT activated FROM active WHERE sensor_key = ?", (sensor_key,)).fetchone()
+        return row[0] if row else None
 
     def export(self, cid: str, path: str | Path) -> str:
         document = self.get(cid)

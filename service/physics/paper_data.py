@@ -35,6 +35,10 @@ QUAD_ELECTRODE_AREA_MM2 = 100.0
 
 PITCH_MM = 4.0
 
+# Ids of the calibrations every sensor without its own uses (the registry's built-ins).
+BUILTIN_GRID_ID = "builtin-table1"
+BUILTIN_QUAD_ID = "builtin-fits34-35"
+
 
 @dataclass(frozen=True)
 class GridCalibration:

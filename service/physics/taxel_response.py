@@ -110,6 +110,12 @@ class TaxelResponse:
         """ΔC/C0 for forces of shape (..., n); held at the top past the table."""
         return np.interp(np.asarray(forces_N) * self.gain, self.force_N, self.relative)
 
+    def inverse_slope(self, relative: np.ndarray, gain: np.ndarray | None = None) -> np.ndarray:
+        """dF/d(ΔC/C0) at ``relative`` (..., n): how a ΔC/C0 error becomes a
+        force error (the curve's end slope outside the table)."""
+        dense_r, _ = self._dense
+        return np.interp(relative, dense_r, self._dense_slope) / (self.gain if gain is None else gain)
+
     def shares_curve(self, other: TaxelResponse) -> bool:
         """Whether both were built on the same model table (gains may differ)."""
         return self.force_N is other.force_N and self.relative is other.relative
@@ -138,6 +144,7 @@ class TaxelResponse:
             dense_f = PchipInterpolator(self.relative, self.force_N)(dense_r)
             cached = (dense_r, dense_f)
             object.__setattr__(self, "_dense_cache", cached)
+            object.__setattr__(self, "_dense_slope", np.gradient(dense_f, dense_r))
         return cached
 
 
@@ -146,6 +153,13 @@ def _table(shape: str):
     from .tables import TableSpec, load
 
     return load(TableSpec(shape))
+
+
+def model_table(mounting: str = "flat"):
+    """The mounting's model table (physics/tables.py): force_N and relative_change."""
+    if mounting not in MOUNTINGS:
+        raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
+    return _table(MOUNTINGS[mounting])
 
 
 def table_top(mounting: str = "flat") -> float:

@@ -53,6 +53,12 @@ class Baseline:
         self._late[:] = False
         self._any_late = False
 
+    def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
+        """Take ``values_pF`` (channels,) as the zero of ``channels`` (bool
+        mask): a loaded tare's taxels get the calibration's C0. A new array,
+        so caches keyed on it see the change."""
+        self.value = np.where(channels, values_pF, self.value)
+
     def update(self, capacitance_pF: np.ndarray) -> bool:
         """Feed one reading of shape (channels,); return whether the baseline
         is ready (the reading that completes it is already tared)."""

@@ -1,12 +1,15 @@
-"""Each sensor's calibration and what it gives.
+"""Each sensor's calibration and what it gives; an upload made a calibration document.
 
-A sensor is reconstructed with the papers' calibration (table 1 for a grid,
-fits 34/35 for a quad) unless one was uploaded for it; ``validated_upload``
-checks an upload and names the bad field and why (the API answers 422).
-``processor_for`` builds the sensor's processor from its calibration,
-``tare_window`` the readings a tare may take.
+A sensor is reconstructed with its SensorCalibration (sensor_calibration.py:
+its own from the registry or a recording, else the papers' built-in one).
+``upload_document`` turns what ``PUT /sensors/{id}/calibration`` accepts into
+a registry document and checks it, naming the bad field and why (the API
+answers 422). ``processor_for`` builds the sensor's processor from its
+calibration, ``tare_window`` the readings a tare may take.
 """
 from __future__ import annotations
+
+from datetime import datetime, timezone
 
 import numpy as np
 
@@ -14,82 +17,116 @@ from ..physics.paper_data import GridCalibration, grid_calibration
 from ..physics.quad_model import NOMINAL_C0_PF, QuadModel
 from ..physics.taxel_response import SENSITIVITY_RANGE_PCT_PER_N, table_top, taxel_response
 from ..readings import SensorInfo
+from .crosstalk import Crosstalk
 from .grid import GridProcessor
 from .level0 import tare_window_pF
 from .quad import QuadProcessor
+from .sensor_calibration import SensorCalibration, calibration_id, from_document
+
+SCHEMA = 1
 
 
 def processor_for(info: SensorInfo, level: str, mounting: str,
-                  uploaded: GridCalibration | QuadModel | None) -> GridProcessor | QuadProcessor:
-    """The sensor's processor at ``level``, on its uploaded calibration if
-    there is one of its kind."""
+                  calibration: SensorCalibration) -> GridProcessor | QuadProcessor:
+    """The sensor's processor at ``level`` on ``calibration``; crosstalk
+    measured in a calibration session is the full level's starting point."""
     if info.kind == "quad":
-        return QuadProcessor(level, uploaded) if isinstance(uploaded, QuadModel) else QuadProcessor(level)
-    calibration = uploaded if isinstance(uploaded, GridCalibration) else grid_calibration(info.rows, info.cols)
-    response = None if level == "level0" else taxel_response(calibration, mounting)
-    return GridProcessor(level, calibration, response, table_top(mounting))
+        return QuadProcessor(level, calibration.quad, calibration.quad_relative_se)
+    crosstalk = None
+    if level == "full" and calibration.crosstalk is not None:
+        crosstalk = Crosstalk(info.rows, info.cols, *calibration.crosstalk)
+    return GridProcessor(level, calibration.grid, None if level == "level0" else calibration.response,
+                         table_top(mounting), crosstalk, gain_relative_se=calibration.gain_relative_se,
+                         model_sigma_N=calibration.model_sigma_N, curves=calibration.curves)
 
 
-def tare_window(info: SensorInfo, mounting: str,
-                uploaded: GridCalibration | QuadModel | None) -> tuple[np.ndarray, np.ndarray]:
+def tare_window(info: SensorInfo, mounting: str, calibration: SensorCalibration) -> tuple[np.ndarray, np.ndarray]:
     """Readings a tare may take (level0.py): the plausible window around
     the nominal C0 (table 1's; a quad's NOMINAL_C0_PF), widened."""
     if info.kind == "quad":
-        model = uploaded if isinstance(uploaded, QuadModel) else QuadModel()
-        return tare_window_pF(np.full(info.channels, NOMINAL_C0_PF), model.top_relative)
+        return tare_window_pF(np.full(info.channels, NOMINAL_C0_PF), calibration.quad.top_relative)
     return tare_window_pF(grid_calibration(info.rows, info.cols).c0_pF, table_top(mounting))
 
 
-def validated_upload(info: SensorInfo, upload: dict, mounting: str) -> tuple[GridCalibration | QuadModel, dict]:
-    """(calibration, what is applied) of an uploaded calibration; ValueError
-    names the bad field and why.
+def upload_document(info: SensorInfo, upload: dict, mounting: str, sensor: dict | None = None) -> dict:
+    """The registry document (with its id) of an upload, checked by building
+    the calibration from it; ValueError names the bad field and why.
+
+    An upload is a whole calibration document (``tactile calibrations
+    export``; it has ``schema``), or the short forms:
 
     Grid: ``sensitivity_pct_per_N``, one per taxel (rows*cols), each
     finite and within (0.1, 10) %/N (table 1: 1.22–1.27 %/N); the
     per-taxel response built from them must be finite and strictly
     increasing over each taxel's range and its inverse must give the
-    forces back within 0.002 N (TaxelResponse.check).
+    forces back within 0.002 N (TaxelResponse.check). Optional ``c0_pF``
+    (rows*cols, measured unloaded capacitances) lets a tare tell a load.
 
     Quad: ``normal_fit`` [c2, c1] of ΔC/C0 = c2 F² + c1 F and
-    ``shear_fit`` [a, b] of ΔC/C0 = a F − b F² (QuadModel.from_fits):
-    all finite; c1 and a within (0.001, 1) per N (fits 34/35: 0.0343,
-    0.0077); c2 ≤ 0 and b ≥ 0, each small enough that the curve stays
-    usable (slope ≥ 10 % of its initial value) to at least 1 N, i.e.
-    |c2| ≤ 0.45·c1 and b ≤ 0.45·a; the usable range is 0.9·c1/(2|c2|)
-    (0.9·a/(2b)) capped at 50 N, and 50 N for a linear curve (c2 = 0 or
-    b = 0, accepted). The model's forward must be finite and strictly
-    increasing over the usable ranges and its inverse give the forces
-    back (within 1e-6 N + 1e-6 relative).
+    ``shear_fit`` [a, b] of ΔC/C0 = a F − b F², checked by
+    QuadModel.from_fits (physics/quad_model.py lists the ranges).
+
+    ``sensor`` (the registry's identity of the sensor) is stored in the
+    document, so the same numbers on two sensors are two calibrations.
     """
-    if info.kind == "grid":
-        return _grid_upload(info, upload, mounting)
-    return _quad_upload(upload)
+    if "schema" in upload:
+        document = {k: v for k, v in upload.items() if k != "id"}
+        given = upload.get("id")
+        if given is not None and given != calibration_id(document):
+            raise ValueError(f"id: {given} does not match the document's content (which gives "
+                             f"{calibration_id(document)}): edited or corrupt")
+    elif info.kind == "grid":
+        document = _grid_document(info, upload, mounting)
+    else:
+        document = _quad_document(upload)
+    if sensor is not None and "schema" not in upload:
+        document["sensor"] = sensor
+    document["id"] = calibration_id(document)
+    from_document(document, info, mounting)  # the checks
+    return document
 
 
-def _grid_upload(info: SensorInfo, upload: dict, mounting: str) -> tuple[GridCalibration, dict]:
-    try:
-        values = np.asarray(upload.get("sensitivity_pct_per_N", []), dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError("sensitivity_pct_per_N: expected a list of numbers") from None
-    if values.shape != (info.channels,):
-        raise ValueError(f"sensitivity_pct_per_N: expected {info.channels} values (rows*cols), got {values.size}")
+def _grid_document(info: SensorInfo, upload: dict, mounting: str) -> dict:
+    values = _values(upload, "sensitivity_pct_per_N", info.channels)
     low, high = SENSITIVITY_RANGE_PCT_PER_N
     bad = np.flatnonzero(~((values > low) & (values < high)))  # NaN fails both
     if bad.size:
         raise ValueError(f"sensitivity_pct_per_N[{bad[0]}] = {values[bad[0]]} is outside ({low:g}, {high:g}) %/N")
-    base = grid_calibration(info.rows, info.cols)
-    calibration = GridCalibration(info.rows, info.cols, base.c0_pF, values / 100.0)
+    measured = upload.get("c0_pF") is not None
+    c0 = _values(upload, "c0_pF", info.channels) if measured else grid_calibration(info.rows, info.cols).c0_pF
+    if not np.all(c0 > 0):
+        raise ValueError(f"c0_pF[{int(np.flatnonzero(~(c0 > 0))[0])}] must be a positive capacitance")
     try:
-        taxel_response(calibration, mounting).check()
+        response = taxel_response(GridCalibration(info.rows, info.cols, c0, values / 100.0), mounting)
+        response.check()
     except ValueError as exc:
         raise ValueError(f"sensitivity_pct_per_N: {exc}") from None
-    return calibration, {"sensitivity_pct_per_N": values.tolist()}
+    n = info.channels
+    return {"schema": SCHEMA, "kind": "grid", "rows": info.rows, "cols": info.cols, "mounting": mounting,
+            "created": _now(), "c0_measured": measured, "note": "uploaded sensitivities",
+            "taxels": {"gain": response.gain.tolist(), "gain_se": [None] * n, "c0_pF": c0.tolist(),
+                       "sensitivity_pct_per_N": values.tolist(), "model": ["table"] * n, "source": ["upload"] * n,
+                       "curves": {}}}
 
 
-def _quad_upload(upload: dict) -> tuple[QuadModel, dict]:
+def _quad_document(upload: dict) -> dict:
     if "normal_fit" not in upload or "shear_fit" not in upload:
         raise ValueError("a quad calibration needs normal_fit [c2, c1] and shear_fit [a, b]")
     model = QuadModel.from_fits(upload["normal_fit"], upload["shear_fit"])
-    c2, c1, _ = model.normal_fit
-    return model, {"normal_fit": [c2, c1], "shear_fit": [model.shear_a, model.shear_b],
-                   "normal_usable_N": model.normal_usable_N, "shear_usable_N": model.shear_usable_N}
+    return {"schema": SCHEMA, "kind": "quad", "created": _now(), "note": "uploaded fits",
+            "normal_fit": [model.normal_fit[0], model.normal_fit[1]], "shear_fit": [model.shear_a, model.shear_b],
+            "normal_usable_N": model.normal_usable_N, "shear_usable_N": model.shear_usable_N}
+
+
+def _values(upload: dict, name: str, n: int) -> np.ndarray:
+    try:
+        values = np.asarray(upload.get(name, []), dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a list of numbers") from None
+    if values.shape != (n,):
+        raise ValueError(f"{name}: expected {n} values (rows*cols), got {values.size}")
+    return values
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")

@@ -41,8 +41,9 @@ from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
 from .drift import DriftTracker
 from .levels import GRID_LEVELS
+from .sigma import empirical_forces, level0_sigma, table_sigma
 
-NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE = (1 << i for i in range(6))
+NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE, LOADED_AT_TARE = (1 << i for i in range(7))
 TAXEL_FLAG_NAMES = {
     NO_READING: "no_reading",
     SATURATED: "saturated",
@@ -50,6 +51,7 @@ TAXEL_FLAG_NAMES = {
     CROSSTALK_CORRECTED: "crosstalk_corrected",
     DRIFT_SUSPECT: "drift_suspect",
     STALE: "stale",
+    LOADED_AT_TARE: "loaded_at_tare",  # zero from the calibration's C0 (loaded_tare.py)
 }
 STUCK_FRAMES = 50
 ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior
@@ -65,6 +67,7 @@ def flag_names(bits: int) -> list[str]:
 class GridResult:
     forces_N: np.ndarray  # (N, n), NaN = no reading
     taxel_flags: np.ndarray  # (N, n) uint8 bit set, see TAXEL_FLAG_NAMES
+    sigma_N: np.ndarray | None = None  # (N, n) 1-σ of each force (sigma.py), NaN where the force is or saturated
 
 
 @dataclass
@@ -78,6 +81,9 @@ class GridProcessor:
     crosstalk: Crosstalk | None = None
     drift: DriftTracker = field(default_factory=DriftTracker)
     estimator: CrosstalkEstimator | None = None
+    gain_relative_se: np.ndarray | None = None  # (n,) σ(κ)/κ of the calibration; None: 0
+    model_sigma_N: np.ndarray | None = None  # (n,) what the calibration's curve leaves unexplained; None: 0
+    curves: dict = field(default_factory=dict)  # taxel → (relative, force): empirical inverses (sensor_calibration.py)
     _last_raw: np.ndarray | None = None
     _same_count: np.ndarray | None = None
     _noise_for: tuple | None = None
@@ -100,6 +106,9 @@ class GridProcessor:
         self.plausible = level0.plausible_relative(self.top_relative)
         self._bounds = level0.bounds(*self.plausible)
         self._ratio_bounds = level0.bounds(self.plausible[0] + 1.0, self.plausible[1] + 1.0)
+        n = self.calibration.rows * self.calibration.cols
+        self.gain_relative_se = np.zeros(n) if self.gain_relative_se is None else self.gain_relative_se
+        self.model_sigma_N = np.zeros(n) if self.model_sigma_N is None else self.model_sigma_N
         if self.level == "full":
             self.crosstalk = self.crosstalk or Crosstalk(self.calibration.rows, self.calibration.cols)
             self.estimator = self.estimator or CrosstalkEstimator(self.calibration.rows, self.calibration.cols)
@@ -180,9 +189,13 @@ class GridProcessor:
             if implausible is not None:  # no force, flagged
                 relative = np.where(implausible, np.nan, relative)
                 np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
-            return GridResult(relative / self.calibration.sensitivity_per_N, flags)
+            forces = relative / self.calibration.sensitivity_per_N
+            noise = self.noise(baseline, baseline_std)
+            return GridResult(forces, flags, level0_sigma(self, forces, noise))
         noise = self.noise(baseline, baseline_std)
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
+        if self.curves:
+            empirical_forces(self.curves, relative, forces)
         # Taxel by taxel, so an implausible reading is set aside afterwards.
         # It lies above the table's top (saturated) or below −5σ (out of
         # range) — unless the tare was absurdly noisy — so a frame with
@@ -194,7 +207,9 @@ class GridProcessor:
             if implausible is not None:  # no force, flagged out of range (not saturated)
                 forces[implausible] = np.nan
                 flags[implausible] = (flags[implausible] & ~np.uint8(SATURATED)) | OUT_OF_RANGE
-        return GridResult(forces, flags)
+        sigma = table_sigma(self.response, relative, forces, noise, self.response.gain, self.gain_relative_se,
+                            self.model_sigma_N, saturated)
+        return GridResult(forces, flags, sigma)
 
     def _low_flagged(self, noise: np.ndarray) -> bool:
         """Whether every implausibly low ΔC/C0 is also below −5σ (flagged out
@@ -241,13 +256,15 @@ class GridProcessor:
             self._adopt_estimates()
 
     def _row_parameters(self, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple:
-        """(baseline, noise, un-leaked reference, drift band, gain), each (n,):
+        """(baseline, noise, un-leaked reference, drift band, gain, gain's
+        relative error, model σ), each (n,):
         what the full level needs per row; the same tuple until a tare or a
         new leakage fraction, so stacks of it can be kept."""
         cached = self._parameters_for
         if cached is None or cached[0] is not baseline or cached[1] is not baseline_std or cached[2] != self.crosstalk.electrical:
             noise = self.noise(baseline, baseline_std)
-            values = (baseline, noise, self._reference(baseline), self.drift.band * noise, self.response.gain)
+            values = (baseline, noise, self._reference(baseline), self.drift.band * noise, self.response.gain,
+                      self.gain_relative_se, self.model_sigma_N)
             cached = self._parameters_for = (baseline, baseline_std, self.crosstalk.electrical, values)
         return cached[3]
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from . import level0
 from .drift import quiet_medians
+from .sigma import empirical_forces, table_sigma
 from .grid import (CROSSTALK_CORRECTED, DRIFT_SUSPECT, NO_READING, OUT_OF_RANGE, SATURATED, STALE, GridProcessor,
                    GridResult)
 
@@ -61,8 +62,9 @@ def process_full(jobs: list[GridJob]) -> list[GridResult]:
             parts[k].append(result)
             jobs[k].processor._advance(end - start)
         pending = [(k, end) for k, _, end in spans if end < len(jobs[k].capacitance)]
-    return [part[0] if len(part) == 1 else GridResult(np.concatenate([r.forces_N for r in part]),
-                                                       np.concatenate([r.taxel_flags for r in part])) for part in parts]
+    return [part[0] if len(part) == 1 else GridResult(*(np.concatenate([getattr(r, name) for r in part])
+                                                        for name in ("forces_N", "taxel_flags", "sigma_N")))
+            for part in parts]
 
 
 def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[GridResult]:
@@ -72,7 +74,7 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     bounds = list(accumulate(counts, initial=0))
     rows = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     params = [p._row_parameters(job.baseline, job.baseline_std) for p, job, _ in pieces]
-    capacitance, t_s, (baseline, noise, reference, band, gain) = _stacked_rows(pieces, counts, params)
+    capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma) = _stacked_rows(pieces, counts, params)
     flags = _reading_flags(pieces, rows, capacitance)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags)
     medians, enough = quiet_medians(ratio - 1.0, band)
@@ -81,7 +83,7 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
         drift[r], suspect[r] = p.drift.follow(t_s[r], enough[r], medians[r])
     scale = 1.0 + drift[:, None]
     relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
-    for (p, job, _), r, (_, n, _, _, _) in zip(pieces, rows, params):
+    for (p, job, _), r, (_, n, *_) in zip(pieces, rows, params):
         p._sample(relative[r], n, job.baseline)
     compensated = _unmixed(pieces, rows, relative)
     uncompensated = capacitance / (baseline * scale) - 1.0
@@ -89,9 +91,13 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     if np.count_nonzero(suspect):
         np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & (NO_READING | OUT_OF_RANGE) == 0))
     forces, saturated, out_of_range = _inverted(pieces, rows, params, compensated, noise, gain)
+    for (p, _, _), r in zip(pieces, rows):
+        if p.curves:
+            empirical_forces(p.curves, compensated[r], forces[r])
+    sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma), saturated)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
-    return [GridResult(forces[r], flags[r]) for r in rows]
+    return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]
 
 
 def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -> tuple:
@@ -161,5 +167,15 @@ def _inverted(pieces: list[Piece], rows: list[slice], params: list[tuple], compe
     first = pieces[0][0]
     if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
         return first.response.inverse(compensated, noise, gain)
-    inverted = [p.response.inverse(compensated[r], n) for (p, _, _), r, (_, n, _, _, _) in zip(pieces, rows, params)]
+    inverted = [p.response.inverse(compensated[r], n) for (p, _, _), r, (_, n, *_) in zip(pieces, rows, params)]
     return tuple(np.concatenate(arrays) for arrays in zip(*inverted))
+
+
+def _sigma(pieces: list[Piece], rows: list[slice], compensated: np.ndarray, forces: np.ndarray,
+           per_row: tuple, saturated: np.ndarray) -> np.ndarray:
+    """σ of every force (sigma.py); sensors on the same table in one call."""
+    first = pieces[0][0]
+    if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
+        return table_sigma(first.response, compensated, forces, *per_row, saturated)
+    return np.concatenate([table_sigma(p.response, compensated[r], forces[r], *(a[r] if a.ndim == 2 else a for a in per_row),
+                                       saturated[r]) for (p, _, _), r in zip(pieces, rows)])

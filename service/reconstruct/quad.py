@@ -23,6 +23,7 @@ import numpy as np
 from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N
 from ..physics.quad_model import QuadModel
 from .baseline import NOISE_FLOOR_PF
+from .sigma import TARE_FACTOR
 from .level0 import bounds, implausible, plausible_relative, quad_axes, relative_change
 
 QUAD_LEVELS = ("level0", "table", "full")
@@ -35,6 +36,7 @@ _LEVEL0_SLOPES = np.array([QUAD_SHEAR_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, QUAD_
 class QuadProcessor:
     level: str
     model: QuadModel = field(default_factory=QuadModel)
+    relative_se: tuple[float, float] = (0.0, 0.0)  # σ/value of the normal and shear slopes (sigma.py)
     _noise_for: tuple | None = None
     # Processors with equal keys give the same result on the same input, so
     # their sensors' frames can go through one call.
@@ -43,7 +45,7 @@ class QuadProcessor:
     def __post_init__(self) -> None:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
-        self.batch_key = (self.level, astuple(self.model))
+        self.batch_key = (self.level, astuple(self.model), self.relative_se)
         self.plausible = plausible_relative(self.model.top_relative)
         self._bounds = bounds(*self.plausible)
 
@@ -52,6 +54,27 @@ class QuadProcessor:
         if self._noise_for is None or self._noise_for[0] is not baseline_std:
             self._noise_for = (baseline_std, float(np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0))
         return self._noise_for[1]
+
+    def sigma(self, forces: np.ndarray, noise: np.ndarray | float) -> np.ndarray:
+        """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
+        combination noise through the curve's slope at that force, and the
+        force times its slope's relative error. Frames without forces: NaN."""
+        noise = TARE_FACTOR * np.asarray(noise, dtype=float)
+        if noise.ndim:
+            noise = noise[:, None]
+        if self.level == "level0":
+            reading = noise / _LEVEL0_SLOPES
+        else:
+            model = self.model
+            c2, c1, _ = model.normal_fit
+            fz = forces[:, 2:3]
+            shear_slope = (model.shear_a - 2.0 * model.shear_b * np.abs(forces[:, :2]))
+            if model.coupling:
+                shear_slope = shear_slope * (1.0 - model.coupling * model.normal_response(fz))
+            slopes = np.concatenate([shear_slope, c1 + 2.0 * c2 * fz], axis=1)
+            reading = noise / np.maximum(slopes, 1e-9)
+        se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
+        return np.sqrt(reading * reading + (forces * se) ** 2)
 
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float) -> tuple[np.ndarray, list[list[str]]]:
         """Capacitances (N, 4) pF against baselines (4,) or (N, 4) with the

@@ -1,9 +1,11 @@
-"""The Reconstructor: readings (capacitance) → ForceFrames (forces + flags), per sensor.
+"""The Reconstructor: readings (capacitance) → ForceFrames (forces, σ, flags), per sensor.
 
 Sensors are batched (grids of a level in one call, quads sharing a model in
-one call), a failing sensor isolated from the others (isolation.py);
-calibration.py gives each sensor's calibration, its processor and its tare
-window.
+one call), a failing sensor isolated from the others (isolation.py). Each
+sensor's SensorCalibration comes from ``calibrations`` (the registry, a
+recording's own, ``--calibration``: chosen above this layer) or is the
+built-in one; calibration_upload.py builds its processor and tare window,
+loaded_tare.py judges its tare against the calibration's C0.
 """
 from __future__ import annotations
 
@@ -16,17 +18,19 @@ from typing import Callable
 import numpy as np
 
 from ..physics.mountings import MOUNTINGS
-from ..physics.paper_data import GridCalibration
-from ..physics.quad_model import QuadModel
 from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES, Baseline
-from .calibration_upload import processor_for, tare_window, validated_upload
+from .calibration_upload import processor_for, tare_window, upload_document
 from .force_frame import ForceFrame
-from .grid import NO_READING, GridProcessor, flag_names
+from .grid import LOADED_AT_TARE, NO_READING, GridProcessor, flag_names
 from .grid_full import GridJob, process_full
 from .isolation import Isolation
 from .levels import DEFAULT_LEVEL, LEVELS, SceneConfig, choose_level
+from .loaded_tare import loaded_taxels
 from .quad import QuadProcessor
+from .sensor_calibration import SensorCalibration, builtin, from_document
+
+Resolver = Callable[[SensorInfo], "SensorCalibration | None"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +40,10 @@ class _SensorState:
     info: SensorInfo
     baseline: Baseline
     processor: GridProcessor | QuadProcessor
+    calibration: SensorCalibration
+    tare_judged: bool = False  # the finished tare was compared with the calibration's C0
+    judge_tare: bool = True  # False after a forced tare: the user says the load is the zero
+    loaded: np.ndarray | None = None  # (n,) taxels loaded at tare (their zero is the calibration's C0)
 
 
 class Reconstructor:
@@ -50,10 +58,11 @@ class Reconstructor:
 
     def __init__(self, tare_frames: int = DEFAULT_TARE_FRAMES, hold_until_tared: bool = False,
                  level: str = DEFAULT_LEVEL, mounting: str = "flat", scene: SceneConfig | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, calibrations: Resolver | None = None) -> None:
         """``level="auto"`` takes the cheapest level that meets ``scene``'s
         error budget (see levels.py). ``clock`` (seconds) times the errors
-        and paces their log lines."""
+        and paces their log lines. ``calibrations`` gives a sensor's
+        calibration when it is first seen (None: the built-in one)."""
         if level not in LEVELS:
             raise ValueError(f"unknown fidelity level {level!r}; known: {', '.join(LEVELS)}")
         if mounting not in MOUNTINGS:
@@ -69,53 +78,111 @@ class Reconstructor:
         self.hold_until_tared = hold_until_tared
         self._sensors: dict[int, _SensorState] = {}
         self._held: deque[tuple[_SensorState, Reading]] = deque()
-        self._uploaded: dict[int, GridCalibration | QuadModel] = {}
+        self.resolve = calibrations
+        self._chosen: dict[int, SensorCalibration] = {}  # set through set_calibration, over ``resolve``
+        self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
         self._isolation = Isolation(self._null_frames, clock, log)
 
-    def _processor(self, info: SensorInfo) -> GridProcessor | QuadProcessor:
-        return processor_for(info, self.level, self.mounting, self._uploaded.get(info.id))
+    def set_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> dict:
+        """Replace a sensor's calibration (an upload or a registry document,
+        calibration_upload.upload_document); ValueError names the bad field
+        and why (the API answers 422). The baseline is kept. Returns the
+        document applied, with its id."""
+        return self.apply_calibration(info, self.prepare_calibration(info, upload, sensor))
 
-    def set_calibration(self, info: SensorInfo, upload: dict) -> dict:
-        """Replace a sensor's calibration; ValueError names the bad field and
-        why (the API answers 422; calibration_upload.validated_upload lists
-        the checks). The baseline is kept. Returns what is applied."""
-        return self.apply_calibration(info, self.prepare_calibration(info, upload))
-
-    def prepare_calibration(self, info: SensorInfo, upload: dict) -> tuple:
+    def prepare_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> tuple:
         """The slow half of ``set_calibration`` (validation, the new
         processor), which touches no state: it may run while frames are
         being reconstructed."""
-        uploaded, applied = validated_upload(info, upload, self.mounting)
-        return uploaded, processor_for(info, self.level, self.mounting, uploaded), applied
+        document = upload_document(info, upload, self.mounting, sensor)
+        calibration = from_document(document, info, self.mounting)
+        return calibration, processor_for(info, self.level, self.mounting, calibration), document
 
     def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
         """The quick half: swap the calibration and the sensor's processor in."""
-        uploaded, processor, applied = prepared
-        self._uploaded[info.id] = uploaded
+        calibration, processor, document = prepared
+        self._chosen[info.id] = calibration
         state = self._sensors.get(info.id)
         if state is not None:
-            state.processor = processor
+            state.processor, state.calibration = processor, calibration
+            state.tare_judged = False  # judged again against the new C0
             self._isolation.failing.discard(info.id)
-        return applied
+        return document
+
+    def calibration(self, sensor_id: int) -> SensorCalibration | None:
+        """The calibration sensor ``sensor_id`` is reconstructed with (None: not seen yet)."""
+        state = self._sensors.get(sensor_id)
+        return None if state is None else state.calibration
+
+    def _calibration_for(self, info: SensorInfo) -> SensorCalibration:
+        """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
+        A calibration that does not fit the sensor is set aside, with the
+        reason kept, never a reason to stop the sensor's data."""
+        chosen = self._chosen.get(info.id)
+        if chosen is not None and chosen.kind == info.kind:
+            return chosen
+        self.calibration_problems.pop(info.id, None)
+        try:
+            found = self.resolve(info) if self.resolve is not None else None
+        except Exception as exc:  # noqa: BLE001 — a registry or document problem: the built-in one, said so
+            self.calibration_problems[info.id] = f"{type(exc).__name__}: {exc}"
+            log.warning("sensor %d: its calibration cannot be used (%s); the built-in one is", info.id, exc)
+            found = None
+        return found if found is not None else builtin(info, self.mounting)
 
     def _state(self, info: SensorInfo) -> _SensorState:
         state = self._sensors.get(info.id)
         if state is None or (state.info is not info and state.info != info):
-            window = tare_window(info, self.mounting, self._uploaded.get(info.id))
-            state = _SensorState(info, Baseline(info.channels, self.tare_frames, window), self._processor(info))
+            calibration = self._calibration_for(info)
+            window = tare_window(info, self.mounting, calibration)
+            state = _SensorState(info, Baseline(info.channels, self.tare_frames, window),
+                                 processor_for(info, self.level, self.mounting, calibration), calibration)
             self._sensors[info.id] = state
         return state
 
-    def tare(self, sensor_id: int | None = None) -> list[int]:
-        """Restart the baseline of one sensor (or all); return the ids tared."""
+    def tare(self, sensor_id: int | None = None, judge: bool = True) -> list[int]:
+        """Restart the baseline of one sensor (or all); return the ids tared.
+        ``judge`` False: the load present is the zero (a forced tare)."""
         ids = sorted(self._sensors) if sensor_id is None else [sensor_id]
         for sid in ids:
             if sid not in self._sensors:
                 raise KeyError(sid)
-            self._sensors[sid].baseline.tare()
-            if isinstance(self._sensors[sid].processor, GridProcessor):
-                self._sensors[sid].processor.reset()
+            state = self._sensors[sid]
+            state.baseline.tare()
+            state.tare_judged, state.judge_tare, state.loaded = False, judge, None
+            if isinstance(state.processor, GridProcessor):
+                state.processor.reset()
         return ids
+
+    def loaded_now(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
+        """Taxels that a reading (n,) pF shows loaded against the calibration's
+        C0 (loaded_tare.py; one reading, so its own noise): what a tare now
+        would make its zero. Empty where C0 was not measured."""
+        state = self._sensors.get(sensor_id)
+        calibration = None if state is None else state.calibration
+        if calibration is None or calibration.measured is None or not calibration.measured.any():
+            return []
+        std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
+        return np.flatnonzero(loaded_taxels(calibration.grid.c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
+
+    def loaded_at_tare(self, sensor_id: int) -> list[int]:
+        """Taxels whose zero is the calibration's C0 since the last tare."""
+        state = self._sensors.get(sensor_id)
+        return [] if state is None or state.loaded is None else np.flatnonzero(state.loaded).tolist()
+
+    def _judge_tare(self, state: _SensorState) -> None:
+        """Once a grid's tare is complete: loaded taxels get the calibration's C0."""
+        state.tare_judged = True
+        calibration = state.calibration
+        if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
+            return
+        baseline = state.baseline
+        loaded = loaded_taxels(calibration.grid.c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
+        if loaded.any():
+            baseline.substitute(loaded, calibration.grid.c0_pF)
+            state.loaded = loaded
+            log.warning("sensor %d: taxels %s were loaded at tare; their zero is the calibration's C0",
+                        state.info.id, np.flatnonzero(loaded).tolist())
 
     def baseline(self, sensor_id: int) -> np.ndarray | None:
         state = self._sensors.get(sensor_id)
@@ -148,7 +215,8 @@ class Reconstructor:
         for reading in readings:
             try:
                 state = self._state(reading.sensor)
-                state.baseline.update(reading.capacitance_pF)
+                if state.baseline.update(reading.capacitance_pF) and not state.tare_judged:
+                    self._judge_tare(state)
             except Exception as exc:  # noqa: BLE001 — isolated: this reading goes out null and flagged
                 state = exc
             pending.append((state, reading))
@@ -214,7 +282,9 @@ class Reconstructor:
     def _null_frames(self, info: SensorInfo, readings: list[Reading], flag: str) -> list[ForceFrame]:
         """Frames without forces, flagged ``flag`` (taring, reconstruction_error)."""
         forces = np.full((len(readings), 3 if info.kind == "quad" else info.channels), np.nan)
-        return self._frames(readings, forces, [r.frame_flags() + [flag] for r in readings], None)
+        state = self._sensors.get(info.id)
+        calibration = state.calibration.id if state is not None else ""
+        return self._frames(readings, forces, [r.frame_flags() + [flag] for r in readings], None, calibration, None)
 
     def _reconstruct_grids(self, members: list[tuple[_SensorState, list[Reading]]],
                            isolated: bool = False) -> list[list[ForceFrame]]:
@@ -223,14 +293,14 @@ class Reconstructor:
         a sensor's exception into its null, flagged frames."""
         if self.level == "full":
             jobs = [self._job(state, rs) for state, rs in members]
-            return [self._grid_frames(rs, result) for (_, rs), result in zip(members, process_full(jobs))]
+            return [self._grid_frames(state, rs, result) for (state, rs), result in zip(members, process_full(jobs))]
         out = []
         for state, rs in members:
             if not isolated:
-                out.append(self._grid_frames(rs, self._process_grid(state, rs)))
+                out.append(self._grid_frames(state, rs, self._process_grid(state, rs)))
                 continue
             try:
-                frames = self._grid_frames(rs, self._process_grid(state, rs))
+                frames = self._grid_frames(state, rs, self._process_grid(state, rs))
             except Exception as exc:  # noqa: BLE001 — isolated: null frames, counted, logged at most once a minute
                 frames = self._isolation.error_frames(state.info, rs, exc)
             else:
@@ -248,13 +318,16 @@ class Reconstructor:
         job = self._job(state, readings)
         return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s)
 
-    def _grid_frames(self, readings: list[Reading], result) -> list[ForceFrame]:
+    def _grid_frames(self, state: _SensorState, readings: list[Reading], result) -> list[ForceFrame]:
+        taxel_flags = result.taxel_flags
+        if state.loaded is not None:
+            np.bitwise_or(taxel_flags, LOADED_AT_TARE, out=taxel_flags, where=state.loaded)
         flags = [r.frame_flags() for r in readings]
-        union = np.bitwise_or.reduce(result.taxel_flags, axis=1) & ~np.uint8(NO_READING)
+        union = np.bitwise_or.reduce(taxel_flags, axis=1) & ~np.uint8(NO_READING)
         if np.count_nonzero(union):
             for f, bits in zip(flags, union.tolist()):
                 f.extend(flag_names(bits))
-        return self._frames(readings, result.forces_N, flags, result.taxel_flags)
+        return self._frames(readings, result.forces_N, flags, taxel_flags, state.calibration.id, result.sigma_N)
 
     def _reconstruct_quads(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[ForceFrame]:
         """Tared quads sharing one model, each with its readings; their
@@ -264,13 +337,23 @@ class Reconstructor:
         capacitance = np.stack([r.capacitance_pF for r in readings])
         baseline = np.repeat(np.stack([state.baseline.value for state, _ in members]), counts, axis=0)
         noise = np.repeat([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in members], counts)
-        forces, quad_flags = members[0][0].processor.process(capacitance, baseline, noise)
+        processor = members[0][0].processor
+        forces, quad_flags = processor.process(capacitance, baseline, noise)
+        sigma = processor.sigma(forces, noise)
         flags = [r.frame_flags() + extra for r, extra in zip(readings, quad_flags)]
-        return self._frames(readings, forces, flags, None)
+        if len(members) == 1:
+            return self._frames(readings, forces, flags, None, members[0][0].calibration.id, sigma)
+        ids = [state.calibration.id for state, rs in members for _ in rs]
+        return [frame for i, cid in enumerate(ids)
+                for frame in self._frames(readings[i:i + 1], forces[i:i + 1], flags[i:i + 1], None, cid, sigma[i:i + 1])]
 
-    def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None) -> list[ForceFrame]:
+    def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None,
+                calibration: str, sigma: np.ndarray | None) -> list[ForceFrame]:
+        level = self.level
+        if sigma is None:
+            sigma = [None] * len(readings)
         if taxel_flags is None:
-            return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, self.level)
-                    for r, f, fl in zip(readings, forces, flags)]
-        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, self.level, tf)
-                for r, f, fl, tf in zip(readings, forces, flags, taxel_flags)]
+            return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, None, calibration, sg)
+                    for r, f, fl, sg in zip(readings, forces, flags, sigma)]
+        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, tf, calibration, sg)
+                for r, f, fl, tf, sg in zip(readings, forces, flags, taxel_flags, sigma)]

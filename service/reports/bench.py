@@ -23,7 +23,9 @@ from ..protocol import Decoder
 from ..readings import Interpreter
 from ..reconstruct import Reconstructor
 from ..reconstruct.baseline import DEFAULT_TARE_FRAMES
+from ..reconstruct.calibration_upload import processor_for
 from ..reconstruct.levels import GRID_LEVELS
+from ..reconstruct.sensor_calibration import builtin
 from . import plotting
 
 REPEATS = 3
@@ -111,8 +113,7 @@ def run_scenario(scenario: Scenario, seconds: float) -> list[dict]:
     baseline, baseline_std = grid_c[tare].mean(axis=0), grid_c[tare].std(axis=0)
     rows = []
     for level in GRID_LEVELS:
-        reconstructor = Reconstructor(level=level, hold_until_tared=True)
-        processor = reconstructor._processor(grid[0].sensor)
+        processor = processor_for(grid[0].sensor, level, "flat", builtin(grid[0].sensor))
         batch_s = _best(lambda: processor.process(grid_c, baseline, baseline_std, grid_t))
 
         def streaming():

@@ -1,0 +1,38 @@
+"""A tare that knows it is loaded: the tared zero against the calibration's C0.
+
+Auto-tare takes the mean of the first frames as each taxel's zero, so a
+sensor that starts while gripping makes the grip its zero. A calibration
+measured on this sensor knows each taxel's unloaded capacitance C0; a
+taxel whose tared mean stands above it by more than LOADED_SIGMAS combined
+standard deviations is ``loaded_at_tare``: its zero is the calibration's C0
+instead, and its frames say so until the next tare.
+
+The combined σ of (tared mean − C0) per taxel: the mean's noise (the
+channel's spread / √T) and C0's own drift since the calibration (PDMS's
+permittivity and the gap move with temperature; C0_DRIFT_RELATIVE = 0.1 %
+of C0 is what we allow, an assumption to replace by a measured figure).
+A compressive taxel cannot read below its zero, so only an excess counts.
+With table 1's mean sensitivity (1.25 %/N) the threshold, 4 × 0.1 % of C0,
+is a load of about 0.3 N: a lighter grip passes as unloaded. Only taxels
+whose C0 was measured (``SensorCalibration.measured``) are judged.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .baseline import NOISE_FLOOR_PF
+
+C0_DRIFT_RELATIVE = 1e-3
+LOADED_SIGMAS = 4.0
+
+
+def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
+                  frames: int) -> np.ndarray:
+    """(n,) bool: taxels whose mean of ``frames`` readings (n,) pF, spread
+    ``std_pF`` (n,), stands above the calibration's C0 (n,) by more than
+    LOADED_SIGMAS combined σ; False where C0 was not measured or the mean
+    is missing."""
+    noise = np.fmax(np.nan_to_num(std_pF, nan=NOISE_FLOOR_PF), NOISE_FLOOR_PF) / np.sqrt(max(frames, 1))
+    sigma = np.hypot(noise, C0_DRIFT_RELATIVE * c0_pF)
+    with np.errstate(invalid="ignore"):
+        return measured & (mean_pF - c0_pF > LOADED_SIGMAS * sigma)

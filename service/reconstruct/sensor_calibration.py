@@ -1,0 +1,203 @@
+"""A sensor's calibration as the reconstruction uses it, built from a registry document.
+
+A document (docs/calibration.md; ``tactile calibrate`` and the registry make
+them) is JSON; ``from_document`` checks it against the sensor it is applied
+to and names the bad field. What it carries, per kind:
+
+grid  ``taxels``: ``gain`` (n,) compliance gains of the model curve (κ in
+      physics/taxel_response.py), ``gain_se`` (n,) their standard errors
+      (null: unknown), ``c0_pF`` (n,) unloaded capacitances, ``curves``
+      {taxel: {force_N, relative}} monotone empirical curves that replace
+      the model for those taxels, ``residual_rms_N`` (n,); optional
+      ``crosstalk`` {mechanical, electrical} measured in the session.
+quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
+      optional ``normal_fit_se``/``shear_fit_se`` of c1 and a.
+
+``builtin`` is what a sensor without a calibration of its own uses: table 1
+(8x8; the table's mean for other shapes) or fits 34/35. Its gain error is
+not a fit's: it is how far a sensor that is not the paper's may be from it —
+the issue's measured array differed from table 1 by up to ±12 % in
+sensitivity (uniform: σ = 12 %/√3 ≈ 7 %), so 7 % per taxel, and likewise
+for the quad's two slopes. Its C0 was not measured on this sensor, so it
+cannot tell a loaded tare (``measured`` False for every taxel).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..physics.mountings import MOUNTINGS
+from ..physics.paper_data import (BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS, TABLE1_ROWS, GridCalibration,
+                                  grid_calibration)
+from ..physics.quad_model import QuadModel
+from ..physics.taxel_response import SENSITIVITY_RANGE_PCT_PER_N, TaxelResponse, model_table, taxel_response
+from ..readings import SensorInfo
+
+ID_HEX = 16
+BUILTIN_RELATIVE_SE = 0.07
+# Plausible gains: those of the uploadable sensitivities (0.1–10 %/N) on the
+# flat table, whose slope at gain 1 is ~1.25 %/N.
+GAIN_RANGE = (SENSITIVITY_RANGE_PCT_PER_N[0] / 1.25, SENSITIVITY_RANGE_PCT_PER_N[1] / 1.25)
+
+
+def canonical(document: dict) -> bytes:
+    """The document without ``id`` as canonical JSON (sorted keys, compact, UTF-8, no NaN)."""
+    body = {k: v for k, v in document.items() if k != "id"}
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
+
+
+def calibration_id(document: dict) -> str:
+    """A calibration's id: the first ID_HEX hex digits of the sha256 of its
+    canonical JSON, so the same content always has the same id."""
+    return hashlib.sha256(canonical(document)).hexdigest()[:ID_HEX]
+
+
+@dataclass(frozen=True)
+class SensorCalibration:
+    """What one sensor is reconstructed with. Grid arrays have shape (n,),
+    n = rows*cols, row-major."""
+
+    id: str
+    kind: str  # "grid" | "quad"
+    created: str | None  # ISO 8601, None for the built-in
+    measured: np.ndarray | None  # grid (n,) bool: C0 measured on this sensor (a loaded tare can be told there)
+    grid: GridCalibration | None = None  # C0 and LS sensitivity (level0 uses it)
+    response: TaxelResponse | None = None  # the model curve with each taxel's gain
+    gain_relative_se: np.ndarray | None = None  # (n,) σ(κ)/κ
+    model_sigma_N: np.ndarray | None = None  # (n,) what an empirical curve leaves (its residual RMS), else 0
+    curves: dict = field(default_factory=dict)  # taxel → (relative (m,), force (m,)) of an empirical inverse
+    crosstalk: tuple[float, float] | None = None  # (mechanical, electrical) measured in the session
+    quad: QuadModel | None = None
+    quad_relative_se: tuple[float, float] = (BUILTIN_RELATIVE_SE, BUILTIN_RELATIVE_SE)  # normal, shear slopes
+    document: dict | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def builtin(self) -> bool:
+        return self.id.startswith("builtin")
+
+
+def builtin(info: SensorInfo, mounting: str = "flat") -> SensorCalibration:
+    """Table 1 (or its mean) for a grid, fits 34/35 for a quad."""
+    if info.kind == "quad":
+        return SensorCalibration(BUILTIN_QUAD_ID, "quad", None, None, quad=QuadModel())
+    base = grid_calibration(info.rows, info.cols)
+    n = info.channels
+    cid = BUILTIN_GRID_ID if (info.rows, info.cols) == (TABLE1_ROWS, TABLE1_COLS) else f"builtin-mean-{info.rows}x{info.cols}"
+    return SensorCalibration(cid, "grid", None, np.zeros(n, dtype=bool), base, taxel_response(base, mounting),
+                             np.full(n, BUILTIN_RELATIVE_SE), np.zeros(n))
+
+
+def from_document(document: dict, info: SensorInfo, mounting: str = "flat") -> SensorCalibration:
+    """The calibration a registry document describes, for ``info``;
+    ValueError naming the field and why."""
+    if not isinstance(document, dict):
+        raise ValueError("a calibration document is a JSON object")
+    cid = document.get("id")
+    if not isinstance(cid, str) or not cid:
+        raise ValueError("id: a calibration document needs its id")
+    if document.get("kind") != info.kind:
+        raise ValueError(f"kind: calibration {cid} is for a {document.get('kind')!r} sensor, sensor {info.id} is a {info.kind}")
+    if info.kind == "quad":
+        return _quad(document, cid)
+    if (document.get("rows"), document.get("cols")) != (info.rows, info.cols):
+        raise ValueError(f"rows, cols: calibration {cid} is for a {document.get('rows')}x{document.get('cols')} grid, "
+                         f"sensor {info.id} is {info.rows}x{info.cols}")
+    return _grid(document, cid, info, document.get("mounting") or mounting)
+
+
+def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.ndarray:
+    values = taxels.get(name)
+    if values is None and missing_ok:
+        return np.full(n, np.nan)
+    if not isinstance(values, list) or len(values) != n:
+        raise ValueError(f"taxels.{name}: expected a list of {n} numbers")
+    try:
+        out = np.array([np.nan if v is None and missing_ok else v for v in values], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"taxels.{name}: expected a list of {n} numbers") from None
+    bad = np.flatnonzero(~np.isfinite(out) & ~(missing_ok & np.isnan(out)))
+    if bad.size:
+        raise ValueError(f"taxels.{name}[{bad[0]}] = {out[bad[0]]} is not finite")
+    return out
+
+
+def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCalibration:
+    if mounting not in MOUNTINGS:
+        raise ValueError(f"mounting: {mounting!r} is not one of {', '.join(MOUNTINGS)}")
+    taxels = document.get("taxels")
+    if not isinstance(taxels, dict):
+        raise ValueError("taxels: expected an object of per-taxel lists")
+    n = info.channels
+    gain = _numbers(taxels, "gain", n)
+    low, high = GAIN_RANGE
+    bad = np.flatnonzero(~((gain > low) & (gain < high)))
+    if bad.size:
+        raise ValueError(f"taxels.gain[{bad[0]}] = {gain[bad[0]]} is outside ({low:g}, {high:g})")
+    c0 = _numbers(taxels, "c0_pF", n)
+    if np.any(c0 <= 0):
+        raise ValueError(f"taxels.c0_pF[{int(np.argmax(c0 <= 0))}] must be positive")
+    se = _numbers(taxels, "gain_se", n, missing_ok=True)
+    relative_se = np.where(np.isnan(se), BUILTIN_RELATIVE_SE, np.abs(se) / gain)
+    residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
+    table = model_table(mounting)
+    response = TaxelResponse(table.force_N, table.relative_change, gain)
+    response.check()
+    curves, model_sigma = _curves(taxels.get("curves") or {}, n, residual)
+    sensitivity = _numbers(taxels, "sensitivity_pct_per_N", n, missing_ok=True) / 100.0
+    sensitivity = np.where(np.isnan(sensitivity), _ls_sensitivity(response), sensitivity)
+    crosstalk = document.get("crosstalk")
+    coupling = None
+    if crosstalk is not None:
+        coupling = (float(crosstalk.get("mechanical", 0.0)), float(crosstalk.get("electrical", 0.0)))
+        if not (-0.05 <= coupling[0] <= 0.0 and 0.0 <= coupling[1] <= 0.3):
+            raise ValueError(f"crosstalk: mechanical {coupling[0]} must be in [-0.05, 0], electrical {coupling[1]} in [0, 0.3]")
+    # C0 is this sensor's where the document says so (an upload without c0_pF
+    # carries table 1's) and the taxel's values are not carried from a built-in.
+    sources = taxels.get("source") if isinstance(taxels.get("source"), list) else [None] * n
+    measured = np.array([bool(document.get("c0_measured", True)) and not str(src).startswith("builtin")
+                         for src in sources[:n]] + [False] * (n - len(sources[:n])))
+    return SensorCalibration(cid, "grid", document.get("created"), measured,
+                             GridCalibration(info.rows, info.cols, c0, sensitivity), response, relative_se, model_sigma,
+                             curves, coupling, document=document)
+
+
+def _ls_sensitivity(response: TaxelResponse) -> np.ndarray:
+    """The least-squares slope of each taxel's curve over 0–10 N (table 1's reading)."""
+    forces = np.arange(0.0, 11.0)
+    r = response.forward(forces[:, None] * np.ones(response.gain.shape))
+    f = forces - forces.mean()
+    return ((r - r.mean(axis=0)) * f[:, None]).sum(axis=0) / (f * f).sum()
+
+
+def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Empirical inverses {taxel: (relative, force)} and the model σ per taxel."""
+    curves, model_sigma = {}, np.zeros(n)
+    for key, curve in raw.items():
+        try:
+            taxel = int(key)
+            force = np.asarray(curve["force_N"], float)
+            relative = np.asarray(curve["relative"], float)
+        except (TypeError, ValueError, KeyError):
+            raise ValueError(f"taxels.curves[{key!r}]: expected {{force_N: [...], relative: [...]}}") from None
+        if not 0 <= taxel < n or force.shape != relative.shape or force.size < 2:
+            raise ValueError(f"taxels.curves[{key!r}]: taxel out of range or curve of fewer than 2 points")
+        if not (np.isfinite(force).all() and np.isfinite(relative).all()
+                and np.all(np.diff(force) > 0) and np.all(np.diff(relative) > 0)):
+            raise ValueError(f"taxels.curves[{key!r}]: must be finite and strictly increasing")
+        curves[taxel] = (relative, force)
+        model_sigma[taxel] = 0.0 if math.isnan(residual[taxel]) else residual[taxel]
+    return curves, model_sigma
+
+
+def _quad(document: dict, cid: str) -> SensorCalibration:
+    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"))
+    se = []
+    for name, slope in (("normal_fit_se", model.normal_fit[1]), ("shear_fit_se", model.shear_a)):
+        value = document.get(name)
+        se.append(BUILTIN_RELATIVE_SE if value is None else abs(float(value[1] if name == "normal_fit_se" else value[0])) / slope)
+    return SensorCalibration(cid, "quad", document.get("created"), None, quad=model,
+                             quad_relative_se=(se[0], se[1]), document=document)

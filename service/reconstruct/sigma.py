@@ -1,0 +1,56 @@
+"""One standard deviation on every force, and empirical-curve taxels.
+
+A grid force is F = G(r)/κ: G the model curve's inverse, r = ΔC/C0 against
+the tared baseline, κ the taxel's calibrated gain. To first order its
+variance is the sum of three independent parts:
+
+* the reading's noise: σ_r·dF/dr, σ_r the tare window's spread (the
+  converter's noise, grid.py ``noise``) widened by √(1 + 1/T) because the
+  baseline is itself a mean of T = 100 noisy frames;
+* the gain's error: F·σ_κ/κ (the calibration's standard error; for the
+  built-in table 1 the spread of sensors that are not the paper's,
+  sensor_calibration.py);
+* what the calibration's curve leaves unexplained: an empirical curve's
+  residual RMS (0 where the model curve fits within the noise).
+
+level0 (F = r/s): σ_r/s and F·σ_κ/κ. A saturated force (held at the
+table's top) or a missing one has no σ (NaN, serialised null): the true
+force is only bounded from below. Coverage on captures the calibration did
+not see is measured in tests/test_sigma.py and docs/calibration.md.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .baseline import DEFAULT_TARE_FRAMES
+
+TARE_FACTOR = math.sqrt(1.0 + 1.0 / DEFAULT_TARE_FRAMES)
+
+
+def table_sigma(response, relative: np.ndarray, forces: np.ndarray, noise: np.ndarray, gain: np.ndarray,
+                relative_se: np.ndarray, model_sigma: np.ndarray, saturated: np.ndarray) -> np.ndarray:
+    """σ (N, n) of forces (N, n) inverted from ``relative`` (N, n) with the
+    response's curve; noise, gain, relative_se, model_sigma (n,) or (N, n)."""
+    slope = response.inverse_slope(relative, gain)
+    reading = (TARE_FACTOR * noise) * slope
+    sigma = np.sqrt(reading * reading + (forces * relative_se) ** 2 + model_sigma * model_sigma)
+    if np.count_nonzero(saturated):
+        sigma[saturated] = np.nan
+    return sigma
+
+
+def level0_sigma(processor, forces: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """σ (N, n) of level0's linear forces (N, n)."""
+    reading = TARE_FACTOR * noise / processor.calibration.sensitivity_per_N
+    return np.sqrt(reading * reading + (forces * processor.gain_relative_se) ** 2)
+
+
+def empirical_forces(curves: dict, relative: np.ndarray, forces: np.ndarray) -> None:
+    """Overwrite ``forces`` (N, n) of the taxels with an empirical curve
+    ({taxel: (relative (m,), force (m,))}) by that curve's inverse; a ΔC/C0
+    below the curve's start gives its first force (0), above its end its
+    last (flagged saturated by the model's top as any other taxel)."""
+    for taxel, (r, f) in curves.items():
+        forces[..., taxel] = np.interp(relative[..., taxel], r, f)
