@@ -60,11 +60,13 @@ def _none_if_nan(value) -> float | None:
 
 
 def _normalized(frame: dict) -> dict:
-    """A JSON frame message, with a quad's force also as ``force_N`` [fx, fy, fz]."""
-    wrench = frame.get("wrench")
-    if wrench is not None and "force_N" not in frame:
-        force = wrench["force"]
-        frame["force_N"] = [force["x"], force["y"], force["z"]]
+    """A JSON frame message, with a quad's force (and σ) also as ``force_N``
+    (``sigma_N``) [fx, fy, fz]."""
+    for key, flat in (("wrench", "force_N"), ("wrench_sigma", "sigma_N")):
+        wrench = frame.get(key)
+        if wrench is not None and flat not in frame:
+            force = wrench["force"]
+            frame[flat] = [force["x"], force["y"], force["z"]]
     return frame
 
 
@@ -150,7 +152,7 @@ class TactileClient:
         kind = record["kind"]
         frame: dict = {"header": {"sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
                                   "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],
-                                  "stamp": record["stamp"]}}
+                                  "stamp": record["stamp"], "calibration": record["calibration"]}}
         if kind == "grid":
             frame["rows"], frame["cols"] = info["rows"], info["cols"]
         if "force" in fields:
@@ -158,6 +160,11 @@ class TactileClient:
             if kind == "quad":
                 fx, fy, fz = (_none_if_nan(v) for v in record["force_N"])
                 frame["wrench"] = {"force": {"x": fx, "y": fy, "z": fz}}
+        if "sigma" in fields and "sigma_N" in record:
+            frame["sigma_N"] = record["sigma_N"]
+            if kind == "quad":
+                sx, sy, sz = (_none_if_nan(v) for v in record["sigma_N"])
+                frame["wrench_sigma"] = {"force": {"x": sx, "y": sy, "z": sz}}
         if "raw" in fields:
             frame["raw"] = {"capacitance_pF": record["capacitance_pF"]}
         if "flags" in fields:

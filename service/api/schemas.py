@@ -15,6 +15,8 @@ class RecordRequest(BaseModel):
 
 class GridCalibrationUpload(BaseModel):
     sensitivity_pct_per_N: list[float] = Field(description="per taxel, row-major, measured 0–10 N slope in %/N")
+    c0_pF: list[float] | None = Field(default=None, description="per taxel, row-major, measured unloaded "
+                                      "capacitance in pF (lets a tare tell a load; table 1's when absent)")
 
 
 class QuadCalibrationUpload(BaseModel):
@@ -30,6 +32,8 @@ class Header(BaseModel):
     seq: int = Field(description="board scan counter, wraps at 65536")
     board_time_us: int = Field(description="board clock at the end of the scan, µs, wraps at 2^32")
     stamp: float = Field(description="host receive time, s since the epoch")
+    calibration: str = Field(description="id of the calibration the forces rest on: a registry id, or "
+                             "builtin-table1 / builtin-fits34-35 (the papers', not measured on this sensor)")
 
 
 class Vector3(BaseModel):
@@ -61,7 +65,10 @@ class FrameMessage(BaseModel):
     rows: int | None = None
     cols: int | None = None
     force_N: list[float | None] | None = Field(default=None, description="grid: normal force per taxel, row-major")
+    sigma_N: list[float | None] | None = Field(default=None, description="grid: 1-σ of each force in N "
+                                               "(null: no force, or saturated)")
     wrench: Wrench | None = Field(default=None, description="quad: force in N (Fz positive in compression)")
+    wrench_sigma: Wrench | None = Field(default=None, description="quad: 1-σ of each force component in N")
     raw: Raw | None = None
     contact: Contact | None = None
     flags: list[str] | None = None

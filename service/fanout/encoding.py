@@ -5,25 +5,31 @@ Shaped after ROS habits (std_msgs/Header, TactileState-like named arrays,
 geometry_msgs/WrenchStamped for the quad):
 
     {"header": {"sensor_id": 0, "sensor_name": "grid0", "kind": "grid",
-                "seq": 1250, "board_time_us": 1251000, "stamp": 1795342752.12},
+                "seq": 1250, "board_time_us": 1251000, "stamp": 1795342752.12,
+                "calibration": "3f2a…" | "builtin-table1"},
      "rows": 8, "cols": 8,
      "force_N": [64 numbers, row-major, null = no reading],      # grid, calibrated
+     "sigma_N": [64 numbers: 1-σ of each force, null = none],    # grid, fields=sigma
      "wrench": {"force": {"x": …, "y": …, "z": …}},             # quad, calibrated
+     "wrench_sigma": {"force": {"x": …, "y": …, "z": …}},       # quad, fields=sigma
      "raw": {"capacitance_pF": [...]},                          # fields=raw
      "contact": {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"},
      "flags": [...], "taxel_flags": {"saturated": [27]}}
 
 ``stamp`` is the host time at which the bytes were received (s since the
-epoch), ``board_time_us`` the board clock (wraps at 2^32). Numbers are
-numbers, never strings; null means no value.
+epoch), ``board_time_us`` the board clock (wraps at 2^32), ``calibration``
+the id of the calibration the forces rest on (the registry's, or a
+built-in: docs/calibration.md). Numbers are numbers, never strings; null
+means no value.
 
 Binary (``encoding=binary``), little-endian, one record per frame,
 concatenated; a message starts with the u16 record count:
 
-    u8 version (1) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
-    (1 force, 2 raw) · u16 seq · u32 board_time_us · f64 stamp ·
-    u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · f32[n] force ·
-    f32[n'] raw (if requested; n' = channels) — NaN = no value.
+    u8 version (2) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
+    (1 force, 2 raw, 4 sigma) · u16 seq · u32 board_time_us · f64 stamp ·
+    u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
+    m bytes calibration id (ASCII) · f32[n] force · f32[n] sigma (if
+    requested) · f32[n'] raw (if requested; n' = channels) — NaN = no value.
 
 The replay export (``tactile replay --export``, the recorder's ``forces``
 topic) is flatter, one object per frame: see ``to_export_dict``.
@@ -37,16 +43,16 @@ import numpy as np
 
 from ..reconstruct import ForceFrame
 
-FIELDS = ("force", "raw", "contact", "flags")
-DEFAULT_FIELDS = frozenset({"force", "contact", "flags"})
+FIELDS = ("force", "sigma", "raw", "contact", "flags")
+DEFAULT_FIELDS = frozenset({"force", "sigma", "contact", "flags"})
 FRAME_FLAG_BITS = (
     "taring", "saturated", "overrun", "seq_gap", "open_channel", "shorted_channel", "out_of_range",
     "crosstalk_corrected", "drift_suspect", "stale", "normal_out_of_range", "shear_out_of_range", "electrode_fault",
-    "board_restart", "reconstruction_error",
+    "board_restart", "reconstruction_error", "loaded_at_tare",
 )
 _FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
-_RECORD = struct.Struct("<BBBBHIdIH")
-BINARY_VERSION = 1
+_RECORD = struct.Struct("<BBBBHIdIHB")
+BINARY_VERSION = 2
 
 
 def sensor_name(frame: ForceFrame) -> str:
@@ -63,17 +69,23 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
             "seq": frame.seq,
             "board_time_us": frame.t_us,
             "stamp": frame.t_host,
+            "calibration": frame.calibration,
         }
     }
+    sigma = frame.sigma_N if frame.sigma_N is not None else np.full(len(frame.forces_N), np.nan)
     if info.kind == "grid":
         out["rows"], out["cols"] = info.rows, info.cols
         if "force" in fields:
             out["force_N"] = frame.forces_N
+        if "sigma" in fields:
+            out["sigma_N"] = sigma
         if "contact" in fields:
             out["contact"] = frame.contact
-    elif "force" in fields:
-        fx, fy, fz = (None if np.isnan(v) else float(v) for v in frame.forces_N)
-        out["wrench"] = {"force": {"x": fx, "y": fy, "z": fz}}
+    else:
+        if "force" in fields:
+            out["wrench"] = _wrench(frame.forces_N)
+        if "sigma" in fields:
+            out["wrench_sigma"] = _wrench(sigma)
     if "raw" in fields:
         out["raw"] = {"capacitance_pF": frame.capacitance_pF}
     if "flags" in fields:
@@ -81,6 +93,11 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
         if info.kind == "grid":
             out["taxel_flags"] = frame.taxel_flag_lists()
     return out
+
+
+def _wrench(fxyz: np.ndarray) -> dict:
+    fx, fy, fz = (None if np.isnan(v) else float(v) for v in fxyz)
+    return {"force": {"x": fx, "y": fy, "z": fz}}
 
 
 def to_export_dict(frame: ForceFrame) -> dict:
@@ -92,6 +109,8 @@ def to_export_dict(frame: ForceFrame) -> dict:
         "t_us": frame.t_us,
         "kind": frame.sensor.kind,
         key: frame.forces_N,
+        "sigma_N": frame.sigma_N,
+        "calibration": frame.calibration,
         "flags": frame.flags,
     }
     if frame.sensor.kind == "grid":
@@ -105,12 +124,19 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     flag_bits = 0
     for name in frame.flags:
         flag_bits |= _FLAG_BIT.get(name, 0)
-    field_bits = (1 if "force" in fields else 0) | (2 if "raw" in fields else 0)
-    forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields else np.empty(0, "<f4")
+    with_sigma = "sigma" in fields
+    field_bits = (1 if "force" in fields else 0) | (2 if "raw" in fields else 0) | (4 if with_sigma else 0)
+    forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields or with_sigma else np.empty(0, "<f4")
+    calibration = frame.calibration.encode("ascii", "replace")[:255]
     head = _RECORD.pack(BINARY_VERSION, 0 if info.kind == "grid" else 1, info.id, field_bits, frame.seq,
-                        frame.t_us, frame.t_host, flag_bits, forces.size)
+                        frame.t_us, frame.t_host, flag_bits, forces.size, len(calibration))
+    sigma = b""
+    if with_sigma:
+        sigma = (np.full(forces.size, np.nan, "<f4") if frame.sigma_N is None else np.asarray(frame.sigma_N, "<f4")).tobytes()
+    if "force" not in fields:
+        forces = np.full(forces.size, np.nan, "<f4")
     raw = np.asarray(frame.capacitance_pF, dtype="<f4").tobytes() if "raw" in fields else b""
-    return head + forces.tobytes() + raw
+    return head + calibration + forces.tobytes() + sigma + raw
 
 
 def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> list[dict]:
@@ -120,12 +146,20 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
     (count,) = struct.unpack_from("<H", message, 0)
     pos, out = 2, []
     for _ in range(count):
-        version, kind, sid, field_bits, seq, t_us, stamp, flag_bits, n = _RECORD.unpack_from(message, pos)
+        version, kind, sid, field_bits, seq, t_us, stamp, flag_bits, n, m = _RECORD.unpack_from(message, pos)
+        if version != BINARY_VERSION:
+            raise ValueError(f"binary record version {version}, this decoder reads {BINARY_VERSION}")
         pos += _RECORD.size
+        calibration = message[pos:pos + m].decode("ascii")
+        pos += m
         record = {"sensor_id": sid, "kind": "grid" if kind == 0 else "quad", "seq": seq, "board_time_us": t_us,
-                  "stamp": stamp, "flags": [name for name, bit in _FLAG_BIT.items() if flag_bits & bit]}
+                  "stamp": stamp, "calibration": calibration,
+                  "flags": [name for name, bit in _FLAG_BIT.items() if flag_bits & bit]}
         record["force_N"] = np.frombuffer(message, "<f4", n, pos)
         pos += 4 * n
+        if field_bits & 4:
+            record["sigma_N"] = np.frombuffer(message, "<f4", n, pos)
+            pos += 4 * n
         if field_bits & 2:
             m = (channels or {}).get(sid, n if kind == 0 else 4)
             record["capacitance_pF"] = np.frombuffer(message, "<f4", m, pos)
