@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from datetime import datetime
 
 from .readout import MIN_STALE_S, LinkState
 
@@ -17,7 +18,39 @@ def stale_after_s(board: dict) -> float:
     return MIN_STALE_S
 
 
-def _sensors(pipeline, now: float, counters: dict, stale_after: float) -> dict:
+def _age_s(created: str | None, now: float) -> float | None:
+    if not created:
+        return None
+    try:
+        return round(now - datetime.fromisoformat(created).timestamp(), 1)
+    except ValueError:
+        return None
+
+
+def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
+    """Which calibration sensor ``sid`` uses: its id, whether it is a
+    built-in (the papers', not measured on this sensor), when it was made
+    and its age, when it was activated in the registry, why the sensor's own
+    could not be used, and the taxels loaded at the last tare."""
+    reconstructor = pipeline.reconstructor
+    calibration = reconstructor.calibration(sid)
+    if calibration is None:
+        return None
+    info = pipeline.interpreter.sensors.get(sid)
+    document = calibration.document or {}
+    return {
+        "id": calibration.id,
+        "builtin": calibration.builtin,
+        "note": document.get("note") or ("the papers' calibration, not measured on this sensor" if calibration.builtin else None),
+        "created": calibration.created,
+        "age_s": _age_s(calibration.created, now),
+        "activated": None if book is None or info is None else book.activated_at(pipeline.interpreter.board, info),
+        "problem": reconstructor.calibration_problems.get(sid),
+        "loaded_at_tare": reconstructor.loaded_at_tare(sid),
+    }
+
+
+def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None) -> dict:
     sensors = {}
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
@@ -29,6 +62,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float) -> dict:
             "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
             "stale": stale,
             "last_frame_age_s": None if age is None else round(age, 3),
+            "calibration": calibration_state(pipeline, sid, now, book),
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors
@@ -54,6 +88,8 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     problems += [f"sensor {sid} stale" for sid, sensor in sensors.items() if sensor["stale"]]
     problems += [f"sensor {sid} reconstruction fails: {error['error']} ({error['count']} times)"
                  for sid, error in errors.items() if error["active"]]
+    problems += [f"sensor {sid} uses the built-in calibration: its own could not be used ({s['calibration']['problem']})"
+                 for sid, s in sensors.items() if (s.get("calibration") or {}).get("problem")]
     return problems
 
 
@@ -65,13 +101,13 @@ def health_report(service) -> dict:
     link = service.readout.link if service.readout is not None else LinkState(service.source)
     stale_after = stale_after_s(pipeline.interpreter.board)
     link_state = link.as_dict(now, stale_after)
-    sensors = _sensors(pipeline, now, counters, stale_after)
+    book = getattr(service, "calibrations", None)
+    sensors = _sensors(pipeline, now, counters, stale_after, book)
     reconstruction = _reconstruction(pipeline)
-    failing = [sid for sid, error in reconstruction["errors"].items() if error["active"]]
-    healthy = link_state["state"] == "up" and not any(s["stale"] for s in sensors.values()) and not failing
+    problems = _problems(link_state, sensors, reconstruction["errors"]) + (book.problems if book is not None else [])
     return {
-        "status": "ok" if healthy else "degraded",
-        "problems": _problems(link_state, sensors, reconstruction["errors"]),
+        "status": "ok" if not problems else "degraded",
+        "problems": problems,
         "uptime_s": round(now - service.started_at, 1),
         "link": link_state,
         "level": pipeline.reconstructor.level,

@@ -12,6 +12,8 @@ import threading
 import time
 from pathlib import Path
 
+from .calibration.book import CalibrationBook
+from .calibration.registry import sensor_identity
 from .fanout.hub import Hub
 from .handover import LoopHandover
 from .health import health_report
@@ -45,13 +47,16 @@ class TactileService:
 
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat",
                  sched_slice_us: int | None = None, recordings_dir: str | Path = "recordings",
-                 silence_s: float = DEFAULT_SILENCE_S) -> None:
+                 silence_s: float = DEFAULT_SILENCE_S, calibrations: CalibrationBook | None = None) -> None:
+        """``calibrations``: where sensors' calibrations come from and uploads
+        go (default: the registry at its default place, calibration/book.py)."""
         self.source = source
         self.recordings_dir = Path(recordings_dir).resolve()
         self.silence_s = silence_s
         self.sched_slice_us = sched_slice_us
         self.scheduling = SliceRequest(None, current_slice_us())
-        self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting))
+        self.calibrations = calibrations if calibrations is not None else CalibrationBook(mounting=mounting)
+        self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting), calibrations=self.calibrations.for_sensor)
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
         self.handover: LoopHandover | None = None
@@ -90,6 +95,14 @@ class TactileService:
             self.recorder = Recorder(path, path.with_suffix(".bin"), exclusive=True)
             self.recorder.attach(self.pipeline)
             return self.recorder.status()
+
+    def set_calibration(self, info, upload: dict) -> dict:
+        """Validate an upload (ValueError naming the field), store it in the
+        registry and make it the sensor's active calibration there, then
+        reconstruct with it from the next frame; returns the document."""
+        sensor = sensor_identity(self.pipeline.interpreter.board, info)
+        store = self.calibrations.store if self.calibrations.use_registry else None
+        return self.pipeline.set_calibration(info, upload, sensor, store)
 
     def stop_recording(self) -> dict | None:
         with self._recording_lock:

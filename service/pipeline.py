@@ -16,14 +16,25 @@ from typing import Callable
 
 from .history import Histories
 from .protocol import Decoder
-from .readings import Interpreter, Reading
+from .readings import Interpreter, Reading, SensorInfo
 from .reconstruct import ForceFrame, Reconstructor
+from .reconstruct.sensor_calibration import SensorCalibration
 
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
 Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
+
+
+class LoadedAtTare(RuntimeError):
+    """A tare refused: ``taxels`` {sensor id: [row-major taxels]} read loaded
+    against their calibration's C0."""
+
+    def __init__(self, taxels: dict[int, list[int]]) -> None:
+        self.taxels = taxels
+        super().__init__("loaded now, so a tare would make the load their zero: " + "; ".join(
+            f"sensor {sid} taxels {t}" for sid, t in sorted(taxels.items())) + " (tare with force=true to accept)")
 
 
 class RateMeter:
@@ -51,10 +62,15 @@ class Pipeline:
     ``set_calibration`` may come from any other."""
 
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
-                 histories: Histories | None = None) -> None:
+                 histories: Histories | None = None,
+                 calibrations: Callable[[dict, SensorInfo], SensorCalibration | None] | None = None) -> None:
+        """``calibrations(board, info)``: a sensor's calibration when it is
+        first seen (calibration/book.py), with the board's INFO to identify it."""
         self.decoder = Decoder()
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
+        if calibrations is not None:
+            self.reconstructor.resolve = lambda info: calibrations(self.interpreter.board, info)
         self.latest: dict[int, ForceFrame] = {}
         self.history = histories if histories is not None else Histories()
         self.rates: dict[int, RateMeter] = {}
@@ -101,12 +117,28 @@ class Pipeline:
         with self._lock:
             self.decoder.reset()
 
-    def tare(self, sensor_id: int | None = None) -> list[int]:
+    def tare(self, sensor_id: int | None = None, force: bool = False) -> list[int]:
+        """Restart the baseline of one sensor (or all). Unless ``force``,
+        LoadedAtTare names the taxels whose latest reading stands above the
+        calibration's C0 (that load would become the zero); with ``force``
+        the load present is the zero."""
         with self._lock:
-            return self.reconstructor.tare(sensor_id)
+            ids = self.reconstructor.sensor_ids() if sensor_id is None else [sensor_id]
+            if not force:
+                loaded = {sid: self.reconstructor.loaded_now(sid, self.latest[sid].capacitance_pF)
+                          for sid in ids if sid in self.latest}
+                loaded = {sid: taxels for sid, taxels in loaded.items() if taxels}
+                if loaded:
+                    raise LoadedAtTare(loaded)
+            return self.reconstructor.tare(sensor_id, judge=not force)
 
-    def set_calibration(self, info, upload: dict) -> dict:
-        prepared = self.reconstructor.prepare_calibration(info, upload)  # validation: tens of ms, not under the lock
+    def set_calibration(self, info, upload: dict, sensor: dict | None = None,
+                        store: Callable[[dict], object] | None = None) -> dict:
+        """Validate ``upload`` (ValueError naming the field), ``store`` its
+        document (the registry), then swap it in; returns the document."""
+        prepared = self.reconstructor.prepare_calibration(info, upload, sensor)  # tens of ms, not under the lock
+        if store is not None:
+            store(prepared[2])
         with self._lock:
             return self.reconstructor.apply_calibration(info, prepared)
 

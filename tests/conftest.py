@@ -22,7 +22,7 @@ def served():
     service = TactileService("sim://?scene=press&sensors=grid,quad,grid4x4")
     tares = []
     original = service.pipeline.tare
-    service.pipeline.tare = lambda sensor_id=None: tares.append(sensor_id) or original(sensor_id)
+    service.pipeline.tare = lambda sensor_id=None, force=False: tares.append(sensor_id) or original(sensor_id, force)
     server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=free_port(), log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
@@ -43,3 +43,12 @@ def browser():
         browser = launch(p)
         yield browser
         browser.close()
+
+
+def pytest_configure(config):
+    """Every service a test starts keeps its calibrations in a registry of
+    the test run's own, never in the user's (``TACTILE_REGISTRY``)."""
+    import os
+    import tempfile
+
+    os.environ["TACTILE_REGISTRY"] = os.path.join(tempfile.mkdtemp(prefix="tactile-registry-"), "registry.sqlite3")

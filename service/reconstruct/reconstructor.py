@@ -109,6 +109,9 @@ class Reconstructor:
             self._isolation.failing.discard(info.id)
         return document
 
+    def sensor_ids(self) -> list[int]:
+        return sorted(self._sensors)
+
     def calibration(self, sensor_id: int) -> SensorCalibration | None:
         """The calibration sensor ``sensor_id`` is reconstructed with (None: not seen yet)."""
         state = self._sensors.get(sensor_id)

@@ -1,0 +1,116 @@
+"""Which calibration each sensor is reconstructed with, for serve, record and replay.
+
+In this order, the first that has one for the sensor:
+
+1. ``recorded``: the calibrations a recording was made with (a replay of an
+   .mcap gives its recorded forces bit for bit, whatever the registry holds
+   now), by sensor id;
+2. ``pinned``: ``--calibration ID|FILE`` documents, matched to the sensor
+   whose identity (registry.sensor_identity) they were made for, else to the
+   sensor of the same id and shape (a calibration made through one board,
+   used through another);
+3. the registry's active calibration of the sensor's identity;
+4. none: the reconstruction's built-in one (table 1, fits 34/35), which
+   every frame then names.
+
+A registry that cannot be read is reported (``problems``) and skipped: a
+sensor's data never stops for its calibration. Lookups open the registry
+for the moment of the lookup (sensors are resolved once, when first seen,
+on whatever thread reconstructs them).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from ..readings import SensorInfo
+from ..reconstruct.sensor_calibration import SensorCalibration, from_document
+from .registry import Registry, UnknownCalibration, sensor_identity
+
+log = logging.getLogger(__name__)
+
+
+def load_pinned(values: list[str], registry_path: str | Path | None) -> list[dict]:
+    """``--calibration`` values: a JSON file (``tactile calibrations export``)
+    when one exists at that path, else a registry id (a unique prefix will
+    do); ValueError naming the value."""
+    documents = []
+    for value in values:
+        path = Path(value)
+        if path.is_file():
+            try:
+                document = json.loads(path.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise ValueError(f"--calibration {value}: not a calibration JSON file ({exc})") from None
+            if not isinstance(document, dict) or "id" not in document:
+                raise ValueError(f"--calibration {value}: not a calibration document (no id)")
+        else:
+            try:
+                with Registry(registry_path) as registry:
+                    document = registry.get(value)
+            except UnknownCalibration as exc:
+                raise ValueError(f"--calibration {value}: neither a file nor a stored calibration ({exc})") from None
+        documents.append(document)
+    return documents
+
+
+class CalibrationBook:
+    """``for_sensor(board, info)``: the sensor's SensorCalibration, or None
+    for the built-in one (module docstring for the order)."""
+
+    def __init__(self, registry_path: str | Path | None = None, pinned: list[dict] | None = None,
+                 recorded: dict[int, dict] | None = None, use_registry: bool = True, mounting: str = "flat") -> None:
+        self.registry_path = registry_path
+        self.pinned = list(pinned or [])
+        self.recorded = dict(recorded or {})
+        self.use_registry = use_registry
+        self.mounting = mounting
+        self.problems: list[str] = []
+
+    def for_sensor(self, board: dict, info: SensorInfo) -> SensorCalibration | None:
+        """ValueError (the reconstruction keeps the built-in one and says why)
+        when the calibration found does not fit the sensor."""
+        key = sensor_identity(board, info)["key"]
+        document = self.recorded.get(info.id) or self._pinned_for(key, info)
+        if document is None and self.use_registry:
+            document = self._active(key)
+        if document is None or str(document.get("id", "")).startswith("builtin"):
+            return None
+        return from_document(document, info, self.mounting)
+
+    def _pinned_for(self, key: str, info: SensorInfo) -> dict | None:
+        for document in self.pinned:
+            if (document.get("sensor") or {}).get("key") == key:
+                return document
+        for document in self.pinned:
+            sensor = document.get("sensor") or {}
+            if sensor.get("sensor_id") == info.id and document.get("kind") == info.kind and (
+                    info.kind == "quad" or (document.get("rows"), document.get("cols")) == (info.rows, info.cols)):
+                return document
+        return None
+
+    def _active(self, key: str) -> dict | None:
+        try:
+            with Registry(self.registry_path) as registry:
+                return registry.active_or_none(key)
+        except Exception as exc:  # noqa: BLE001 — an unreadable registry: built-in calibrations, reported
+            problem = f"calibration registry {self.registry_path or 'default'}: {type(exc).__name__}: {exc}"
+            if problem not in self.problems:
+                self.problems.append(problem)
+                log.warning("%s; sensors use the built-in calibrations", problem)
+            return None
+
+    def store(self, document: dict) -> str:
+        """Store and activate ``document`` (an upload through the API); its id."""
+        with Registry(self.registry_path) as registry:
+            return registry.add(document, activate=True)
+
+    def activated_at(self, board: dict, info: SensorInfo) -> str | None:
+        if not self.use_registry:
+            return None
+        try:
+            with Registry(self.registry_path) as registry:
+                return registry.activated_at(sensor_identity(board, info)["key"])
+        except Exception:  # noqa: BLE001 — only for /health; the problem is reported by lookups
+            return None
