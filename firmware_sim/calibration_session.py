@@ -178,10 +178,12 @@ def validation_presses(seed: int = 7, count: int = 12) -> list[Press]:
 
 
 def validation_capture(calibration: GridCalibration, seed: int = 7, rate_hz: float = 500.0,
-                       noise_fF: float = 1.0) -> Session:
-    """The same sensor under a separate press sequence, with the truth per frame."""
-    presses = validation_presses(seed)
-    raw, _, sim = run_presses(calibration, presses, rate_hz, noise_fF, seed, keep_truth=True)
+                       noise_fF: float = 1.0, presses: list[Press] | None = None, **board) -> Session:
+    """The same sensor under a separate press sequence (default
+    validation_presses(seed)), with the truth per frame; ``board`` as for
+    run_presses (serials, name)."""
+    presses = validation_presses(seed) if presses is None else presses
+    raw, _, sim = run_presses(calibration, presses, rate_hz, noise_fF, seed, keep_truth=True, **board)
     truth_t = np.array([t.t_us for t in sim.truth])
     truth = np.stack([t.values for t in sim.truth])
     gain = SimGrid(0, calibration=calibration).response.gain

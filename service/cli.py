@@ -71,6 +71,12 @@ def _add_reconstruction_options(parser: argparse.ArgumentParser) -> None:
                              "(default: %(default)s)")
     parser.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
                         help="grid mounting: picks the load-shape table (default: %(default)s)")
+    parser.add_argument("--registry", metavar="PATH",
+                        help="calibration registry: each sensor's active calibration is used (default: "
+                             "$TACTILE_REGISTRY, else $XDG_DATA_HOME/tactile/registry.sqlite3)")
+    parser.add_argument("--calibration", action="append", metavar="ID|FILE",
+                        help="use this calibration (a registry id or an exported JSON file) for the sensor it was "
+                             "made for, over the registry's active one (repeatable; a recording's own come first)")
 
 
 def _add_serving_options(parser: argparse.ArgumentParser) -> None:

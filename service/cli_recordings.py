@@ -25,8 +25,11 @@ def cmd_record(args) -> int:
     from .reconstruct import Reconstructor
     from .record.recorder import Recorder
 
+    from .calibration.book import book_from_options
+
     check_source(args.source)
-    pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting))
+    book = book_from_options(args.registry, args.calibration, args.mounting)
+    pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting), calibrations=book.for_sensor)
     outputs = [Path(p) for p in (args.out, args.raw) if p]
     new = [p for p in outputs if not p.exists()]
     recorder = Recorder(args.out, args.raw)
@@ -114,6 +117,7 @@ def _mcap_span(path: Path) -> tuple[float, float] | None:
 
 
 def cmd_replay(args) -> int:
+    from .calibration.book import book_from_options
     from .record.pacing import Pacer
     from .replay import replay
 
@@ -126,6 +130,7 @@ def cmd_replay(args) -> int:
 
         speed = 1.0 if args.speed is None else args.speed
         args.source = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if math.isinf(speed) else speed}"
+        args.recording = path
         return cmd_serve(args)
     if not Path(path).is_file():
         raise FileNotFoundError(f"no such recording: {path}")
@@ -135,8 +140,9 @@ def cmd_replay(args) -> int:
     out = sys.stdout.buffer if to_stdout else open(args.export, "wb") if args.export else None
     bar = progress_bar(total=Path(path).stat().st_size, unit="B", unit_scale=True, desc=Path(path).name)
     try:
+        book = book_from_options(args.registry, args.calibration, args.mounting, path)
         pipeline = replay(path, out, level=args.level, mounting=args.mounting,
-                          pacer=_ProgressPacer(Pacer(speed), bar, Path(path)))
+                          pacer=_ProgressPacer(Pacer(speed), bar, Path(path)), calibrations=book)
     except BrokenPipeError:
         if not to_stdout:
             raise

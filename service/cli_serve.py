@@ -129,6 +129,7 @@ def cmd_serve(args) -> int:
     import uvicorn
 
     from .api.app import create_app
+    from .calibration.book import book_from_options
     from .health import stale_after_s
     from .live_service import TactileService
 
@@ -137,9 +138,10 @@ def cmd_serve(args) -> int:
     token = args.token or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         token = secrets.token_urlsafe(16)
+    book = book_from_options(args.registry, args.calibration, args.mounting, getattr(args, "recording", None))
     service = TactileService(args.source, level=args.level, mounting=args.mounting,
                              sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
-                             silence_s=args.silence_s)
+                             silence_s=args.silence_s, calibrations=book)
     app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
                      allow_origins=tuple(args.allow_origin))
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")

@@ -30,13 +30,15 @@ def export_line(frame: ForceFrame) -> bytes:
 
 
 def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat",
-           pacer: Pacer | None = None) -> Pipeline:
+           pacer: Pacer | None = None, calibrations=None) -> Pipeline:
     """Replay a recording (.mcap) or raw capture (any other suffix); write
-    one JSON line per data frame to ``export``. Returns the pipeline, whose
-    counters tell what was dropped."""
+    one JSON line per data frame to ``export``. ``calibrations``: a
+    calibration/book.py CalibrationBook (None: built-in calibrations).
+    Returns the pipeline, whose counters tell what was dropped."""
     pacer = pacer or Pacer(math.inf)
     hold = not is_timed_by_host(path)
-    pipeline = Pipeline(Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0)
+    pipeline = Pipeline(Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0,
+                        calibrations=None if calibrations is None else calibrations.for_sensor)
     if export is not None:
         pipeline.listeners.append(lambda frames: export.writelines(export_line(f) for f in frames))
     t_last = 0.0

@@ -55,6 +55,16 @@ def load_pinned(values: list[str], registry_path: str | Path | None) -> list[dic
     return documents
 
 
+def book_from_options(registry: str | None, calibration: list[str] | None, mounting: str = "flat",
+                      recording: str | Path | None = None) -> CalibrationBook:
+    """The book of ``--registry``, ``--calibration`` (repeatable) and, for a
+    replay of an .mcap ``recording``, the calibrations it was made with."""
+    from ..record.calibrations import recorded_calibrations
+
+    recorded = recorded_calibrations(recording) if recording is not None and Path(recording).suffix == ".mcap" else {}
+    return CalibrationBook(registry, load_pinned(calibration or [], registry), recorded, mounting=mounting)
+
+
 class CalibrationBook:
     """``for_sensor(board, info)``: the sensor's SensorCalibration, or None
     for the built-in one (module docstring for the order)."""

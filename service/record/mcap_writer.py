@@ -3,7 +3,9 @@
 Channels: ``/raw`` (tactile.RawBytes, every read of the port), per sensor
 ``/sensor/{id}/raw`` (tactile.RawFrame), ``/sensor/{id}/forces``
 (tactile.Forces), ``/sensor/{id}/grid`` (foxglove.Grid, grids only), and
-``/diagnostics``. log_time is the host receive time (ns); publish_time the
+``/diagnostics``, ``/calibrations`` (tactile.Calibration: each sensor's
+calibration document, written before the first frame that uses it, so a
+replay reconstructs with it whatever the registry holds then). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
 
 Chunks are small (64 KiB, ~0.2 s at 1 kHz) and the file is flushed after
@@ -43,7 +45,8 @@ class McapLog:
         self._schemas = {
             name: self._writer.register_schema(schema["title"], "jsonschema", schemas.encoded(schema))
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
-                                 ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID))
+                                 ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
+                                 ("calibration", schemas.CALIBRATION))
         }
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -75,6 +78,9 @@ class McapLog:
             self._add(f"/sensor/{sid}/grid", "grid", frame.t_host, foxglove_grid(frame), publish)
             return 3
         return 2
+
+    def calibration(self, sensor_id: int, calibration_id: str, document: dict | None, t_host: float) -> None:
+        self._add("/calibrations", "calibration", t_host, {"sensor": sensor_id, "id": calibration_id, "document": document})
 
     def diagnostics(self, t_host: float, diagnostics: dict) -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

@@ -56,6 +56,7 @@ class Recorder:
         self._pipeline = None
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._last_diag = 0.0
+        self._calibrations_written: set[tuple[int, str]] = set()
         self.error: str | None = None
         self.messages = 0
         self.bytes_in = 0
@@ -93,11 +94,26 @@ class Recorder:
     def on_frames(self, frames: list[ForceFrame]) -> None:
         if not self.active:
             return
+        calibrations = self._new_calibrations(frames)
+        if calibrations:
+            self._queue.put(("calibrations", calibrations, frames[0].t_host))
         self._queue.put(("frames", frames, None))
         t_host = frames[-1].t_host
         if self._diagnostics and t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
             self._last_diag = t_host
             self._queue.put(("diag", self._diagnostics(), t_host))
+
+    def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple[int, str, dict | None]]:
+        """(sensor, id, document) of calibrations these frames are the first to use."""
+        new = []
+        for frame in frames:
+            key = (frame.sensor.id, frame.calibration)
+            if key not in self._calibrations_written:
+                self._calibrations_written.add(key)
+                calibration = self._pipeline.reconstructor.calibration(frame.sensor.id) if self._pipeline else None
+                document = calibration.document if calibration is not None and calibration.id == frame.calibration else None
+                new.append((frame.sensor.id, frame.calibration, document))
+        return new
 
     def stop(self, timeout: float = 10.0) -> dict:
         """Detach, write what is queued, finish the file, return the status."""
@@ -161,6 +177,10 @@ class Recorder:
         elif kind == "frames":
             for frame in payload:
                 self.messages += self._log.frame(frame)
+        elif kind == "calibrations":
+            for sensor_id, calibration_id, document in payload:
+                self._log.calibration(sensor_id, calibration_id, document, t_host)
+                self.messages += 1
         else:
             self._log.diagnostics(t_host, payload)
             self.messages += 1

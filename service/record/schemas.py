@@ -30,6 +30,18 @@ RAW_FRAME = {
     },
 }
 
+CALIBRATION = {
+    "title": "tactile.Calibration",
+    "description": "The calibration a sensor's forces rest on from here on (a registry document; a built-in one "
+                   "is its id alone), written when the recording first uses it",
+    "type": "object",
+    "properties": {
+        "sensor": {"type": "integer"},
+        "id": {"type": "string"},
+        "document": {"type": ["object", "null"]},
+    },
+}
+
 FORCES = {
     "title": "tactile.Forces",
     "description": "Reconstructed forces of one frame (the replay export shape)",
