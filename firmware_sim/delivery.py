@@ -19,6 +19,7 @@ import numpy as np
 from .board import Board, BoardConfig
 
 _STREAM = 0x6A17  # the link's random stream, apart from the board's noise (same seed, other draws)
+_EPSILON_S = 1e-9  # past a scan's time by more than the rounding of board time to true time and back
 
 
 class DelayedLink:
@@ -50,19 +51,18 @@ class DelayedLink:
         return self._chunks[0][0] if self._chunks else math.inf
 
 
-def deliveries(config: BoardConfig, seconds: float, poll_s: float = 1e-3) -> list[tuple[float, bytes]]:
+def deliveries(config: BoardConfig, seconds: float) -> list[tuple[float, bytes]]:
     """(receive time, bytes) of every read of a board for ``seconds`` of true time.
 
-    The board hands its scans to the link every ``poll_s`` (a USB frame); the
-    reader takes each chunk the moment it comes out (``config.jitter_ms`` later
-    at most), so a read holds one chunk or several released together.
+    The board hands each scan to the link as it completes it; the reader takes
+    a chunk the moment it comes out (``config.jitter_ms`` later at most), so a
+    read holds one scan or several that a late one held up.
     """
     board = Board(config)
     link = DelayedLink(config.jitter_ms, config.seed)
     link.put(board.power_up(), 0.0)
     reads: list[tuple[float, bytes]] = []
-    for step in range(1, int(round(seconds / poll_s)) + 1):
-        now = step * poll_s
+    while (now := board.next_scan_time + _EPSILON_S) <= seconds:
         while link.next_release <= now:
             release = link.next_release
             reads.append((release, link.take(release)))
