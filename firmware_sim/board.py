@@ -34,6 +34,11 @@ class BoardConfig:
     fw: str = "sim-1.0.0"
     full_scale_pF: float = 100.0
     serial: str | None = None  # the board's serial, announced in INFO when set
+    # The board's crystal: t_us = true time × (1 + clock_ppm·1e-6) + clock_offset_us (wrapping at 2**32);
+    # scans keep the rate on the board's own clock, as a real board's timer does.
+    clock_ppm: float = 0.0
+    clock_offset_us: int = 0
+    jitter_ms: float = 0.0  # one-sided delivery delay per chunk, up to this (front ends and delivery.deliveries)
 
     def __post_init__(self) -> None:
         get_scene(self.scene)
@@ -41,6 +46,8 @@ class BoardConfig:
             raise ValueError(f"rate_hz={self.rate_hz} is outside {MIN_RATE_HZ}..{MAX_RATE_HZ}")
         if self.noise_fF < 0:
             raise ValueError(f"noise_fF={self.noise_fF} must be >= 0")
+        if not -1e5 < self.clock_ppm < 1e5 or self.jitter_ms < 0:
+            raise ValueError(f"clock_ppm={self.clock_ppm} must be within ±1e5 and jitter_ms={self.jitter_ms} >= 0")
         ids = [s.id for s in self.sensors]
         if len(set(ids)) != len(ids) or not all(0 <= i <= 254 for i in ids):
             raise ValueError(f"sensor ids must be distinct and within 0..254, got {ids}")
@@ -69,9 +76,14 @@ class Board:
         self._command_buffer = bytearray()
         self.truth: list[Truth] | None = [] if keep_truth else None
         self._now = 0.0
+        self._clock_scale = 1.0 + self.config.clock_ppm * 1e-6  # board seconds per true second
 
     @property
     def next_scan_time(self) -> float:
+        """True seconds of the next scan."""
+        return self._next_board_scan() / self._clock_scale
+
+    def _next_board_scan(self) -> float:
         return self._period_anchor + (self._scan_index + 1) / self.rate_hz
 
     def power_up(self) -> bytes:
@@ -85,13 +97,14 @@ class Board:
         return {**doc, "rate_hz": self.rate_hz, "sensors": [s.info() for s in self.config.sensors]}
 
     def advance(self, now: float, room: int | None = None) -> bytes:
-        """Run every scan due by board time ``now``; return their frames.
+        """Run every scan due by true time ``now`` (seconds since power-up); return their frames.
 
         ``room`` caps the bytes returned: scans beyond it are dropped.
         """
         self._now = max(self._now, now)
         out = bytearray()
-        while self.next_scan_time <= now:
+        board_now = now * self._clock_scale
+        while self._next_board_scan() <= board_now:
             self._scan_index += 1
             t_scan = self._period_anchor + self._scan_index / self.rate_hz
             if not self.streaming:
@@ -100,8 +113,9 @@ class Board:
             out += scan
         return bytes(out)
 
-    def _scan(self, t: float, drop: bool) -> bytes:
-        t_us = int(round(t * 1e6))
+    def _scan(self, t_board: float, drop: bool) -> bytes:
+        t_us = int(round(t_board * 1e6)) + self.config.clock_offset_us
+        t = t_board / self._clock_scale  # the scene and the sensors live in true time
         if drop:
             self._overrun = True
             for sensor in self.config.sensors:
@@ -174,7 +188,8 @@ class Board:
         self._scan_index = 0
 
     def _board_frame(self, frame_type: FrameType, payload: bytes) -> bytes:
-        frame = encode_frame(frame_type, BOARD_SENSOR_ID, self._board_seq, int(round(self._now * 1e6)), payload)
+        t_us = int(round(self._now * self._clock_scale * 1e6)) + self.config.clock_offset_us
+        frame = encode_frame(frame_type, BOARD_SENSOR_ID, self._board_seq, t_us, payload)
         self._board_seq += 1
         return frame
 

@@ -16,6 +16,7 @@ import tty
 from typing import Callable
 
 from .board import Board, BoardConfig
+from .delivery import DelayedLink
 
 PENDING_LIMIT = 1 << 16
 
@@ -52,11 +53,17 @@ class _Link:
 
 def _run(board: Board, link: _Link, t0: float, stop: threading.Event) -> None:
     """Stream until ``stop`` is set or the peer goes away (OSError)."""
+    delayed = DelayedLink(board.config.jitter_ms, board.config.seed) if board.config.jitter_ms > 0 else None
     while not stop.is_set():
         now = time.monotonic() - t0
-        link.pending += board.advance(now, room=max(PENDING_LIMIT - len(link.pending), 0))
+        data = board.advance(now, room=max(PENDING_LIMIT - len(link.pending) - (delayed.pending if delayed else 0), 0))
+        if delayed:
+            delayed.put(data, now)
+            data = delayed.take(now)
+        link.pending += data
         link.flush()
-        commands = link.poll_commands(min(board.next_scan_time - (time.monotonic() - t0), 0.05))
+        due = min(board.next_scan_time, delayed.next_release if delayed else board.next_scan_time)
+        commands = link.poll_commands(min(due - (time.monotonic() - t0), 0.05))
         if commands is None:
             return
         if commands:

@@ -6,6 +6,10 @@ the order listed; a grid may give its shape as ``grid8x8``. Grid effects:
 ``mounting=flat|curved``, ``xtalk=`` mechanical coupling (default the
 paper's −0.0028), ``leak=`` multiplexer leakage fraction (default 0),
 ``drift=`` common-mode drift amplitude in ΔC/C0 (default 0, period 60 s).
+Timing: ``clock_ppm=`` the board clock's rate error and ``clock_offset_us=``
+its value at power-up (t_us = true time × (1 + ppm·1e-6) + offset, wrapping;
+default 0, 0), ``jitter_ms=`` a one-sided delivery delay per chunk of up to
+this many ms (default 0; firmware_sim.delivery).
 
 The board runs on the wall clock: a read generates the scans due since the
 last one. Bytes the reader leaves unread pile up to ``BUFFER_BYTES`` (a USB
@@ -13,6 +17,7 @@ device's buffer); beyond that the board drops scans and flags OVERRUN.
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 import urllib.parse
@@ -20,6 +25,7 @@ import urllib.parse
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from ..board import Board, BoardConfig
+from ..delivery import DelayedLink
 from ..sensors import Drift, SimGrid, SimQuad
 
 BUFFER_BYTES = 1 << 16
@@ -27,6 +33,9 @@ BUFFER_BYTES = 1 << 16
 
 GRID_OPTIONS = {"mounting": ("mounting", str), "xtalk": ("mechanical_coupling", float),
                 "leak": ("electrical_leakage", float), "drift": ("drift", lambda v: Drift(float(v)))}
+BOARD_OPTIONS = {"scene": ("scene", str), "rate": ("rate_hz", float), "noise": ("noise_fF", float), "seed": ("seed", int),
+                 "clock_ppm": ("clock_ppm", float), "clock_offset_us": ("clock_offset_us", int),
+                 "jitter_ms": ("jitter_ms", float)}
 
 
 def parse_sensors(spec: str, **grid_options) -> list:
@@ -69,18 +78,13 @@ def config_from_url(url: str) -> BoardConfig:
             if key in GRID_OPTIONS:
                 field_name, convert = GRID_OPTIONS[key]
                 grid_options[field_name] = convert(value)
-            elif key == "scene":
-                kwargs["scene"] = value
-            elif key == "rate":
-                kwargs["rate_hz"] = float(value)
-            elif key == "noise":
-                kwargs["noise_fF"] = float(value)
-            elif key == "seed":
-                kwargs["seed"] = int(value)
+            elif key in BOARD_OPTIONS:
+                field_name, convert = BOARD_OPTIONS[key]
+                kwargs[field_name] = convert(value)
             elif key == "sensors":
                 sensors_spec = value
             else:
-                known = ", ".join(["scene", "rate", "noise", "seed", "sensors", *GRID_OPTIONS])
+                known = ", ".join([*BOARD_OPTIONS, "sensors", *GRID_OPTIONS])
                 raise ValueError(f"unknown option {key!r} (known: {known})")
         except ValueError as exc:
             raise ValueError(f"sim:// option {key}={value!r}: {exc}") from None
@@ -96,6 +100,7 @@ class Serial(SerialBase):
 
     def __init__(self, *args, **kwargs) -> None:
         self.board: Board | None = None
+        self._link: DelayedLink | None = None  # delivery jitter, when jitter_ms > 0
         self.clock = time.monotonic
         self._rx = bytearray()
         self._lock = threading.Lock()
@@ -112,6 +117,8 @@ class Serial(SerialBase):
         except ValueError as exc:
             raise SerialException(str(exc)) from None
         self._t_open = self.clock()
+        config = self.board.config
+        self._link = DelayedLink(config.jitter_ms, config.seed) if config.jitter_ms > 0 else None
         self._rx = bytearray(self.board.power_up())
         self.is_open = True
 
@@ -126,8 +133,17 @@ class Serial(SerialBase):
         return self.clock() - self._t_open
 
     def _pump(self) -> None:
-        room = max(BUFFER_BYTES - len(self._rx), 0)
-        self._rx += self.board.advance(self._board_time(), room=room)
+        now = self._board_time()
+        held = self._link.pending if self._link else 0
+        data = self.board.advance(now, room=max(BUFFER_BYTES - len(self._rx) - held, 0))
+        if self._link:
+            self._link.put(data, now)
+            data = self._link.take(now)
+        self._rx += data
+
+    def _next_event(self) -> float:
+        """Board time of the next scan or held chunk coming out."""
+        return min(self.board.next_scan_time, self._link.next_release if self._link else math.inf)
 
     @property
     def in_waiting(self) -> int:
@@ -146,7 +162,7 @@ class Serial(SerialBase):
                 self._pump()
                 if len(self._rx) >= size or self._timeout == 0:
                     break
-                wait = self.board.next_scan_time - self._board_time()
+                wait = self._next_event() - self._board_time()
             if deadline is not None:
                 remaining = deadline - self.clock()
                 if remaining <= 0:
