@@ -76,10 +76,15 @@ class QuadProcessor:
         se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
         return np.sqrt(reading * reading + (forces * se) ** 2)
 
-    def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float) -> tuple[np.ndarray, list[list[str]]]:
+    def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float,
+                sensitivity: np.ndarray | float = 1.0) -> tuple[np.ndarray, list[list[str]]]:
         """Capacitances (N, 4) pF against baselines (4,) or (N, 4) with the
-        combinations' noise (scalar or (N,)) → forces (N, 3) and each frame's flags."""
+        combinations' noise (scalar or (N,)) → forces (N, 3) and each frame's
+        flags. ``sensitivity`` (scalar or (N,)): what load cycles left of it
+        (fatigue.py); ΔC/C0 is divided by it before inversion."""
         relative = relative_change(capacitance, baseline)
+        if not np.isscalar(sensitivity) or sensitivity != 1.0:
+            relative = relative / (np.asarray(sensitivity)[:, None] if np.ndim(sensitivity) else sensitivity)
         bad = implausible(relative, *self._bounds)
         if bad is not None:  # a frame with an implausible electrode has no force
             frames = bad.any(axis=-1)

@@ -4,49 +4,32 @@ Sensors are batched (grids of a level in one call, quads sharing a model in
 one call), a failing sensor isolated from the others (isolation.py). Each
 sensor's SensorCalibration comes from ``calibrations`` (the registry, a
 recording's own, ``--calibration``: chosen above this layer) or is the
-built-in one; calibration_upload.py builds its processor and tare window,
-loaded_tare.py judges its tare against the calibration's C0.
+built-in one (sensor_states.py keeps each sensor's calibration, tare and
+load cycles).
 """
 from __future__ import annotations
 
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from ..physics.mountings import MOUNTINGS
 from ..readings import Reading, SensorInfo
-from .baseline import DEFAULT_TARE_FRAMES, Baseline
-from .calibration_upload import processor_for, tare_window, upload_document
+from .baseline import DEFAULT_TARE_FRAMES
 from .force_frame import ForceFrame
-from .grid import LOADED_AT_TARE, NO_READING, GridProcessor, flag_names
+from .grid import LOADED_AT_TARE, NO_READING, flag_names
 from .grid_full import GridJob, process_full
 from .isolation import Isolation
 from .levels import DEFAULT_LEVEL, LEVELS, SceneConfig, choose_level
-from .loaded_tare import loaded_taxels
-from .quad import QuadProcessor
-from .sensor_calibration import SensorCalibration, builtin, from_document
-
-Resolver = Callable[[SensorInfo], "SensorCalibration | None"]
+from .sensor_states import Resolver, SensorState, SensorStates
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class _SensorState:
-    info: SensorInfo
-    baseline: Baseline
-    processor: GridProcessor | QuadProcessor
-    calibration: SensorCalibration
-    tare_judged: bool = False  # the finished tare was compared with the calibration's C0
-    judge_tare: bool = True  # False after a forced tare: the user says the load is the zero
-    loaded: np.ndarray | None = None  # (n,) taxels loaded at tare (their zero is the calibration's C0)
-
-
-class Reconstructor:
+class Reconstructor(SensorStates):
     """Per-sensor tare and force reconstruction at a fidelity level.
 
     Live use returns each frame at once; until a sensor's baseline is ready
@@ -72,137 +55,13 @@ class Reconstructor:
             scene = scene or SceneConfig(mounting=mounting)
             level, self.level_reason = choose_level(scene)
             mounting = scene.mounting
-        self.level = level
-        self.mounting = mounting
-        self.tare_frames = tare_frames
+        super().__init__(level, mounting, tare_frames, calibrations)
         self.hold_until_tared = hold_until_tared
-        self._sensors: dict[int, _SensorState] = {}
-        self._held: deque[tuple[_SensorState, Reading]] = deque()
-        self.resolve = calibrations
-        self._chosen: dict[int, SensorCalibration] = {}  # set through set_calibration, over ``resolve``
-        self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
+        self._held: deque[tuple[SensorState, Reading]] = deque()
         self._isolation = Isolation(self._null_frames, clock, log)
 
-    def set_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> dict:
-        """Replace a sensor's calibration (an upload or a registry document,
-        calibration_upload.upload_document); ValueError names the bad field
-        and why (the API answers 422). The baseline is kept. Returns the
-        document applied, with its id."""
-        return self.apply_calibration(info, self.prepare_calibration(info, upload, sensor))
-
-    def prepare_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> tuple:
-        """The slow half of ``set_calibration`` (validation, the new
-        processor), which touches no state: it may run while frames are
-        being reconstructed."""
-        document = upload_document(info, upload, self.mounting, sensor)
-        calibration = from_document(document, info, self.mounting)
-        return calibration, processor_for(info, self.level, self.mounting, calibration), document
-
-    def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
-        """The quick half: swap the calibration and the sensor's processor in."""
-        calibration, processor, document = prepared
-        self._chosen[info.id] = calibration
-        state = self._sensors.get(info.id)
-        if state is not None:
-            state.processor, state.calibration = processor, calibration
-            state.tare_judged = False  # judged again against the new C0
-            self._isolation.failing.discard(info.id)
-        return document
-
-    def sensor_ids(self) -> list[int]:
-        return sorted(self._sensors)
-
-    def calibration(self, sensor_id: int) -> SensorCalibration | None:
-        """The calibration sensor ``sensor_id`` is reconstructed with (None: not seen yet)."""
-        state = self._sensors.get(sensor_id)
-        return None if state is None else state.calibration
-
-    def _calibration_for(self, info: SensorInfo) -> SensorCalibration:
-        """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
-        A calibration that does not fit the sensor is set aside, with the
-        reason kept, never a reason to stop the sensor's data."""
-        chosen = self._chosen.get(info.id)
-        if chosen is not None and chosen.kind == info.kind:
-            return chosen
-        self.calibration_problems.pop(info.id, None)
-        try:
-            found = self.resolve(info) if self.resolve is not None else None
-        except Exception as exc:  # noqa: BLE001 — a registry or document problem: the built-in one, said so
-            self.calibration_problems[info.id] = f"{type(exc).__name__}: {exc}"
-            log.warning("sensor %d: its calibration cannot be used (%s); the built-in one is", info.id, exc)
-            found = None
-        return found if found is not None else builtin(info, self.mounting)
-
-    def _state(self, info: SensorInfo) -> _SensorState:
-        state = self._sensors.get(info.id)
-        if state is None or (state.info is not info and state.info != info):
-            calibration = self._calibration_for(info)
-            window = tare_window(info, self.mounting, calibration)
-            state = _SensorState(info, Baseline(info.channels, self.tare_frames, window),
-                                 processor_for(info, self.level, self.mounting, calibration), calibration)
-            self._sensors[info.id] = state
-        return state
-
-    def tare(self, sensor_id: int | None = None, judge: bool = True) -> list[int]:
-        """Restart the baseline of one sensor (or all); return the ids tared.
-        ``judge`` False: the load present is the zero (a forced tare)."""
-        ids = sorted(self._sensors) if sensor_id is None else [sensor_id]
-        for sid in ids:
-            if sid not in self._sensors:
-                raise KeyError(sid)
-            state = self._sensors[sid]
-            state.baseline.tare()
-            state.tare_judged, state.judge_tare, state.loaded = False, judge, None
-            if isinstance(state.processor, GridProcessor):
-                state.processor.reset()
-        return ids
-
-    def loaded_now(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
-        """Taxels that a reading (n,) pF shows loaded against the calibration's
-        C0 (loaded_tare.py; one reading, so its own noise): what a tare now
-        would make its zero. Empty where C0 was not measured."""
-        state = self._sensors.get(sensor_id)
-        calibration = None if state is None else state.calibration
-        if calibration is None or calibration.measured is None or not calibration.measured.any():
-            return []
-        std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
-        return np.flatnonzero(loaded_taxels(calibration.grid.c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
-
-    def loaded_at_tare(self, sensor_id: int) -> list[int]:
-        """Taxels whose zero is the calibration's C0 since the last tare."""
-        state = self._sensors.get(sensor_id)
-        return [] if state is None or state.loaded is None else np.flatnonzero(state.loaded).tolist()
-
-    def _judge_tare(self, state: _SensorState) -> None:
-        """Once a grid's tare is complete: loaded taxels get the calibration's C0."""
-        state.tare_judged = True
-        calibration = state.calibration
-        if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
-            return
-        baseline = state.baseline
-        loaded = loaded_taxels(calibration.grid.c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
-        if loaded.any():
-            baseline.substitute(loaded, calibration.grid.c0_pF)
-            state.loaded = loaded
-            log.warning("sensor %d: taxels %s were loaded at tare; their zero is the calibration's C0",
-                        state.info.id, np.flatnonzero(loaded).tolist())
-
-    def baseline(self, sensor_id: int) -> np.ndarray | None:
-        state = self._sensors.get(sensor_id)
-        return None if state is None or not state.baseline.ready else state.baseline.value
-
-    def crosstalk_report(self, sensor_id: int) -> dict | None:
-        state = self._sensors.get(sensor_id)
-        if state is None or not isinstance(state.processor, GridProcessor) or state.processor.crosstalk is None:
-            return None
-        processor = state.processor
-        return {
-            "mechanical_coupling_in_use": processor.crosstalk.mechanical,
-            "electrical_leakage_in_use": processor.crosstalk.electrical,
-            "isolated_loads_adopted": processor.adopted_events,
-            "pending_estimates": processor.estimator.report(),
-            "common_mode_drift": processor.drift.drift,
-        }
+    def _calibration_applied(self, sensor_id: int) -> None:
+        self._isolation.failing.discard(sensor_id)
 
     def errors(self) -> dict[int, dict]:
         """Per sensor that ever failed, its last error, how often and when (Isolation.errors)."""
@@ -214,7 +73,7 @@ class Reconstructor:
     def process_many(self, readings: list[Reading]) -> list[ForceFrame]:
         """Reconstruct a batch of readings (e.g. one read from the port), each
         sensor's frames together; returns ForceFrames in arrival order."""
-        pending: list[tuple[_SensorState | Exception, Reading]] = []
+        pending: list[tuple[SensorState | Exception, Reading]] = []
         for reading in readings:
             try:
                 state = self._state(reading.sensor)
@@ -238,8 +97,8 @@ class Reconstructor:
         self._held.clear()
         return frames
 
-    def _reconstruct(self, items: list[tuple[_SensorState | Exception, Reading]]) -> list[ForceFrame]:
-        groups: dict[int, tuple[_SensorState, list[int]]] = {}
+    def _reconstruct(self, items: list[tuple[SensorState | Exception, Reading]]) -> list[ForceFrame]:
+        groups: dict[int, tuple[SensorState, list[int]]] = {}
         out: list[ForceFrame | None] = [None] * len(items)
         for index, (state, reading) in enumerate(items):
             if isinstance(state, Exception):  # its baseline or state failed already
@@ -255,8 +114,8 @@ class Reconstructor:
         # frames together: at 1 kHz the per-call cost, not the per-frame
         # arithmetic, dominates. Quads are batched by model, grids by level;
         # a sensor that failed last time runs alone until it succeeds.
-        quads: dict[tuple, list[tuple[_SensorState, list[int]]]] = {}
-        grids: list[tuple[_SensorState, list[int]]] = []
+        quads: dict[tuple, list[tuple[SensorState, list[int]]]] = {}
+        grids: list[tuple[SensorState, list[int]]] = []
         for state, indices in groups.values():
             if not state.baseline.ready:
                 place(indices, self._null_frames(state.info, [items[i][1] for i in indices], "taring"))
@@ -274,7 +133,7 @@ class Reconstructor:
             place((i for _, indices in batch for i in indices), self._isolation.without_state(members, self._reconstruct_quads))
         return out
 
-    def _isolated_grids(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
+    def _isolated_grids(self, members: list[tuple[SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
         """Tared grids' frames per sensor. At ``full`` they go through one
         call, with rollback (Isolation.with_rollback). Below ``full`` each
         sensor is its own call anyway, isolated where it is made."""
@@ -289,7 +148,7 @@ class Reconstructor:
         calibration = state.calibration.id if state is not None else ""
         return self._frames(readings, forces, [r.frame_flags() + [flag] for r in readings], None, calibration, None)
 
-    def _reconstruct_grids(self, members: list[tuple[_SensorState, list[Reading]]],
+    def _reconstruct_grids(self, members: list[tuple[SensorState, list[Reading]]],
                            isolated: bool = False) -> list[list[ForceFrame]]:
         """Tared grids, each with its readings; frames per sensor. Below
         ``full`` each sensor is processed on its own; ``isolated`` then turns
@@ -313,15 +172,15 @@ class Reconstructor:
         return out
 
     @staticmethod
-    def _job(state: _SensorState, readings: list[Reading]) -> GridJob:
+    def _job(state: SensorState, readings: list[Reading]) -> GridJob:
         return GridJob(state.processor, np.stack([r.capacitance_pF for r in readings]), state.baseline.value,
                        state.baseline.std, np.array([r.t_us * 1e-6 for r in readings]))
 
-    def _process_grid(self, state: _SensorState, readings: list[Reading]):
+    def _process_grid(self, state: SensorState, readings: list[Reading]):
         job = self._job(state, readings)
         return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s)
 
-    def _grid_frames(self, state: _SensorState, readings: list[Reading], result) -> list[ForceFrame]:
+    def _grid_frames(self, state: SensorState, readings: list[Reading], result) -> list[ForceFrame]:
         taxel_flags = result.taxel_flags
         if state.loaded is not None:
             np.bitwise_or(taxel_flags, LOADED_AT_TARE, out=taxel_flags, where=state.loaded)
@@ -330,9 +189,10 @@ class Reconstructor:
         if np.count_nonzero(union):
             for f, bits in zip(flags, union.tolist()):
                 f.extend(flag_names(bits))
+        state.cycles.update(result.forces_N)
         return self._frames(readings, result.forces_N, flags, taxel_flags, state.calibration.id, result.sigma_N)
 
-    def _reconstruct_quads(self, members: list[tuple[_SensorState, list[Reading]]]) -> list[ForceFrame]:
+    def _reconstruct_quads(self, members: list[tuple[SensorState, list[Reading]]]) -> list[ForceFrame]:
         """Tared quads sharing one model, each with its readings; their
         frames in member order."""
         counts = [len(rs) for _, rs in members]
@@ -341,14 +201,25 @@ class Reconstructor:
         baseline = np.repeat(np.stack([state.baseline.value for state, _ in members]), counts, axis=0)
         noise = np.repeat([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in members], counts)
         processor = members[0][0].processor
-        forces, quad_flags = processor.process(capacitance, baseline, noise)
+        sensitivity = np.repeat([self._sensitivity(state) for state, _ in members], counts)
+        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity)
         sigma = processor.sigma(forces, noise)
+        start = 0
+        for (state, _), count in zip(members, counts):
+            state.cycles.update(forces[start:start + count, 2:3])
+            start += count
         flags = [r.frame_flags() + extra for r, extra in zip(readings, quad_flags)]
         if len(members) == 1:
             return self._frames(readings, forces, flags, None, members[0][0].calibration.id, sigma)
         ids = [state.calibration.id for state, rs in members for _ in rs]
         return [frame for i, cid in enumerate(ids)
                 for frame in self._frames(readings[i:i + 1], forces[i:i + 1], flags[i:i + 1], None, cid, sigma[i:i + 1])]
+
+    @staticmethod
+    def _sensitivity(state: SensorState) -> float:
+        """What load cycles left of a quad's sensitivity (1: no fatigue model)."""
+        model = state.calibration.fatigue
+        return 1.0 if model is None else float(model.factor(state.cycles.counts[0]))
 
     def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None,
                 calibration: str, sigma: np.ndarray | None) -> list[ForceFrame]:

@@ -36,6 +36,7 @@ from ..physics.paper_data import (BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS,
 from ..physics.quad_model import QuadModel
 from ..physics.taxel_response import SENSITIVITY_RANGE_PCT_PER_N, TaxelResponse, model_table, taxel_response
 from ..readings import SensorInfo
+from .fatigue import PAPER_001, FatigueModel
 
 ID_HEX = 16
 BUILTIN_RELATIVE_SE = 0.07
@@ -73,6 +74,7 @@ class SensorCalibration:
     crosstalk: tuple[float, float] | None = None  # (mechanical, electrical) measured in the session
     quad: QuadModel | None = None
     quad_relative_se: tuple[float, float] = (BUILTIN_RELATIVE_SE, BUILTIN_RELATIVE_SE)  # normal, shear slopes
+    fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
     document: dict | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -83,7 +85,7 @@ class SensorCalibration:
 def builtin(info: SensorInfo, mounting: str = "flat") -> SensorCalibration:
     """Table 1 (or its mean) for a grid, fits 34/35 for a quad."""
     if info.kind == "quad":
-        return SensorCalibration(BUILTIN_QUAD_ID, "quad", None, None, quad=QuadModel())
+        return SensorCalibration(BUILTIN_QUAD_ID, "quad", None, None, quad=QuadModel(), fatigue=PAPER_001)
     base = grid_calibration(info.rows, info.cols)
     n = info.channels
     cid = BUILTIN_GRID_ID if (info.rows, info.cols) == (TABLE1_ROWS, TABLE1_COLS) else f"builtin-mean-{info.rows}x{info.cols}"
@@ -162,7 +164,8 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
                          for src in sources[:n]] + [False] * (n - len(sources[:n])))
     return SensorCalibration(cid, "grid", document.get("created"), measured,
                              GridCalibration(info.rows, info.cols, c0, sensitivity), response, relative_se, model_sigma,
-                             curves, coupling, document=document)
+                             curves, coupling, fatigue=FatigueModel.from_document(document.get("fatigue"), None),
+                             document=document)
 
 
 def _ls_sensitivity(response: TaxelResponse) -> np.ndarray:
@@ -199,5 +202,5 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
     for name, slope in (("normal_fit_se", model.normal_fit[1]), ("shear_fit_se", model.shear_a)):
         value = document.get(name)
         se.append(BUILTIN_RELATIVE_SE if value is None else abs(float(value[1] if name == "normal_fit_se" else value[0])) / slope)
-    return SensorCalibration(cid, "quad", document.get("created"), None, quad=model,
-                             quad_relative_se=(se[0], se[1]), document=document)
+    return SensorCalibration(cid, "quad", document.get("created"), None, quad=model, quad_relative_se=(se[0], se[1]),
+                             fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)

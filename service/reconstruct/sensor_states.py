@@ -1,0 +1,210 @@
+"""Each sensor's state as the reconstruction keeps it: its calibration, tare and load cycles.
+
+``SensorStates`` (the Reconstructor's base) makes a sensor's state when the
+sensor is first seen: its calibration (set through ``set_calibration``,
+else ``resolve``'s — the registry, a recording, ``--calibration`` chosen
+above this layer — else the built-in one), the processor built on it
+(calibration_upload.py), its tare window and its load-cycle counter with the
+counts kept for that calibration (fatigue.py). A finished tare is judged
+against the calibration's C0 (loaded_tare.py).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..readings import SensorInfo
+from .baseline import Baseline
+from .calibration_upload import processor_for, tare_window, upload_document
+from .fatigue import CycleCounter
+from .grid import GridProcessor
+from .loaded_tare import loaded_taxels
+from .quad import QuadProcessor
+from .sensor_calibration import SensorCalibration, builtin, from_document
+
+log = logging.getLogger(__name__)
+
+Resolver = Callable[[SensorInfo], "SensorCalibration | None"]
+
+
+@dataclass
+class SensorState:
+    """One sensor's reconstruction state: what it is, its tare, its processor and calibration."""
+
+    info: SensorInfo
+    baseline: Baseline
+    processor: GridProcessor | QuadProcessor
+    calibration: SensorCalibration
+    tare_judged: bool = False  # the finished tare was compared with the calibration's C0
+    judge_tare: bool = True  # False after a forced tare: the user says the load is the zero
+    loaded: np.ndarray | None = None  # (n,) taxels loaded at tare (their zero is the calibration's C0)
+    cycles: CycleCounter | None = None  # load cycles per taxel (a quad: of Fz), fatigue.py
+
+
+class SensorStates:
+    """The per-sensor half of the Reconstructor (module docstring)."""
+
+    def __init__(self, level: str, mounting: str, tare_frames: int, resolve: Resolver | None) -> None:
+        self.level = level
+        self.mounting = mounting
+        self.tare_frames = tare_frames
+        self._sensors: dict[int, SensorState] = {}
+        self.resolve = resolve
+        self.load_cycles: Callable[[SensorInfo, str], list | None] | None = None  # counts kept for (sensor, calibration)
+        self._chosen: dict[int, SensorCalibration] = {}  # set through set_calibration, over ``resolve``
+        self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
+
+    def _calibration_applied(self, sensor_id: int) -> None:
+        """A sensor's calibration was replaced (the Reconstructor gives a failing sensor another try)."""
+
+    def set_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> dict:
+        """Replace a sensor's calibration (an upload or a registry document,
+        calibration_upload.upload_document); ValueError names the bad field
+        and why (the API answers 422). The baseline is kept. Returns the
+        document applied, with its id."""
+        return self.apply_calibration(info, self.prepare_calibration(info, upload, sensor))
+
+    def prepare_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> tuple:
+        """The slow half of ``set_calibration`` (validation, the new
+        processor), which touches no state: it may run while frames are
+        being reconstructed."""
+        document = upload_document(info, upload, self.mounting, sensor)
+        calibration = from_document(document, info, self.mounting)
+        return calibration, processor_for(info, self.level, self.mounting, calibration), document
+
+    def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
+        """The quick half: swap the calibration and the sensor's processor in."""
+        calibration, processor, document = prepared
+        self._chosen[info.id] = calibration
+        state = self._sensors.get(info.id)
+        if state is not None:
+            state.processor, state.calibration = processor, calibration
+            state.cycles = self._cycles(info, calibration)  # counts belong to a calibration: a new one starts anew
+            state.tare_judged = False  # judged again against the new C0
+            self._calibration_applied(info.id)
+        return document
+
+    def sensor_ids(self) -> list[int]:
+        return sorted(self._sensors)
+
+    def calibration(self, sensor_id: int) -> SensorCalibration | None:
+        """The calibration sensor ``sensor_id`` is reconstructed with (None: not seen yet)."""
+        state = self._sensors.get(sensor_id)
+        return None if state is None else state.calibration
+
+    def _calibration_for(self, info: SensorInfo) -> SensorCalibration:
+        """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
+        A calibration that does not fit the sensor is set aside, with the
+        reason kept, never a reason to stop the sensor's data."""
+        chosen = self._chosen.get(info.id)
+        if chosen is not None and chosen.kind == info.kind:
+            return chosen
+        self.calibration_problems.pop(info.id, None)
+        try:
+            found = self.resolve(info) if self.resolve is not None else None
+        except Exception as exc:  # noqa: BLE001 — a registry or document problem: the built-in one, said so
+            self.calibration_problems[info.id] = f"{type(exc).__name__}: {exc}"
+            log.warning("sensor %d: its calibration cannot be used (%s); the built-in one is", info.id, exc)
+            found = None
+        return found if found is not None else builtin(info, self.mounting)
+
+    def _state(self, info: SensorInfo) -> SensorState:
+        state = self._sensors.get(info.id)
+        if state is None or (state.info is not info and state.info != info):
+            calibration = self._calibration_for(info)
+            window = tare_window(info, self.mounting, calibration)
+            state = SensorState(info, Baseline(info.channels, self.tare_frames, window),
+                                 processor_for(info, self.level, self.mounting, calibration), calibration)
+            state.cycles = self._cycles(info, calibration)
+            self._sensors[info.id] = state
+        return state
+
+    def _cycles(self, info: SensorInfo, calibration: SensorCalibration) -> CycleCounter:
+        """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0)."""
+        n = 1 if info.kind == "quad" else info.channels
+        try:
+            counts = self.load_cycles(info, calibration.id) if self.load_cycles is not None else None
+            return CycleCounter(n, counts)
+        except Exception as exc:  # noqa: BLE001 — lost counts are a warning, never lost data
+            log.warning("sensor %d: its load-cycle counts cannot be read (%s); counting from 0", info.id, exc)
+            return CycleCounter(n)
+
+    def cycle_counts(self) -> dict[int, tuple[SensorInfo, str, list[int]]]:
+        """{sensor: (info, calibration id, counts)} to keep (the registry)."""
+        return {sid: (state.info, state.calibration.id, state.cycles.counts.tolist())
+                for sid, state in list(self._sensors.items()) if state.cycles is not None}
+
+    def fatigue(self, sensor_id: int) -> dict | None:
+        """Load cycles (max and total over taxels) and the sensitivity factor in use."""
+        state = self._sensors.get(sensor_id)
+        if state is None or state.cycles is None:
+            return None
+        model = state.calibration.fatigue
+        counts = state.cycles.counts
+        factor = None if model is None else float(np.min(model.factor(counts)))
+        return {"cycles_max": int(counts.max()), "cycles_total": int(counts.sum()), "sensitivity_factor": factor,
+                "model": None if model is None else {"drop": model.drop, "tau_cycles": model.tau_cycles}}
+
+    def tare(self, sensor_id: int | None = None, judge: bool = True) -> list[int]:
+        """Restart the baseline of one sensor (or all); return the ids tared.
+        ``judge`` False: the load present is the zero (a forced tare)."""
+        ids = sorted(self._sensors) if sensor_id is None else [sensor_id]
+        for sid in ids:
+            if sid not in self._sensors:
+                raise KeyError(sid)
+            state = self._sensors[sid]
+            state.baseline.tare()
+            state.tare_judged, state.judge_tare, state.loaded = False, judge, None
+            if isinstance(state.processor, GridProcessor):
+                state.processor.reset()
+        return ids
+
+    def loaded_now(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
+        """Taxels that a reading (n,) pF shows loaded against the calibration's
+        C0 (loaded_tare.py; one reading, so its own noise): what a tare now
+        would make its zero. Empty where C0 was not measured."""
+        state = self._sensors.get(sensor_id)
+        calibration = None if state is None else state.calibration
+        if calibration is None or calibration.measured is None or not calibration.measured.any():
+            return []
+        std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
+        return np.flatnonzero(loaded_taxels(calibration.grid.c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
+
+    def loaded_at_tare(self, sensor_id: int) -> list[int]:
+        """Taxels whose zero is the calibration's C0 since the last tare."""
+        state = self._sensors.get(sensor_id)
+        return [] if state is None or state.loaded is None else np.flatnonzero(state.loaded).tolist()
+
+    def _judge_tare(self, state: SensorState) -> None:
+        """Once a grid's tare is complete: loaded taxels get the calibration's C0."""
+        state.tare_judged = True
+        calibration = state.calibration
+        if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
+            return
+        baseline = state.baseline
+        loaded = loaded_taxels(calibration.grid.c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
+        if loaded.any():
+            baseline.substitute(loaded, calibration.grid.c0_pF)
+            state.loaded = loaded
+            log.warning("sensor %d: taxels %s were loaded at tare; their zero is the calibration's C0",
+                        state.info.id, np.flatnonzero(loaded).tolist())
+
+    def baseline(self, sensor_id: int) -> np.ndarray | None:
+        state = self._sensors.get(sensor_id)
+        return None if state is None or not state.baseline.ready else state.baseline.value
+
+    def crosstalk_report(self, sensor_id: int) -> dict | None:
+        state = self._sensors.get(sensor_id)
+        if state is None or not isinstance(state.processor, GridProcessor) or state.processor.crosstalk is None:
+            return None
+        processor = state.processor
+        return {
+            "mechanical_coupling_in_use": processor.crosstalk.mechanical,
+            "electrical_leakage_in_use": processor.crosstalk.electrical,
+            "isolated_loads_adopted": processor.adopted_events,
+            "pending_estimates": processor.estimator.report(),
+            "common_mode_drift": processor.drift.drift,
+        }
