@@ -159,7 +159,8 @@ def _add_replay(sub) -> None:
     replay.add_argument("--speed", type=_speed, default=None,
                         help="1 (real time), 2, … or max (default: max for --export, 1 for --serve)")
     replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
-    replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout)")
+    replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout); "
+                                                              "OUT.parquet: one row per data frame, a Parquet table")
     _add_serving_options(replay)
     replay.set_defaults(func=cmd_replay)
 
@@ -193,6 +194,9 @@ def _add_bench(sub) -> None:
     bench = sub.add_parser("bench", help="speed against error of every fidelity level on the simulator's scenes")
     bench.add_argument("--seconds", type=_positive, default=10.0,
                        help="simulated seconds per scenario (default: %(default)s)")
+    bench.add_argument("--process-seconds", type=float, default=60.0,
+                       help="simulated seconds of the capture the whole-process figures replay "
+                            "(default: %(default)s; 0 skips them)")
     bench.add_argument("--json", action="store_true", help="print the whole report as JSON")
     bench.add_argument("--out", metavar="DIR", help="also write bench.md and bench.png to this directory "
                                                     "(needs matplotlib: pip install -e \".[docs]\")")

@@ -79,7 +79,7 @@ def cmd_bench(args) -> int:
     if args.out:
         plotting.require("bench.png")  # before minutes of measuring, not after
     with progress_bar(desc="bench", unit="step") as bar:
-        report = run(seconds=args.seconds, progress=_stepper(bar))
+        report = run(seconds=args.seconds, progress=_stepper(bar), process_seconds=args.process_seconds)
     print(json.dumps(report, indent=1) if args.json else report["text"])
     if args.out:
         for path in write_docs(report, Path(args.out)):

@@ -78,15 +78,19 @@ def _unlink(path: Path) -> bool:
 
 class _ProgressPacer:
     """A Pacer that also moves a bar by bytes of the file: a raw capture is read
-    in CHUNK_BYTES chunks, one wait each; an MCAP recording's progress is its
-    recorded time against the span its summary gives, scaled to the file's size."""
+    in CHUNK_BYTES chunks (BULK_BYTES unpaced), one wait each; an MCAP
+    recording's progress is its recorded time against the span its summary
+    gives, scaled to the file's size."""
 
     def __init__(self, pacer, bar, path: Path) -> None:
-        from .record.readers import CHUNK_BYTES, is_timed_by_host
+        import math
+
+        from .record.readers import BULK_BYTES, CHUNK_BYTES, is_timed_by_host
 
         self._pacer, self._bar = pacer, bar
+        self.speed = pacer.speed
         self._size = path.stat().st_size
-        self._chunk = CHUNK_BYTES
+        self._chunk = BULK_BYTES if math.isinf(pacer.speed) else CHUNK_BYTES
         self._span = _mcap_span(path) if is_timed_by_host(path) else None
         self._timed = is_timed_by_host(path)
 
@@ -100,6 +104,14 @@ class _ProgressPacer:
         else:
             return
         self._bar.update(min(done, self._size) - self._bar.n)
+
+
+def _close(out, writer) -> None:
+    """The export's file, and the Parquet writer's footer."""
+    if writer is not None:
+        writer.close()
+    if out is not None:
+        out.close()
 
 
 def _mcap_span(path: Path) -> tuple[float, float] | None:
@@ -137,12 +149,18 @@ def cmd_replay(args) -> int:
     speed = args.speed if args.speed is not None else float("inf")
     to_stdout = args.export == "-"
     export_is_new = bool(args.export) and not to_stdout and not Path(args.export).exists()
-    out = sys.stdout.buffer if to_stdout else open(args.export, "wb") if args.export else None
+    columnar = bool(args.export) and Path(args.export).suffix == ".parquet"
+    out = sys.stdout.buffer if to_stdout else open(args.export, "wb") if args.export and not columnar else None
     bar = progress_bar(total=Path(path).stat().st_size, unit="B", unit_scale=True, desc=Path(path).name)
+    writer = None
     try:
         book = book_from_options(args.registry, args.calibration, args.mounting, path)
+        if columnar:
+            from .record.export_parquet import Parquet
+
+            writer = Parquet(args.export)
         pipeline = replay(path, out, level=args.level, mounting=args.mounting,
-                          pacer=_ProgressPacer(Pacer(speed), bar, Path(path)), calibrations=book)
+                          pacer=_ProgressPacer(Pacer(speed), bar, Path(path)), writer=writer, calibrations=book)
     except BrokenPipeError:
         if not to_stdout:
             raise
@@ -151,13 +169,13 @@ def cmd_replay(args) -> int:
         return 0
     except (ValueError, OSError):  # not a recording after all: leave no empty export behind
         if export_is_new:
-            out.close()
+            _close(out, writer)
+            out = writer = None
             _unlink(Path(args.export))
         raise
     finally:
         bar.close()
-        if out is not None and not to_stdout:
-            out.close()
+        _close(None if to_stdout else out, writer)
     counters = pipeline.decoder.counters.as_dict()
     reconstructor = pipeline.reconstructor
     summary = {"stream": {k: v for k, v in counters.items() if k != "sensors"}, "sensors": counters["sensors"],

@@ -62,10 +62,13 @@ class Pipeline:
     ``set_calibration`` may come from any other."""
 
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
-                 histories: Histories | None = None,
+                 histories: Histories | None = None, keep_history: bool = True,
                  calibrations: Callable[[dict, SensorInfo], SensorCalibration | None] | None = None) -> None:
-        """``calibrations(board, info)``: a sensor's calibration when it is
+        """``keep_history=False`` (offline export) keeps no latest frame,
+        history or rates: each batch only goes to the listeners.
+        ``calibrations(board, info)``: a sensor's calibration when it is
         first seen (calibration/book.py), with the board's INFO to identify it."""
+        self.keep_history = keep_history
         self.decoder = Decoder()
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
@@ -174,7 +177,7 @@ class Pipeline:
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:
             return
-        for frame in frames:
+        for frame in frames if self.keep_history else ():
             self.latest[frame.sensor.id] = frame
             self.history.for_frame(frame).append(frame)
             meter = self.rates.get(frame.sensor.id)

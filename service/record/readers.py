@@ -15,6 +15,7 @@ from ..protocol import T_US_MODULUS, Decoder
 from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096
+BULK_BYTES = 1 << 20  # untimed reads: as fast as possible, few calls per stage
 
 
 def raw_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
@@ -32,16 +33,30 @@ def raw_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
             yield t, chunk
 
 
+def bulk_chunks(path: str | Path, size: int = BULK_BYTES) -> Iterator[tuple[float, bytes]]:
+    """(0.0, bytes) in ``size`` chunks: for a replay that waits for no clock
+    (no decoding just to time the chunks)."""
+    with open(path, "rb") as source:
+        while chunk := source.read(size):
+            yield 0.0, chunk
+
+
 READERS = {".mcap": read_raw}  # by suffix; any other file is a raw capture
 
 
-def timed_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
+def timed_chunks(path: str | Path, paced: bool = True) -> Iterator[tuple[float, bytes]]:
     """(time s, bytes) of a recording; FileNotFoundError or ValueError (not
-    the format its suffix says) at once, before the first chunk is asked for."""
+    the format its suffix says) at once, before the first chunk is asked for.
+    ``paced=False`` (nothing waits for the times): a raw capture in large
+    untimed chunks. A recording keeps its reads as they came: a live
+    pipeline's frames depend on where a read ends (a tare completed within
+    a read applies to the whole read), and its replay equals the live run."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such recording: {path}")
-    return READERS.get(path.suffix, raw_chunks)(path)
+    if path.suffix in READERS:
+        return READERS[path.suffix](path)
+    return raw_chunks(path) if paced else bulk_chunks(path)
 
 
 def is_timed_by_host(path: str | Path) -> bool:

@@ -11,6 +11,7 @@ measured on the same bytes. ``--out DIR`` writes bench.md and bench.png
 """
 from __future__ import annotations
 
+import itertools
 import platform
 import time
 from dataclasses import dataclass, field
@@ -26,7 +27,7 @@ from ..reconstruct.baseline import DEFAULT_TARE_FRAMES
 from ..reconstruct.calibration_upload import processor_for
 from ..reconstruct.levels import GRID_LEVELS
 from ..reconstruct.sensor_calibration import builtin
-from . import plotting
+from . import bench_process, plotting
 
 REPEATS = 3
 LOADED_N = 0.05
@@ -199,10 +200,13 @@ def _no_progress(done: int, total: int, what: str) -> None:
     pass
 
 
-def run(seconds: float = 10.0, progress: Callable[[int, int, str], None] = _no_progress) -> dict:
+def run(seconds: float = 10.0, progress: Callable[[int, int, str], None] = _no_progress,
+        process_seconds: float = 60.0) -> dict:
     """The whole bench; ``progress(done, total, what)`` after each of its steps
-    (a scenario, the decoder, the live path at one level)."""
-    total = len(SCENARIOS) + 1 + len(GRID_LEVELS)
+    (a scenario, the decoder, the live path at one level, a round of the
+    whole-process figures on a ``process_seconds`` capture; 0: none)."""
+    rounds = bench_process.REPEATS if process_seconds else 0
+    total = len(SCENARIOS) + 1 + len(GRID_LEVELS) + rounds
     rows = []
     for i, scenario in enumerate(SCENARIOS, 1):
         rows += run_scenario(scenario, seconds)
@@ -213,8 +217,12 @@ def run(seconds: float = 10.0, progress: Callable[[int, int, str], None] = _no_p
     for level in GRID_LEVELS:
         live.append(live_path_figures(min(seconds, 6.0), level))
         progress(len(SCENARIOS) + 1 + len(live), total, f"live path, {level}")
+    steps = itertools.count(len(SCENARIOS) + 2 + len(live))
+    process = bench_process.whole_process(process_seconds, rounds, lambda what: progress(next(steps), total, what)) \
+        if rounds else None
     report = {
         "machine": f"{platform.machine()} python {platform.python_version()}",
+        "process": process,
         "seconds": seconds,
         "noise_floor_N": noise_floor_N(),
         "decoder": decoder,
@@ -235,6 +243,7 @@ def render_text(report: dict) -> str:
         + "; ".join(f"{live['level']} {live['us_per_1ms_read']:.0f} µs per read ({100 * live['share_of_one_core_at_1kHz']:.0f} % of a core)"
                     for live in report["live"]),
         "",
+        *(bench_process.render(report["process"]) + [""] if report.get("process") else []),
         "| scenario | level | batch µs/grid frame | grid frames/s | stream µs/frame | live chunks µs/frame | RMS loaded N | p99 loaded N | RMS unloaded N | p99 unloaded N | quad RMS x/y/z N |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]

@@ -1,0 +1,141 @@
+"""The replay's exports: batch JSON lines equal to the per-frame reference,
+the Parquet table, the batch contact summary, the offline pipeline."""
+import dataclasses
+import io
+
+import numpy as np
+import orjson
+import pytest
+
+from service.cli import main
+from service.fanout import encoding
+from service.pipeline import Pipeline
+from service.reconstruct import Reconstructor
+from service.reconstruct.contact import summarise
+from service.record import export
+from service.record.contact_batch import summaries
+from service.replay import replay
+from tests.regenerate_goldens import DATA
+
+
+class Collect:
+    def __init__(self):
+        self.frames = []
+
+    def write(self, frames):
+        self.frames += frames
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """Both committed fault captures: open channels (NaN), seq gaps, taxel
+    flags, grids and quads."""
+    out = []
+    for name in ("press_faults", "demo_leak_drift"):
+        sink = Collect()
+        replay(DATA / f"{name}.bin", writer=sink)
+        out += sink.frames
+    return out
+
+
+def reference(frames):
+    return [orjson.dumps(encoding.to_export_dict(f), option=orjson.OPT_SERIALIZE_NUMPY) + b"\n" for f in frames]
+
+
+def test_the_captures_hold_what_the_encoder_must_get_right(frames):
+    docs = [orjson.loads(line) for line in reference(frames)]
+    assert {d["kind"] for d in docs} == {"grid", "quad"}
+    assert any(None in d["taxels_N"] for d in docs if d["kind"] == "grid")
+    assert any(d["flags"] for d in docs) and any(d.get("taxel_flags") for d in docs)
+    assert any(d.get("contact") and d["contact"]["contacts"] for d in docs)
+    assert any(d.get("contact") and d["contact"]["cop_x_mm"] is None for d in docs)
+
+
+@pytest.mark.parametrize("batch", [1, 7, 500, 10_000])
+def test_batch_json_lines_equal_the_per_frame_encoding_line_for_line(frames, batch):
+    lines = b"".join(export.encode_lines(frames[i : i + batch]) for i in range(0, len(frames), batch))
+    assert lines.splitlines(keepends=True) == reference(frames)
+
+
+def test_keys_added_to_the_export_dict_are_followed(frames, monkeypatch):
+    """Whatever to_export_dict gives — new keys, a known key meaning something
+    else — the batch encoder writes the same bytes."""
+    rng = np.random.default_rng(3)
+    frames = [dataclasses.replace(f, calibration=f"cal-{f.sensor.id}",
+                                  sigma_N=None if f.seq % 5 == 0 else rng.random(f.forces_N.shape).astype(np.float32))
+              for f in frames[:800]]
+    original = encoding.to_export_dict
+
+    def extended(frame):
+        return {**original(frame), "calibration": frame.calibration, "sigma_N": frame.sigma_N,
+                "seq": frame.seq + 1, "unknown": {"level": frame.level}}
+
+    monkeypatch.setattr(encoding, "to_export_dict", extended)
+    monkeypatch.setattr(export, "to_export_dict", extended)
+    assert export.encode_lines(frames).splitlines(keepends=True) == reference(frames)
+    assert b'"unknown":{"level":"full"}' in export.encode_lines(frames[:1])
+
+
+def test_the_batch_contact_summary_is_the_per_frame_one_bit_for_bit():
+    rng = np.random.default_rng(1)
+    for rows, cols in ((8, 8), (3, 5)):
+        forces = rng.random((2000, rows * cols)) * rng.random((2000, 1)) * 0.2 - 0.02
+        forces[rng.random(forces.shape) < 0.02] = np.nan
+        forces[5] = np.nan
+        expected = [None if np.isnan(f).all() else summarise(f, rows, cols) for f in forces]
+        assert [orjson.dumps(s) for s in summaries(forces, rows, cols)] == [orjson.dumps(s) for s in expected]
+        assert max(s["contacts"] for s in expected if s) >= 3
+
+
+def test_parquet_holds_the_json_lines_and_opens_in_pandas_and_polars(tmp_path, capsys):
+    import pandas
+    import polars
+
+    capture = DATA / "press_faults.bin"
+    assert main(["replay", str(capture), "--export", str(tmp_path / "out.parquet")]) == 0
+    assert main(["replay", str(capture), "--export", str(tmp_path / "out.jsonl")]) == 0
+    docs = [orjson.loads(line) for line in (tmp_path / "out.jsonl").read_bytes().splitlines()]
+    table = pandas.read_parquet(tmp_path / "out.parquet")
+    assert len(polars.read_parquet(tmp_path / "out.parquet")) == len(table) == len(docs)
+    for doc, row in zip(docs, table.itertuples()):
+        assert (row.sensor, row.seq, row.t_us, row.kind, list(row.flags)) == (doc["sensor"], doc["seq"], doc["t_us"],
+                                                                             doc["kind"], doc["flags"])
+        key, other = ("taxels_N", "fxyz_N") if doc["kind"] == "grid" else ("fxyz_N", "taxels_N")
+        expected = np.array([np.nan if v is None else v for v in doc[key]])
+        np.testing.assert_array_equal(getattr(row, key), expected)
+        assert getattr(row, other) is None and row.calibration == doc["calibration"]
+        sigma = np.array([np.nan if v is None else v for v in doc["sigma_N"]], dtype=np.float32)
+        np.testing.assert_array_equal(row.sigma_N, sigma)
+        if doc["kind"] == "grid":
+            assert {name: list(hits) for name, hits in row.taxel_flags} == doc["taxel_flags"]
+            contact = {k: None if isinstance(v, float) and np.isnan(v) else v for k, v in row.contact.items()}
+            assert contact == doc["contact"]
+
+
+def test_an_export_of_no_recording_leaves_no_parquet_behind(tmp_path, capsys):
+    path = tmp_path / "no.mcap"
+    path.write_bytes(b"not an mcap file")
+    assert main(["replay", str(path), "--export", str(tmp_path / "out.parquet")]) == 2
+    assert not (tmp_path / "out.parquet").exists()
+
+
+def test_an_offline_pipeline_keeps_no_history_and_publishes_the_same_frames():
+    data = (DATA / "press_faults.bin").read_bytes()
+    published = {True: [], False: []}
+    for keep in (True, False):
+        pipeline = Pipeline(Reconstructor(hold_until_tared=True), clock=lambda: 0.0, keep_history=keep)
+        pipeline.listeners.append(published[keep].extend)
+        pipeline.feed(data, 0.0)
+        pipeline.finish(0.0)
+        assert bool(pipeline.latest) == bool(pipeline.rates) == keep
+    assert reference(published[False]) == reference(published[True])
+
+
+def test_a_raw_capture_replays_alike_in_small_and_large_chunks():
+    """Paced (4 KiB chunks, timed) and as fast as possible (1 MiB) give the same lines."""
+    from service.record.pacing import Pacer
+
+    fast, paced = io.BytesIO(), io.BytesIO()
+    replay(DATA / "demo_leak_drift.bin", fast)
+    replay(DATA / "demo_leak_drift.bin", paced, pacer=Pacer(1e9))
+    assert fast.getvalue() == paced.getvalue() and fast.getvalue().count(b"\n") > 500
