@@ -61,3 +61,34 @@ def test_missing_table_names_the_command(tmp_path):
 def test_unknown_shape_is_named():
     with pytest.raises(ValueError, match="unknown load shape 'twist'"):
         TableSpec("twist")
+
+
+def test_shipped_tables_carry_their_pchip_inverse_exactly():
+    """The dense inverse shipped with each table (so the service starts
+    without scipy.interpolate) is the table's PCHIP inverse, bit for bit."""
+    from scipy.interpolate import PchipInterpolator
+
+    from service.physics.tables import ForceTable, shipped_dir
+    from service.physics.taxel_response import DENSE_POINTS
+
+    checked = 0
+    for path in sorted(shipped_dir().glob("*.json")):
+        table = ForceTable.from_json(path.read_bytes())
+        if table.dense is None:
+            assert not np.all(np.diff(table.relative_change) > 0)  # only a table that is never inverted
+            continue
+        dense_r = np.linspace(0.0, table.relative_change[-1], DENSE_POINTS)
+        assert np.array_equal(table.dense[0], dense_r)
+        assert np.array_equal(table.dense[1], PchipInterpolator(table.relative_change, table.force_N)(dense_r))
+        checked += 1
+    assert checked == 2
+
+
+def test_the_unleak_matrix_is_the_inverse_leakage_filter():
+    from scipy.signal import lfilter
+
+    from service.reconstruct.crosstalk import unleak_matrix
+
+    for e in (0.0, 0.01, 0.03, 0.3):
+        reference = lfilter([1.0], [1.0 - e, e], np.eye(64), axis=-1)
+        np.testing.assert_allclose(unleak_matrix(64, e), reference, rtol=0, atol=1e-15)

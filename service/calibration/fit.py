@@ -87,7 +87,7 @@ def unit_response(mounting: str = "flat") -> TaxelResponse:
     if mounting not in MOUNTINGS:
         raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
     table = load(TableSpec(MOUNTINGS[mounting]))
-    return TaxelResponse(table.force_N, table.relative_change, np.ones(1))
+    return TaxelResponse(table.force_N, table.relative_change, np.ones(1), table.dense)
 
 
 def sensitivities(curve, forces: np.ndarray = SENSITIVITY_FORCES_N) -> tuple[float, float]:

@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import lfilter
 
 PAPER_MECHANICAL_COUPLING = -0.0028  # neighbour ΔC/C0 per unit ΔC/C0 of the loaded taxel
 
@@ -61,4 +60,6 @@ class CrosstalkModel:
         """What the multiplexer reads, (..., n) pF."""
         if self.electrical == 0.0:
             return capacitance
+        from scipy.signal import lfilter  # the simulator's: not on the service's start-up path
+
         return lfilter([1.0 - self.electrical, self.electrical], [1.0], capacitance, axis=-1)

@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.optimize import brentq, least_squares
 
 from . import shear, yeoh
 from .paper_data import FIT34, FIT35, NORMAL_RANGE_N, QUAD_DIELECTRIC_MM, QUAD_ELECTRODE_AREA_MM2, SHEAR_RANGE_N
@@ -109,6 +108,8 @@ def fit_yeoh(forces: np.ndarray, relative: np.ndarray, usable_range_N: float) ->
         return yeoh.normal_force(relative, params[0], params[1]) - forces
 
     start = (1.0 / (6.0 * max(np.polyfit(forces, relative, 1)[0], 1e-9)), 0.0)
+    from scipy.optimize import least_squares  # fitting only: not on the service's start-up path
+
     result = least_squares(residual, start, x_scale="jac")
     return _report(result, ("c10_area_N", "c20_area_N"), forces, usable_range_N)
 
@@ -123,6 +124,8 @@ def fit_shear(forces: np.ndarray, relative: np.ndarray, usable_range_N: float, p
 
     slope = np.polyfit(forces, relative, 1)[0]
     start = (slope,) if paper_form else (slope, 0.0)
+    from scipy.optimize import least_squares  # fitting only: not on the service's start-up path
+
     result = least_squares(residual, start, x_scale="jac")
     return _report(result, ("a_per_N",) if paper_form else ("a_per_N", "b_per_N2"), forces, usable_range_N)
 
@@ -152,6 +155,8 @@ class QuadCalibration:
         """ΔC/C0 at a compressive force (inverse of the monotone Yeoh law)."""
         if force_N <= 0:
             return 0.0
+        from scipy.optimize import brentq  # offline only: not on the service's start-up path
+
         return brentq(lambda r: self.normal_force(r) - force_N, 0.0, 10.0)
 
     def shear_modulus_MPa(self, area_mm2: float = QUAD_ELECTRODE_AREA_MM2) -> float:

@@ -27,7 +27,6 @@ from typing import Callable
 
 import numpy as np
 import orjson
-from scipy.optimize import brentq
 
 from .capacitance import gap_field, shear_relative_change
 from .ritz import Load, RitzOptions, RitzSystem, Taxel, paper_stack, patch_load
@@ -80,8 +79,24 @@ class ForceTable:
     relative_change: np.ndarray
     max_force_N: float
     rcond: float
+    # The inverse, force at DENSE_POINTS equally spaced ΔC/C0 over [0, top] by
+    # PCHIP, computed when the table is built and shipped with it: the
+    # service then needs no scipy.interpolate to start (0.6 s).
+    dense: tuple[np.ndarray, np.ndarray] | None = None
+
+    def with_dense(self) -> ForceTable:
+        """This table with its dense inverse (none for a table that is not
+        strictly increasing in ΔC/C0, e.g. the shear table: it is not inverted)."""
+        from .taxel_response import dense_inverse
+
+        if not np.all(np.diff(self.relative_change) > 0):
+            return self
+        return ForceTable(self.spec, self.force_N, self.relative_change, self.max_force_N, self.rcond,
+                          dense_inverse(self.force_N, self.relative_change))
 
     def to_json(self) -> bytes:
+        table = self if self.dense is not None else self.with_dense()
+        dense = {} if table.dense is None else {"dense_dC_C0": table.dense[0], "dense_force_N": table.dense[1]}
         return orjson.dumps(
             {
                 "spec": asdict(self.spec),
@@ -90,6 +105,7 @@ class ForceTable:
                 "dC_C0": self.relative_change,
                 "max_force_N": self.max_force_N,
                 "rcond": self.rcond,
+                **dense,
             },
             option=orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_INDENT_2,
         )
@@ -100,7 +116,8 @@ class ForceTable:
         spec = TableSpec(**doc["spec"])
         if doc["key"] != spec.key:
             raise ValueError(f"table key {doc['key']} does not match its parameters ({spec.key}); rebuild it")
-        return cls(spec, np.array(doc["force_N"]), np.array(doc["dC_C0"]), doc["max_force_N"], doc["rcond"])
+        dense = (np.array(doc["dense_dC_C0"]), np.array(doc["dense_force_N"])) if "dense_dC_C0" in doc else None
+        return cls(spec, np.array(doc["force_N"]), np.array(doc["dC_C0"]), doc["max_force_N"], doc["rcond"], dense)
 
 
 def _grid(max_force_N: float, step_N: float) -> np.ndarray:
@@ -112,6 +129,8 @@ def _contact_depth(force_N: float, k_MPa_per_mm: float, radius_mm: float, half_m
     def carried(delta):
         c = min(np.sqrt(2 * radius_mm * delta), half_mm)
         return 2 * half_mm * 2 * k_MPa_per_mm * (delta * c - c**3 / (6 * radius_mm)) - force_N
+
+    from scipy.optimize import brentq  # building tables only: not on the service's start-up path
 
     return brentq(carried, 0.0, 10.0)
 

@@ -29,11 +29,10 @@ table differs from it by < 0.0004 N).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
 
 from .mountings import MOUNTINGS
 from .paper_data import GridCalibration
@@ -61,9 +60,11 @@ class TaxelResponse:
     force_N: np.ndarray
     relative: np.ndarray
     gain: np.ndarray
+    dense: tuple[np.ndarray, np.ndarray] | None = field(default=None, compare=False, repr=False)  # dense_inverse's
 
     @classmethod
-    def from_table(cls, force_N: np.ndarray, relative: np.ndarray, sensitivity_per_N: np.ndarray) -> TaxelResponse:
+    def from_table(cls, force_N: np.ndarray, relative: np.ndarray, sensitivity_per_N: np.ndarray,
+                   dense: tuple[np.ndarray, np.ndarray] | None = None) -> TaxelResponse:
         force_N, relative = np.asarray(force_N, float), np.asarray(relative, float)
         if np.any(np.diff(relative) <= 0) or np.any(np.diff(force_N) <= 0):
             raise ValueError("a taxel table must be strictly increasing in force and ΔC/C0")
@@ -75,7 +76,7 @@ class TaxelResponse:
         for _ in range(20):  # fixed point: the curve is nearly linear, so this converges in a few steps
             scaled = np.interp(np.outer(gain, SENSITIVITY_FORCES_N), force_N, relative)
             gain = gain * sensitivity / _ls_slope(SENSITIVITY_FORCES_N, scaled)
-        return cls(force_N, relative, gain)
+        return cls(force_N, relative, gain, dense)
 
     def check(self) -> None:
         """ValueError unless every taxel's forward model is finite and
@@ -140,12 +141,20 @@ class TaxelResponse:
     def _dense(self) -> tuple[np.ndarray, np.ndarray]:
         cached = self.__dict__.get("_dense_cache")
         if cached is None:
-            dense_r = np.linspace(0.0, self.top, DENSE_POINTS)
-            dense_f = PchipInterpolator(self.relative, self.force_N)(dense_r)
-            cached = (dense_r, dense_f)
+            cached = self.dense if self.dense is not None else dense_inverse(self.force_N, self.relative)
             object.__setattr__(self, "_dense_cache", cached)
-            object.__setattr__(self, "_dense_slope", np.gradient(dense_f, dense_r))
+            object.__setattr__(self, "_dense_slope", np.gradient(cached[1], cached[0]))
         return cached
+
+
+def dense_inverse(force_N: np.ndarray, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ΔC/C0, force) at DENSE_POINTS equally spaced ΔC/C0 over [0, top]:
+    the table's PCHIP inverse, sampled for np.interp (shipped with each
+    table, tables.ForceTable.dense)."""
+    from scipy.interpolate import PchipInterpolator  # building tables, or a table without its dense inverse
+
+    dense_r = np.linspace(0.0, float(relative[-1]), DENSE_POINTS)
+    return dense_r, PchipInterpolator(relative, force_N)(dense_r)
 
 
 @lru_cache(maxsize=8)
@@ -175,4 +184,4 @@ def taxel_response(calibration: GridCalibration, mounting: str = "flat") -> Taxe
     if mounting not in MOUNTINGS:
         raise ValueError(f"unknown mounting {mounting!r}; known: {', '.join(MOUNTINGS)}")
     table = _table(MOUNTINGS[mounting])
-    return TaxelResponse.from_table(table.force_N, table.relative_change, calibration.sensitivity_per_N)
+    return TaxelResponse.from_table(table.force_N, table.relative_change, calibration.sensitivity_per_N, table.dense)

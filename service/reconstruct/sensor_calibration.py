@@ -146,7 +146,7 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     relative_se = np.where(np.isnan(se), BUILTIN_RELATIVE_SE, np.abs(se) / gain)
     residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
     table = model_table(mounting)
-    response = TaxelResponse(table.force_N, table.relative_change, gain)
+    response = TaxelResponse(table.force_N, table.relative_change, gain, table.dense)
     response.check()
     curves, model_sigma = _curves(taxels.get("curves") or {}, n, residual)
     sensitivity = _numbers(taxels, "sensitivity_pct_per_N", n, missing_ok=True) / 100.0
