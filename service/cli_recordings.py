@@ -29,7 +29,7 @@ def cmd_record(args) -> int:
 
     check_source(args.source)
     book = book_from_options(args.registry, args.calibration, args.mounting)
-    pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting), calibrations=book.for_sensor)
+    pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting), calibrations=book)
     outputs = [Path(p) for p in (args.out, args.raw) if p]
     new = [p for p in outputs if not p.exists()]
     recorder = Recorder(args.out, args.raw)

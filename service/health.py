@@ -63,6 +63,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "stale": stale,
             "last_frame_age_s": None if age is None else round(age, 3),
             "calibration": calibration_state(pipeline, sid, now, book),
+            "fatigue": pipeline.reconstructor.fatigue(sid),
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors

@@ -7,6 +7,7 @@ publishes to the hub and the recorder. /health is assembled in health.py.
 from __future__ import annotations
 
 import asyncio
+import logging
 import re
 import threading
 import time
@@ -26,6 +27,9 @@ from .sched import SliceRequest, current_slice_us, tune_for_latency
 from .sources import DEFAULT_SOURCE
 
 
+log = logging.getLogger(__name__)
+
+CYCLES_SAVE_S = 10.0  # a crash loses at most this much of the load-cycle counts
 RECORDING_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,122}\.mcap")
 
 
@@ -56,7 +60,7 @@ class TactileService:
         self.sched_slice_us = sched_slice_us
         self.scheduling = SliceRequest(None, current_slice_us())
         self.calibrations = calibrations if calibrations is not None else CalibrationBook(mounting=mounting)
-        self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting), calibrations=self.calibrations.for_sensor)
+        self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting), calibrations=self.calibrations)
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
         self.handover: LoopHandover | None = None
@@ -64,6 +68,7 @@ class TactileService:
         self.started_at = time.time()
         self.recorder: Recorder | None = None
         self._recording_lock = threading.Lock()  # start and stop come from the API's worker threads
+        self._cycles_stop = threading.Event()
 
     def start(self) -> None:
         """On the event loop: tune, wire the listeners, start reading."""
@@ -73,11 +78,15 @@ class TactileService:
         self.pipeline.listeners += [self._measure_published, self.hub.publish]
         self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
         self.readout.start(loop)
+        self._cycles_stop.clear()
+        threading.Thread(target=self._keep_cycles, name="tactile-cycles", daemon=True).start()
 
     def stop(self) -> None:
         self.stop_recording()
         if self.readout is not None:
             self.readout.stop()
+        self._cycles_stop.set()
+        self.save_cycles()
         for listener in (self._measure_published, self.hub.publish):
             if listener in self.pipeline.listeners:
                 self.pipeline.listeners.remove(listener)
@@ -95,6 +104,18 @@ class TactileService:
             self.recorder = Recorder(path, path.with_suffix(".bin"), exclusive=True)
             self.recorder.attach(self.pipeline)
             return self.recorder.status()
+
+    def save_cycles(self) -> None:
+        """Keep every sensor's load-cycle counts in the registry (a failure is logged, never raised)."""
+        try:
+            self.calibrations.save_cycles(self.pipeline.interpreter.board, self.pipeline.reconstructor.cycle_counts())
+        except Exception as exc:  # noqa: BLE001 — counts are kept again at the next period
+            log.warning("load-cycle counts not kept: %s", exc)
+
+    def _keep_cycles(self) -> None:
+        """Every CYCLES_SAVE_S, off the event loop (a registry write takes milliseconds)."""
+        while not self._cycles_stop.wait(CYCLES_SAVE_S):
+            self.save_cycles()
 
     def set_calibration(self, info, upload: dict) -> dict:
         """Validate an upload (ValueError naming the field), store it in the

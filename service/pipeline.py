@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from typing import Callable
+from typing import Callable, Protocol
 
 from .history import Histories
 from .protocol import Decoder
@@ -25,6 +25,14 @@ ByteListener = Callable[[bytes, float], None]
 Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
+
+
+class CalibrationSource(Protocol):
+    """Where sensors' calibrations and load cycles come from (calibration/book.py)."""
+
+    def for_sensor(self, board: dict, info: SensorInfo) -> SensorCalibration | None: ...
+
+    def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None: ...
 
 
 class LoadedAtTare(RuntimeError):
@@ -63,17 +71,19 @@ class Pipeline:
 
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
                  histories: Histories | None = None, keep_history: bool = True,
-                 calibrations: Callable[[dict, SensorInfo], SensorCalibration | None] | None = None) -> None:
+                 calibrations: CalibrationSource | None = None) -> None:
         """``keep_history=False`` (offline export) keeps no latest frame,
         history or rates: each batch only goes to the listeners.
-        ``calibrations(board, info)``: a sensor's calibration when it is
-        first seen (calibration/book.py), with the board's INFO to identify it."""
+        ``calibrations`` (calibration/book.py's CalibrationBook): a sensor's
+        calibration and load cycles when it is first seen, with the board's
+        INFO to identify it."""
         self.keep_history = keep_history
         self.decoder = Decoder()
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
-            self.reconstructor.resolve = lambda info: calibrations(self.interpreter.board, info)
+            self.reconstructor.resolve = lambda info: calibrations.for_sensor(self.interpreter.board, info)
+            self.reconstructor.load_cycles = lambda info, cid: calibrations.load_cycles(self.interpreter.board, info, cid)
         self.latest: dict[int, ForceFrame] = {}
         self.history = histories if histories is not None else Histories()
         self.rates: dict[int, RateMeter] = {}

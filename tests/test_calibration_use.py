@@ -114,7 +114,7 @@ def test_a_tare_while_loaded_is_refused_naming_the_taxel_unless_forced(calibrate
     sim, registry_path, _ = calibrated
     capture = validation_capture(sim.calibration, rate_hz=RATE_HZ, presses=loaded_start_presses(), **SERIALS)
     book = CalibrationBook(registry_path)
-    pipeline = Pipeline(Reconstructor(), clock=lambda: 0.0, calibrations=book.for_sensor)
+    pipeline = Pipeline(Reconstructor(), clock=lambda: 0.0, calibrations=book)
     pipeline.feed(capture.raw[: len(capture.raw) // 20], 0.0)  # ~0.5 s: the taxel is still pressed
     with pytest.raises(LoadedAtTare) as refused:
         pipeline.tare()
@@ -129,14 +129,15 @@ def test_a_recording_replays_with_its_own_calibration_after_the_registry_changed
 
     _, registry_path, cid = calibrated
     book = CalibrationBook(registry_path)
-    pipeline = Pipeline(Reconstructor(), calibrations=book.for_sensor)
+    pipeline = Pipeline(Reconstructor(), calibrations=book)
     recorder = Recorder(tmp_path / "run.mcap")
     recorder.attach(pipeline)
     for k in range(0, len(validation.raw), 4096):
         pipeline.feed(validation.raw[k:k + 4096], 1000.0 + k * 1e-6)
     assert recorder.stop()["error"] is None
     recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
-    assert recorded_calibrations(tmp_path / "run.mcap")[0]["id"] == cid
+    documents, cycles = recorded_calibrations(tmp_path / "run.mcap")
+    assert documents[0]["id"] == cid and cycles[0] == (cid, [0] * 64)
     with reg.Registry(registry_path) as registry:  # another calibration becomes the active one
         other = registry.get(cid)
         other["taxels"]["gain"] = [g * 1.05 for g in other["taxels"]["gain"]]

@@ -13,6 +13,10 @@ In this order, the first that has one for the sensor:
 4. none: the reconstruction's built-in one (table 1, fits 34/35), which
    every frame then names.
 
+Load-cycle counts (reconstruct/fatigue.py) come the same way: a
+recording's counts at its start, else the registry's for the sensor and the
+calibration in use; a live service saves them back (``save_cycles``).
+
 A registry that cannot be read is reported (``problems``) and skipped: a
 sensor's data never stops for its calibration. Lookups open the registry
 for the moment of the lookup (sensors are resolved once, when first seen,
@@ -61,8 +65,11 @@ def book_from_options(registry: str | None, calibration: list[str] | None, mount
     replay of an .mcap ``recording``, the calibrations it was made with."""
     from ..record.calibrations import recorded_calibrations
 
-    recorded = recorded_calibrations(recording) if recording is not None and Path(recording).suffix == ".mcap" else {}
-    return CalibrationBook(registry, load_pinned(calibration or [], registry), recorded, mounting=mounting)
+    recorded, cycles = {}, {}
+    if recording is not None and Path(recording).suffix == ".mcap":
+        recorded, cycles = recorded_calibrations(recording)
+    return CalibrationBook(registry, load_pinned(calibration or [], registry), recorded, mounting=mounting,
+                           recorded_cycles=cycles)
 
 
 class CalibrationBook:
@@ -70,10 +77,12 @@ class CalibrationBook:
     for the built-in one (module docstring for the order)."""
 
     def __init__(self, registry_path: str | Path | None = None, pinned: list[dict] | None = None,
-                 recorded: dict[int, dict] | None = None, use_registry: bool = True, mounting: str = "flat") -> None:
+                 recorded: dict[int, dict] | None = None, use_registry: bool = True, mounting: str = "flat",
+                 recorded_cycles: dict[int, tuple[str, list[int]]] | None = None) -> None:
         self.registry_path = registry_path
         self.pinned = list(pinned or [])
         self.recorded = dict(recorded or {})
+        self.recorded_cycles = dict(recorded_cycles or {})
         self.use_registry = use_registry
         self.mounting = mounting
         self.problems: list[str] = []
@@ -110,6 +119,25 @@ class CalibrationBook:
                 self.problems.append(problem)
                 log.warning("%s; sensors use the built-in calibrations", problem)
             return None
+
+    def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None:
+        """Load cycles kept for the sensor under this calibration: a
+        recording's own at its start, else the registry's (None: none)."""
+        recorded = self.recorded_cycles.get(info.id)
+        if recorded is not None and recorded[0] == calibration_id:
+            return recorded[1]
+        if not self.use_registry or self.recorded:
+            return None  # a replay of a recording counts from what it recorded, never from today's registry
+        with Registry(self.registry_path) as registry:
+            return registry.cycles(sensor_identity(board, info)["key"], calibration_id)
+
+    def save_cycles(self, board: dict, counts: dict) -> None:
+        """``counts``: Reconstructor.cycle_counts(); kept in the registry (a live service's, not a replay's)."""
+        if not self.use_registry or self.recorded or not counts:
+            return
+        entries = [(sensor_identity(board, info)["key"], cid, values) for info, cid, values in counts.values()]
+        with Registry(self.registry_path) as registry:
+            registry.save_cycles(entries)
 
     def store(self, document: dict) -> str:
         """Store and activate ``document`` (an upload through the API); its id."""

@@ -7,7 +7,8 @@ id: export → import gives it back, and a document whose id does not match
 its content is refused. Rows are never updated nor deleted (triggers refuse
 it); ``activate`` only moves the sensor's pointer. Each write is one
 transaction (SQLite, WAL journal): a crash leaves the previous state, never
-half a calibration.
+half a calibration. Load-cycle counts (reconstruct/fatigue.py) are the one
+mutable table: per sensor and calibration, so a recalibration starts anew.
 
 A sensor is identified as protocol.md says: its own ``serial`` when INFO
 carries one, else the board's serial (or name) and the sensor's id. An 8x8
@@ -43,6 +44,9 @@ CREATE TABLE IF NOT EXISTS calibrations (
 CREATE INDEX IF NOT EXISTS calibrations_sensor ON calibrations (sensor_key, created);
 CREATE TABLE IF NOT EXISTS active (
     sensor_key TEXT PRIMARY KEY, calibration_id TEXT NOT NULL REFERENCES calibrations (id), activated TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS cycles (
+    sensor_key TEXT NOT NULL, calibration_id TEXT NOT NULL, counts TEXT NOT NULL, updated TEXT NOT NULL,
+    PRIMARY KEY (sensor_key, calibration_id));
 CREATE TRIGGER IF NOT EXISTS calibrations_immutable BEFORE UPDATE ON calibrations
     BEGIN SELECT RAISE(ABORT, 'calibrations are immutable'); END;
 CREATE TRIGGER IF NOT EXISTS calibrations_kept BEFORE DELETE ON calibrations
@@ -161,6 +165,21 @@ class Registry:
     def activated_at(self, sensor_key: str) -> str | None:
         row = self._db.execute("SELECT activated FROM active WHERE sensor_key = ?", (sensor_key,)).fetchone()
         return row[0] if row else None
+
+    def cycles(self, sensor_key: str, cid: str) -> list[int] | None:
+        """Load cycles counted on the sensor since calibration ``cid`` became
+        its own (per taxel; a quad: one), None when none were kept."""
+        row = self._db.execute("SELECT counts FROM cycles WHERE sensor_key = ? AND calibration_id = ?",
+                               (sensor_key, cid)).fetchone()
+        return None if row is None else json.loads(row[0])
+
+    def save_cycles(self, entries: list[tuple[str, str, list[int]]]) -> None:
+        """(sensor key, calibration id, counts) of several sensors, in one transaction."""
+        with self._transaction():
+            self._db.executemany(
+                "INSERT INTO cycles VALUES (?, ?, ?, strftime('%Y-%m-%dT%H:%M:%SZ', 'now')) "
+                "ON CONFLICT (sensor_key, calibration_id) DO UPDATE SET counts = excluded.counts, "
+                "updated = excluded.updated", [(key, cid, json.dumps(counts)) for key, cid, counts in entries])
 
     def export(self, cid: str, path: str | Path) -> str:
         document = self.get(cid)

@@ -66,6 +66,7 @@ class CycleCounter:
         self.counts = np.zeros(n, dtype=np.int64) if counts is None else np.array(counts, dtype=np.int64)
         if self.counts.shape != (n,):
             raise ValueError(f"cycle counts: expected {n}, got {self.counts.size}")
+        self.at_start = self.counts.tolist()  # the counts it was made with
         self._armed = np.zeros(n, dtype=bool)  # above HIGH_N since it was last below LOW_N
         self._any_armed = False
 

@@ -127,15 +127,21 @@ class SensorStates:
         n = 1 if info.kind == "quad" else info.channels
         try:
             counts = self.load_cycles(info, calibration.id) if self.load_cycles is not None else None
-            return CycleCounter(n, counts)
+            counter = CycleCounter(n, counts)
         except Exception as exc:  # noqa: BLE001 — lost counts are a warning, never lost data
             log.warning("sensor %d: its load-cycle counts cannot be read (%s); counting from 0", info.id, exc)
-            return CycleCounter(n)
+            counter = CycleCounter(n)
+        counter.at_start = counter.counts.tolist()  # what a recording stores, so its replay starts from the same
+        return counter
 
     def cycle_counts(self) -> dict[int, tuple[SensorInfo, str, list[int]]]:
         """{sensor: (info, calibration id, counts)} to keep (the registry)."""
         return {sid: (state.info, state.calibration.id, state.cycles.counts.tolist())
                 for sid, state in list(self._sensors.items()) if state.cycles is not None}
+
+    def cycles_at_start(self, sensor_id: int) -> list[int] | None:
+        state = self._sensors.get(sensor_id)
+        return None if state is None or state.cycles is None else state.cycles.at_start
 
     def fatigue(self, sensor_id: int) -> dict | None:
         """Load cycles (max and total over taxels) and the sensitivity factor in use."""

@@ -8,14 +8,20 @@ import orjson
 from .mcap_reader import iter_messages
 
 
-def recorded_calibrations(path: str | Path) -> dict[int, dict]:
-    """{sensor id: document} of the first calibration each sensor used in
-    the recording (the recorder writes one before the first frame that uses
-    it); built-in ones (no document) are left out, as a replay without a
-    document uses the built-in calibration anyway."""
+def recorded_calibrations(path: str | Path) -> tuple[dict[int, dict], dict[int, tuple[str, list[int]]]]:
+    """({sensor id: document}, {sensor id: (calibration id, load cycles)}) of
+    the first calibration each sensor used in the recording (the recorder
+    writes one before the first frame that uses it) and the load-cycle
+    counts the sensor started with; built-in calibrations (no document) are
+    left out of the first, as a replay without a document uses the built-in
+    one anyway."""
     found: dict[int, dict] = {}
+    cycles: dict[int, tuple[str, list[int]]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
+        sensor = int(doc["sensor"])
         if doc.get("document") is not None:
-            found.setdefault(int(doc["sensor"]), doc["document"])
-    return found
+            found.setdefault(sensor, doc["document"])
+        if doc.get("cycles_at_start") is not None:
+            cycles.setdefault(sensor, (doc["id"], doc["cycles_at_start"]))
+    return found, cycles

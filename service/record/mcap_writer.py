@@ -79,8 +79,10 @@ class McapLog:
             return 3
         return 2
 
-    def calibration(self, sensor_id: int, calibration_id: str, document: dict | None, t_host: float) -> None:
-        self._add("/calibrations", "calibration", t_host, {"sensor": sensor_id, "id": calibration_id, "document": document})
+    def calibration(self, sensor_id: int, calibration_id: str, document: dict | None, cycles: list | None,
+                    t_host: float) -> None:
+        self._add("/calibrations", "calibration", t_host, {"sensor": sensor_id, "id": calibration_id,
+                                                           "document": document, "cycles_at_start": cycles})
 
     def diagnostics(self, t_host: float, diagnostics: dict) -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

@@ -103,16 +103,19 @@ class Recorder:
             self._last_diag = t_host
             self._queue.put(("diag", self._diagnostics(), t_host))
 
-    def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple[int, str, dict | None]]:
-        """(sensor, id, document) of calibrations these frames are the first to use."""
+    def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple[int, str, dict | None, list | None]]:
+        """(sensor, id, document, load cycles it started with) of calibrations
+        these frames are the first to use."""
         new = []
         for frame in frames:
             key = (frame.sensor.id, frame.calibration)
             if key not in self._calibrations_written:
                 self._calibrations_written.add(key)
-                calibration = self._pipeline.reconstructor.calibration(frame.sensor.id) if self._pipeline else None
-                document = calibration.document if calibration is not None and calibration.id == frame.calibration else None
-                new.append((frame.sensor.id, frame.calibration, document))
+                reconstructor = self._pipeline.reconstructor if self._pipeline else None
+                calibration = reconstructor.calibration(frame.sensor.id) if reconstructor else None
+                same = calibration is not None and calibration.id == frame.calibration
+                new.append((frame.sensor.id, frame.calibration, calibration.document if same else None,
+                            reconstructor.cycles_at_start(frame.sensor.id) if same else None))
         return new
 
     def stop(self, timeout: float = 10.0) -> dict:
@@ -178,8 +181,8 @@ class Recorder:
             for frame in payload:
                 self.messages += self._log.frame(frame)
         elif kind == "calibrations":
-            for sensor_id, calibration_id, document in payload:
-                self._log.calibration(sensor_id, calibration_id, document, t_host)
+            for sensor_id, calibration_id, document, cycles in payload:
+                self._log.calibration(sensor_id, calibration_id, document, cycles, t_host)
                 self.messages += 1
         else:
             self._log.diagnostics(t_host, payload)

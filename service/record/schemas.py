@@ -39,6 +39,8 @@ CALIBRATION = {
         "sensor": {"type": "integer"},
         "id": {"type": "string"},
         "document": {"type": ["object", "null"]},
+        "cycles_at_start": {"type": ["array", "null"], "items": {"type": "integer"},
+                            "description": "load cycles counted under this calibration when the recording began"},
     },
 }
 
