@@ -145,7 +145,8 @@ def run_presses(calibration: GridCalibration, presses: list[Press], rate_hz: flo
                 seed: int = 0, keep_truth: bool = False, **board) -> tuple[bytes, ScheduleScene, object]:
     """The board's bytes for ``presses`` on a grid of ``calibration`` (sensor 0)."""
     scene = ScheduleScene(presses)
-    grid = SimGrid(0, calibration=calibration, serial=board.pop("sensor_serial", None))
+    grid = SimGrid(0, calibration=calibration, serial=board.pop("sensor_serial", None),
+                   electrical_leakage=board.pop("leakage", 0.0))
     config = BoardConfig(sensors=[grid], rate_hz=rate_hz, scene=scene, noise_fF=noise_fF, seed=seed,
                          name=board.pop("name", "tactile-sim-8x8"), **board)
     raw, sim = capture(config, scene.end_s, keep_truth=keep_truth)

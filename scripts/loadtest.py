@@ -60,8 +60,10 @@ def proc_sample(pid: int) -> tuple[float, int]:
 
 
 HEADER = np.dtype([("version", "u1"), ("kind", "u1"), ("sid", "u1"), ("field_bits", "u1"), ("seq", "<u2"),
-                   ("t_us", "<u4"), ("stamp", "<f8"), ("flag_bits", "<u4"), ("n", "<u2")])
+                   ("t_us", "<u4"), ("stamp", "<f8"), ("flag_bits", "<u4"), ("n", "<u2"), ("m", "u1")])
 COUNT_AT = struct.Struct("<H").unpack_from
+FIELDS_AT = struct.Struct("<B").unpack_from
+SIZES_AT = struct.Struct("<HB").unpack_from  # n (forces), m (calibration id bytes)
 HEADER_BYTES = np.arange(HEADER.itemsize)
 SEQ_WRAP = 1 << 16
 
@@ -83,9 +85,11 @@ class Tally:
     def binary(self, message: bytes, now: float) -> None:
         (count,) = COUNT_AT(message, 0)
         starts, pos = [], 2
-        for _ in range(count):
+        for _ in range(count):  # the record layout: service/fanout/encoding.py (binary version 2)
             starts.append(pos)
-            pos += HEADER.itemsize + 4 * COUNT_AT(message, pos + HEADER.itemsize - 2)[0]
+            n, m = SIZES_AT(message, pos + HEADER.itemsize - 3)
+            blocks = 1 + bool(FIELDS_AT(message, pos + 3)[0] & 4)  # forces, σ if asked (raw never is, here)
+            pos += HEADER.itemsize + m + 4 * n * blocks
         raw = np.frombuffer(message, np.uint8)[np.add.outer(starts, HEADER_BYTES)]
         headers = raw.view(HEADER)[:, 0]
         self._sids.append(headers["sid"])

@@ -170,3 +170,29 @@ def test_an_unreadable_registry_leaves_the_builtin_calibration_and_says_why(vali
     lines = exported(validation.raw, tmp_path, book)
     assert {line["calibration"] for line in lines} == {"builtin-table1"}
     assert book.problems and str(bad) in book.problems[0]
+
+
+def test_crosstalk_measured_in_the_session_is_compensated_from_the_first_frame(tmp_path):
+    """A board whose multiplexer leaks 3 %: the session measures the leakage
+    and the coupling, the calibration carries them, and a capture with
+    presses from its start is right at once."""
+    sim = session(rate_hz=RATE_HZ, seed=5, leakage=0.03, **SERIALS)
+    raw, ref = tmp_path / "session.bin", tmp_path / "reference.csv"
+    raw.write_bytes(sim.raw)
+    ref.write_text(sim.reference_csv)
+    result = calibrate(raw, ref)
+    print(f"session crosstalk: {result.crosstalk}")
+    assert result.crosstalk["electrical"] == pytest.approx(0.03, abs=0.0005)
+    assert result.crosstalk["mechanical"] == pytest.approx(-0.0028, abs=0.001)  # the simulator's paper value
+    registry_path = tmp_path / "registry.sqlite3"
+    with reg.Registry(registry_path) as registry:
+        registry.add(document(result, registry.active("sensor:A8-2291")), activate=True)
+    capture = validation_capture(sim.calibration, rate_hz=RATE_HZ, leakage=0.03, **SERIALS)
+    outcome = {}
+    for name, book in (("session crosstalk", CalibrationBook(registry_path)), ("table 1", None)):
+        error, _, truth = errors_and_sigmas(exported(capture.raw, tmp_path, book), capture)
+        first = slice(0, 1000 * 64)  # the first 1000 frames
+        outcome[name] = (float(np.abs(error[first]).max()),
+                         int(np.count_nonzero((truth[first] == 0) & (np.abs(error[first]) > 0.05))))
+    print(f"first 1000 frames, worst error and unloaded samples over 0.05 N: {outcome}")
+    assert outcome["session crosstalk"][0] < 0.06 and outcome["session crosstalk"][1] == 0

@@ -16,6 +16,7 @@ import numpy as np
 
 from . import registry
 from .alignment import Alignment, align, total_response
+from .crosstalk_session import session_crosstalk, unleaked
 from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, read_reference
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
@@ -41,6 +42,7 @@ class Calibration:
     full_scale_N: float
     samples: dict = field(default_factory=dict)  # taxel → segmentation.TaxelSamples
     timings_s: dict[str, float] = field(default_factory=dict)
+    crosstalk: dict | None = None  # {mechanical, electrical, events} measured in the session (crosstalk_session.py)
 
     @property
     def flagged_presses(self) -> list[Press]:
@@ -61,6 +63,11 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
     session = load_session(session_path, sensor_id)
     reference = read_reference(reference_path)
     lap("read")
+    rows, cols = session.info.rows, session.info.cols
+    crosstalk = session_crosstalk(session.capacitance_pF, rows, cols)
+    if crosstalk is not None:
+        session.capacitance_pF = unleaked(session.capacitance_pF, rows, cols, crosstalk["electrical"])
+    lap("crosstalk")
     alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
     lap("align")
     t_ref_board = alignment.to_board(reference.t_s)
@@ -81,7 +88,7 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
     if not fits:
         raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
     return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,
-                       timings)
+                       timings, crosstalk)
 
 
 def identity(session: BoardSession) -> dict:
@@ -126,6 +133,7 @@ def document(result: Calibration, previous: dict | None = None, created: str | N
         "sources": [{"role": "session", "name": str(result.session.path), "sha256": result.session.sha256},
                     {"role": "reference", "name": result.reference.path, "sha256": file_sha256(result.reference.path)}],
         "alignment": a.as_dict(),
+        **({"crosstalk": result.crosstalk} if result.crosstalk is not None else {}),
         "statistics": {"presses": len(result.presses), "flagged_presses": len(result.flagged_presses),
                        "reference_noise_N": result.reference_noise_N, "reference_skipped_lines": result.reference.skipped,
                        "taxels_fitted": sorted(result.fits), "taxels_failed": {str(t): m for t, m in result.problems.items()},
@@ -144,6 +152,9 @@ def summary_lines(result: Calibration) -> list[str]:
              f"(runner-up lag {a.runner_up_lag_s:+.2f} s: {a.runner_up:.3f} against {a.coarse_best:.3f})",
              f"presses: {len(result.presses)} ({len(result.flagged_presses)} set aside), reference noise "
              f"{result.reference_noise_N:.4f} N",
+             "crosstalk: " + ("too few isolated presses to measure" if result.crosstalk is None else
+                              f"mechanical {result.crosstalk['mechanical']:+.4f}, multiplexer leakage "
+                              f"{result.crosstalk['electrical']:.4f} ({result.crosstalk['events']} isolated frames)"),
              "taxel     C0 pF   sens %/N (LS) (origin)   gain ± se          RMS N   presses  max N  model"]
     for t in sorted(result.fits):
         name, c0, sens, origin, gain, rms, presses, max_n, model = table_cells(t, cols, result.fits[t])

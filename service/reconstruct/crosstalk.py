@@ -59,6 +59,14 @@ class Crosstalk:
         out = np.einsum("...j,jk->...k", np.where(missing, 0.0, relative), self._unmix)
         return np.where(missing, np.nan, out)
 
+    def leak(self, capacitance: np.ndarray) -> np.ndarray:
+        """What the multiplexer reads, (..., n) pF: each channel (1 − α) of
+        its own and α of the one scanned before it (the first: of nothing),
+        the filter ``unleak`` inverts."""
+        out = (1.0 - self.electrical) * np.asarray(capacitance, dtype=float)
+        out[..., 1:] += self.electrical * np.asarray(capacitance)[..., :-1]
+        return out
+
     def unleak(self, capacitance: np.ndarray, fill: np.ndarray) -> np.ndarray:
         """Undo the leakage, (..., n) pF. A channel with no reading is taken
         as ``fill`` (its baseline) for what it leaks into the next one."""

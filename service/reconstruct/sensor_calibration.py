@@ -36,6 +36,7 @@ from ..physics.paper_data import (BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS,
 from ..physics.quad_model import QuadModel
 from ..physics.taxel_response import SENSITIVITY_RANGE_PCT_PER_N, TaxelResponse, model_table, taxel_response
 from ..readings import SensorInfo
+from .crosstalk import Crosstalk
 from .fatigue import PAPER_001, FatigueModel
 
 ID_HEX = 16
@@ -75,6 +76,7 @@ class SensorCalibration:
     quad: QuadModel | None = None
     quad_relative_se: tuple[float, float] = (BUILTIN_RELATIVE_SE, BUILTIN_RELATIVE_SE)  # normal, shear slopes
     fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
+    tare_c0_pF: np.ndarray | None = None  # grid (n,): C0 as the multiplexer reads it (leakage applied), what a tare sees
     document: dict | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -151,21 +153,30 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     curves, model_sigma = _curves(taxels.get("curves") or {}, n, residual)
     sensitivity = _numbers(taxels, "sensitivity_pct_per_N", n, missing_ok=True) / 100.0
     sensitivity = np.where(np.isnan(sensitivity), _ls_sensitivity(response), sensitivity)
-    crosstalk = document.get("crosstalk")
-    coupling = None
-    if crosstalk is not None:
-        coupling = (float(crosstalk.get("mechanical", 0.0)), float(crosstalk.get("electrical", 0.0)))
-        if not (-0.05 <= coupling[0] <= 0.0 and 0.0 <= coupling[1] <= 0.3):
-            raise ValueError(f"crosstalk: mechanical {coupling[0]} must be in [-0.05, 0], electrical {coupling[1]} in [0, 0.3]")
+    coupling = _coupling(document.get("crosstalk"))
     # C0 is this sensor's where the document says so (an upload without c0_pF
     # carries table 1's) and the taxel's values are not carried from a built-in.
     sources = taxels.get("source") if isinstance(taxels.get("source"), list) else [None] * n
     measured = np.array([bool(document.get("c0_measured", True)) and not str(src).startswith("builtin")
                          for src in sources[:n]] + [False] * (n - len(sources[:n])))
+    tare_c0 = c0 if coupling is None else Crosstalk(info.rows, info.cols, *coupling).leak(c0)
     return SensorCalibration(cid, "grid", document.get("created"), measured,
                              GridCalibration(info.rows, info.cols, c0, sensitivity), response, relative_se, model_sigma,
                              curves, coupling, fatigue=FatigueModel.from_document(document.get("fatigue"), None),
-                             document=document)
+                             tare_c0_pF=tare_c0, document=document)
+
+
+def _coupling(crosstalk: dict | None) -> tuple[float, float] | None:
+    """(mechanical, electrical) of a document's ``crosstalk``, checked."""
+    if crosstalk is None:
+        return None
+    try:
+        coupling = (float(crosstalk.get("mechanical", 0.0)), float(crosstalk.get("electrical", 0.0)))
+    except (AttributeError, TypeError, ValueError):
+        raise ValueError("crosstalk: expected {mechanical: number, electrical: number}") from None
+    if not (-0.05 <= coupling[0] <= 0.0 and 0.0 <= coupling[1] <= 0.3):
+        raise ValueError(f"crosstalk: mechanical {coupling[0]} must be in [-0.05, 0], electrical {coupling[1]} in [0, 0.3]")
+    return coupling
 
 
 def _ls_sensitivity(response: TaxelResponse) -> np.ndarray:

@@ -177,7 +177,7 @@ class SensorStates:
         if calibration is None or calibration.measured is None or not calibration.measured.any():
             return []
         std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
-        return np.flatnonzero(loaded_taxels(calibration.grid.c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
+        return np.flatnonzero(loaded_taxels(calibration.tare_c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
 
     def loaded_at_tare(self, sensor_id: int) -> list[int]:
         """Taxels whose zero is the calibration's C0 since the last tare."""
@@ -191,9 +191,9 @@ class SensorStates:
         if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
             return
         baseline = state.baseline
-        loaded = loaded_taxels(calibration.grid.c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
+        loaded = loaded_taxels(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
         if loaded.any():
-            baseline.substitute(loaded, calibration.grid.c0_pF)
+            baseline.substitute(loaded, calibration.tare_c0_pF)
             state.loaded = loaded
             log.warning("sensor %d: taxels %s were loaded at tare; their zero is the calibration's C0",
                         state.info.id, np.flatnonzero(loaded).tolist())
