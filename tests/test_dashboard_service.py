@@ -99,3 +99,31 @@ def test_the_end_of_a_replay_is_shown(browser, tmp_path):
         assert int(page.get_attribute('section[data-sensor="0"]', "data-frames")) > 0  # its last frames stay on screen
         page.screenshot(path=str(REPLAY_SCREENSHOT))
         page.close()
+
+
+def test_each_panel_says_which_calibration_its_forces_rest_on(browser, tmp_path):
+    """An uploaded calibration is stored in the registry the service was given
+    and named, with its age, under the grid; the quad says it runs on the
+    paper's built-in fits."""
+    registry = tmp_path / "registry.sqlite3"
+    with tactile("serve", "--source", "sim://?sensors=grid,quad", "--registry", str(registry), cwd=tmp_path) as url:
+        body = json.dumps({"sensitivity_pct_per_N": [1.3] * 64}).encode()
+        request = urllib.request.Request(url + "sensors/0/calibration", body, method="PUT",
+                                         headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=10) as response:
+            stored = json.load(response)
+        assert stored["stored"] and stored["active"]
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(url)
+        grid = page.locator('.panel[data-sensor="0"] .calibration')
+        quad = page.locator('.panel[data-sensor="1"] .calibration')
+        page.wait_for_function("document.querySelector('.panel[data-sensor=\"1\"] .calibration')?.textContent.length > 0",
+                               timeout=10_000)
+        assert grid.text_content().startswith(f"calibration {stored['id']}, 0.0 h old")
+        assert "builtin" not in (grid.get_attribute("class") or "").split()
+        assert quad.text_content().startswith("calibration: built-in builtin-fits34-35 (the paper's, not measured")
+        page.close()
+    from service.calibration.registry import Registry
+
+    with Registry(registry) as kept:  # the upload outlives the service
+        assert kept.get(stored["id"])["taxels"]["sensitivity_pct_per_N"] == [1.3] * 64

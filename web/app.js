@@ -119,11 +119,12 @@ function createPanel(id, info) {
   const live = makeCanvas("live");
   const history = makeCanvas("history");
   const meta = element("div", "meta", "waiting for data…");
+  const calibration = element("div", "calibration");
   el.append(element("div", "panel-head"), live);
   el.firstChild.append(title, flags);
   if (info.kind === "grid") el.append(colourScale());
-  el.append(history, meta);
-  const panel = { id, el, title, flags, live, history, meta, board: info.board ?? null,
+  el.append(history, meta, calibration);
+  const panel = { id, el, title, flags, live, history, meta, calibration, board: info.board ?? null,
                   frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "" };
   describePanel(panel, info);
   placePanel(panel);
@@ -310,8 +311,35 @@ function drawQuad(panel) {
   const radius = Math.min(view.h / 2 - 24, view.w * 0.32);
   drawShearDial(view.ctx, view.w * 0.38, view.h / 2, radius, fx, fy);
   drawFzBar(view.ctx, view.w * 0.78, 18, barHeight, fz);
-  const fmt = (v) => (v === null ? "—" : v.toFixed(2));
-  panel.meta.textContent = `seq ${panel.frame.header.seq} · Fx ${fmt(fx)} · Fy ${fmt(fy)} · Fz ${fmt(fz)} N`;
+  const sigma = panel.frame.wrench_sigma ? panel.frame.wrench_sigma.force : {};
+  const fmt = (v, s) => (v === null ? "—" : v.toFixed(2) + (s === null || s === undefined ? "" : ` ± ${s.toFixed(2)}`));
+  panel.meta.textContent = `seq ${panel.frame.header.seq} · Fx ${fmt(fx, sigma.x)} · Fy ${fmt(fy, sigma.y)} · ` +
+    `Fz ${fmt(fz, sigma.z)} N (± 1σ)`;
+}
+
+// ---- calibration ------------------------------------------------------------
+
+function age(seconds) {
+  if (seconds === null || seconds === undefined) return "";
+  const days = seconds / 86400;
+  return days >= 1 ? `, ${days.toFixed(0)} d old` : `, ${(seconds / 3600).toFixed(1)} h old`;
+}
+
+// Which calibration a sensor's forces rest on (from /health): a built-in one is
+// the papers', not this sensor's, and says so; loaded taxels and load cycles too.
+function showCalibration(panel, state, fatigue) {
+  if (!state) return;
+  const parts = [state.builtin ? `calibration: built-in ${state.id} (the paper's, not measured on this sensor)`
+                               : `calibration ${state.id}${age(state.age_s)}`];
+  if (state.problem) parts.push(`its own could not be used: ${state.problem}`);
+  if (state.loaded_at_tare && state.loaded_at_tare.length)
+    parts.push(`loaded at tare: taxels ${state.loaded_at_tare.join(", ")} (zero from the calibration)`);
+  if (fatigue && fatigue.cycles_max) {
+    const factor = fatigue.sensitivity_factor === null ? "" : `, sensitivity ×${fatigue.sensitivity_factor.toFixed(3)}`;
+    parts.push(`${fatigue.cycles_max} load cycles${factor}`);
+  }
+  panel.calibration.textContent = parts.join(" · ");
+  panel.calibration.classList.toggle("builtin", state.builtin || Boolean(state.problem));
 }
 
 // ---- flags --------------------------------------------------------------
@@ -553,11 +581,26 @@ async function pollHealth() {
   }
   showStatus(...describeStatus(health));
   document.getElementById("stats").textContent = statsText(health);
+  for (const [id, sensor] of Object.entries(health.sensors || {})) {
+    const panel = panels.get(Number(id));
+    if (panel) showCalibration(panel, sensor.calibration, sensor.fatigue);
+  }
   const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();
   if (recording) showRecording(recording);
 }
 
-document.getElementById("tare").addEventListener("click", () => fetch("/tare", { method: "POST", headers: authHeaders }));
+// A tare with taxels loaded against their calibration's C0 is refused (409):
+// say which, and tare anyway only if the user confirms the load is the zero.
+async function tare() {
+  const answer = await fetch("/tare", { method: "POST", headers: authHeaders });
+  if (answer.status !== 409) return;
+  const detail = (await answer.json()).detail || {};
+  const loaded = Object.entries(detail.loaded_taxels || {}).map(([s, t]) => `sensor ${s}: taxels ${t.join(", ")}`);
+  if (window.confirm(`These taxels read loaded, so a tare would make the load their zero:\n${loaded.join("\n")}\n\nTare anyway?`))
+    await fetch("/tare?force=true", { method: "POST", headers: authHeaders });
+}
+
+document.getElementById("tare").addEventListener("click", tare);
 recordButton.addEventListener("click", toggleRecording);
 
 loadSensors();
