@@ -54,8 +54,8 @@ TAXEL_FLAG_NAMES = {
     LOADED_AT_TARE: "loaded_at_tare",  # zero from the calibration's C0 (loaded_tare.py)
 }
 STUCK_FRAMES = 50
-ADOPT_AFTER_EVENTS = 50  # isolated loads needed before a detected coefficient replaces the prior
-ADOPT_PERIOD_FRAMES = 256  # estimates are adopted only at multiples of this frame count
+ADOPT_AFTER_EVENTS = 10  # isolated loads needed before a detected coefficient replaces the prior (the first press)
+ADOPT_PERIOD_FRAMES = 64  # estimates are adopted only at multiples of this frame count
 ESTIMATE_EVERY = 4
 
 
