@@ -222,3 +222,33 @@ def test_a_six_minute_session_at_1khz_calibrates_in_under_ten_seconds(tmp_path):
           f"{1e3 * (a.offset_s - sim.offset_s):+.3f} ms, {a.rate_ppm - sim.rate_ppm:+.2f} ppm; RMS table 1 "
           f"{before:.4f} N, calibrated {after:.4f} N")
     assert elapsed < 10.0 and after <= 0.015 and before >= 0.15
+
+
+def test_a_table_imports_only_with_its_sensitivity_reading_named(tmp_path, capsys):
+    """Table 1 itself, imported in both readings: the intercept reading gives
+    the built-in gains; read through the origin, the same numbers need gains
+    ~2.3 % higher (the origin slope of this curve is the lower one)."""
+    from service.calibration.cli import main
+    from service.physics.paper_data import table1
+
+    table = tmp_path / "table.csv"
+    base = table1()
+    table.write_text("row,col,c0_pF,sensitivity_pct_per_N\n" + "".join(
+        f"{t // 8 + 1},{t % 8 + 1},{base.c0_pF[t]},{100 * base.sensitivity_per_N[t]}\n" for t in range(64)))
+    registry = str(tmp_path / "r.sqlite3")
+    assert main(["calibrations", "import", str(table), "--registry", registry]) == 2
+    assert "--sensitivity-fit intercept|origin" in capsys.readouterr().err
+    ids = {}
+    for reading in ("intercept", "origin"):
+        assert main(["calibrations", "import", str(table), "--registry", registry, "--sensitivity-fit", reading,
+                     "--sensor-key", "sensor:T1"]) == 0
+        ids[reading] = capsys.readouterr().out.split()[1]
+    with reg.Registry(registry) as r:
+        intercept, origin = (np.array(r.get(ids[k])["taxels"]["gain"]) for k in ("intercept", "origin"))
+    np.testing.assert_allclose(intercept, reg.builtin_document()["taxels"]["gain"], rtol=1e-12)
+    assert 0.015 < float(np.mean(origin / intercept - 1)) < 0.04
+    bad = tmp_path / "bad.csv"
+    bad.write_text("row,col,c0_pF,sensitivity_pct_per_N\n1,1,9.7,abc\n")
+    assert main(["calibrations", "import", str(bad), "--registry", registry, "--sensitivity-fit", "origin",
+                 "--sensor-key", "sensor:T1"]) == 2
+    assert "bad.csv, line 2" in capsys.readouterr().err

@@ -49,9 +49,16 @@ def add_parsers(subparsers) -> None:
     export.add_argument("id", help="a calibration id (a unique prefix will do)")
     export.add_argument("out", metavar="OUT.json", help="the JSON file to write")
     _registry_option(export)
-    imp = cals.add_parser("import", help="store a calibration exported elsewhere (same id)")
-    imp.add_argument("file", metavar="IN.json", help="a calibration exported by `tactile calibrations export`")
+    imp = cals.add_parser("import", help="store a calibration exported elsewhere (same id), or a table-1-style CSV")
+    imp.add_argument("file", metavar="IN.json|TABLE.csv",
+                     help="a calibration exported by `tactile calibrations export`, or a CSV with columns "
+                          "row,col,c0_pF,sensitivity_pct_per_N (needs --sensitivity-fit and --sensor-key)")
     imp.add_argument("--activate", action="store_true", help="also make it its sensor's active one")
+    imp.add_argument("--sensitivity-fit", choices=["intercept", "origin"],
+                     help="a CSV's sensitivity is the 0-10 N least-squares slope with an intercept (table 1's) "
+                          "or through the origin (they differ by ~2.5 %%): required for a CSV")
+    imp.add_argument("--sensor-key", help="a CSV's sensor, as the registry names it (e.g. sensor:A8-2291 or "
+                                          "board:TMX-000123/sensor:0)")
     _registry_option(imp)
     listing.set_defaults(func=cmd_list)
     for name, func in (("show", cmd_show), ("activate", cmd_activate), ("export", cmd_export), ("import", cmd_import)):
@@ -118,8 +125,18 @@ def cmd_export(args) -> int:
 
 
 def cmd_import(args) -> int:
+    from pathlib import Path
+
+    document = None
+    if Path(args.file).suffix.lower() == ".csv":
+        from .table_import import table_document
+
+        if not args.sensitivity_fit or not args.sensor_key:
+            raise ValueError(f"{args.file}: a table's sensitivity is ambiguous: name its reading with "
+                             "--sensitivity-fit intercept|origin, and its sensor with --sensor-key")
+        document = table_document(args.file, args.sensitivity_fit, args.sensor_key)
     with Registry(args.registry) as registry:
-        cid = registry.import_(args.file)
+        cid = registry.import_(args.file) if document is None else registry.add(document)
         if args.activate:
             registry.activate(cid)
     print(f"imported {cid}{' (active)' if args.activate else ''}")

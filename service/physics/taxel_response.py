@@ -51,6 +51,14 @@ def _ls_slope(forces: np.ndarray, values: np.ndarray) -> np.ndarray:
     return ((values - values.mean(axis=-1, keepdims=True)) * f).sum(axis=-1) / (f * f).sum()
 
 
+def _origin_slope(forces: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Least-squares slope through the origin along the last axis."""
+    return (values * forces).sum(axis=-1) / (forces * forces).sum()
+
+
+SENSITIVITY_READINGS = ("intercept", "origin")
+
+
 @dataclass(frozen=True)
 class TaxelResponse:
     """ΔC/C0 ↔ force for ``n`` taxels sharing one model curve.
@@ -64,18 +72,25 @@ class TaxelResponse:
 
     @classmethod
     def from_table(cls, force_N: np.ndarray, relative: np.ndarray, sensitivity_per_N: np.ndarray,
-                   dense: tuple[np.ndarray, np.ndarray] | None = None) -> TaxelResponse:
+                   dense: tuple[np.ndarray, np.ndarray] | None = None, reading: str = "intercept") -> TaxelResponse:
+        """Gains whose curves have ``sensitivity_per_N`` (n,) as their slope
+        over 0–10 N in ``reading``: "intercept" (least squares with an
+        intercept, table 1's) or "origin" (through the origin, ~2.5 %
+        lower on this curve, so the same number needs a higher gain)."""
+        if reading not in SENSITIVITY_READINGS:
+            raise ValueError(f"sensitivity reading {reading!r}: one of {', '.join(SENSITIVITY_READINGS)}")
+        slope = _ls_slope if reading == "intercept" else _origin_slope
         force_N, relative = np.asarray(force_N, float), np.asarray(relative, float)
         if np.any(np.diff(relative) <= 0) or np.any(np.diff(force_N) <= 0):
             raise ValueError("a taxel table must be strictly increasing in force and ΔC/C0")
         sensitivity = np.asarray(sensitivity_per_N, float)
         if np.any(sensitivity <= 0):
             raise ValueError(f"sensitivities must be positive, got min {sensitivity.min()}")
-        model_slope = _ls_slope(SENSITIVITY_FORCES_N, np.interp(SENSITIVITY_FORCES_N, force_N, relative))
+        model_slope = slope(SENSITIVITY_FORCES_N, np.interp(SENSITIVITY_FORCES_N, force_N, relative))
         gain = sensitivity / model_slope
         for _ in range(20):  # fixed point: the curve is nearly linear, so this converges in a few steps
             scaled = np.interp(np.outer(gain, SENSITIVITY_FORCES_N), force_N, relative)
-            gain = gain * sensitivity / _ls_slope(SENSITIVITY_FORCES_N, scaled)
+            gain = gain * sensitivity / slope(SENSITIVITY_FORCES_N, scaled)
         return cls(force_N, relative, gain, dense)
 
     def check(self) -> None:
