@@ -22,10 +22,12 @@ def _registry_option(parser: argparse.ArgumentParser) -> None:
 
 def add_parsers(subparsers) -> None:
     """Register ``calibrate`` and ``calibrations`` on ``subparsers``."""
-    cal = subparsers.add_parser("calibrate", help="calibrate a grid from a reference-load session")
+    cal = subparsers.add_parser("calibrate", help="calibrate a grid or a quad from a reference-load session")
     cal.add_argument("session", metavar="SESSION", help="the board's bytes: raw capture (.bin) or recording (.mcap)")
-    cal.add_argument("--reference", required=True, metavar="REF.csv", help="the reference instrument's t_s,force_N log")
-    cal.add_argument("--sensor", type=int, metavar="ID", help="grid sensor id on the board (default: the only grid)")
+    cal.add_argument("--reference", required=True, metavar="REF.csv",
+                     help="the reference instrument's log: t_s,force_N (a grid) or t_s,fx_N,fy_N,fz_N (a quad)")
+    cal.add_argument("--sensor", type=int, metavar="ID", help="sensor id on the board (default: the only grid, "
+                                                              "or the only quad for a 3-axis reference)")
     _registry_option(cal)
     cal.add_argument("--report", metavar="DIR", help="write calibration.md, response.png, residuals.png here")
     cal.add_argument("--full-scale", type=float, default=10.0, metavar="N", help="full scale in N (default: %(default)s)")
@@ -73,6 +75,8 @@ def cmd_calibrate(args) -> int:
 
         require("the calibration report's PNGs")
     started = time.perf_counter()
+    if _three_axis(args.reference):
+        return _calibrate_quad(args, started)
     result = calibrate(args.session, args.reference, args.sensor, args.full_scale, args.mounting, args.partial)
     with Registry(args.registry) as registry:
         key = registry_key(result)
@@ -90,10 +94,33 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def registry_key(result) -> str:
-    from .calibrate import identity
+def _three_axis(path: str) -> bool:
+    """Whether the reference is a force/torque log (a quad's session)."""
+    from .reference import HEADER_3D
 
-    return identity(result.session)["key"]
+    try:
+        with open(path, encoding="utf-8", errors="replace") as stream:
+            return tuple(c.strip() for c in stream.readline().split(",")) == HEADER_3D
+    except FileNotFoundError:
+        return False  # the grid path says which file is missing
+
+
+def _calibrate_quad(args, started: float) -> int:
+    from .calibrate_quad import calibrate_quad, quad_document, quad_summary
+
+    result = calibrate_quad(args.session, args.reference, args.sensor)
+    with Registry(args.registry) as registry:
+        cid = registry.add(quad_document(result), activate=not args.no_activate)
+    print("\n".join(quad_summary(result)))
+    print(f"stored {cid} for {registry_key(result)} in {registry.path}{'' if args.no_activate else ' (active)'}; "
+          f"calibrated in {time.perf_counter() - started:.2f} s")
+    return 0
+
+
+def registry_key(result) -> str:
+    from .registry import sensor_identity
+
+    return sensor_identity(result.session.board, result.session.info)["key"]
 
 
 def cmd_list(args) -> int:

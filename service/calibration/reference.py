@@ -1,4 +1,6 @@
-"""The reference instrument's log: a CSV ``t_s,force_N`` on its own clock.
+"""The reference instrument's log: a CSV ``t_s,force_N`` (a balance or load
+cell: a grid's session) or ``t_s,fx_N,fy_N,fz_N`` (a force/torque sensor: a
+quad's) on its own clock.
 
 Blank and non-numeric lines are skipped and counted (instruments write
 status lines, repeated headers, half-written last lines); a reference
@@ -13,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 HEADER = ("t_s", "force_N")
+HEADER_3D = ("t_s", "fx_N", "fy_N", "fz_N")
 MAX_LISTED_SKIPS = 20
 
 
@@ -24,47 +27,51 @@ class Reference:
 
     path: str
     t_s: np.ndarray
-    force_N: np.ndarray
+    force_N: np.ndarray  # a 3-axis log's: Fz, the normal force
     skipped: int
     skipped_lines: tuple[int, ...]
+    fxyz_N: np.ndarray | None = None  # (k, 3) of a 3-axis log
 
     @property
     def rate_hz(self) -> float:
         return (len(self.t_s) - 1) / (self.t_s[-1] - self.t_s[0]) if len(self.t_s) > 1 else 0.0
 
 
-def _numbers(line: str) -> tuple[float, float] | None:
+def _numbers(line: str, columns: int) -> tuple[float, ...] | None:
     parts = line.split(",")
-    if len(parts) != 2:
+    if len(parts) != columns:
         return None
     try:
-        t, f = float(parts[0]), float(parts[1])
+        values = tuple(float(p) for p in parts)
     except ValueError:
         return None
-    return (t, f) if math.isfinite(t) and math.isfinite(f) else None
+    return values if all(math.isfinite(v) for v in values) else None
 
 
 def parse_reference(text: str, path: str = "<reference>") -> Reference:
     """Parse the CSV text; ValueError naming ``path`` and the line for a
     missing header, time running backwards, or no numeric line at all."""
     lines = text.splitlines()
-    if not lines or tuple(c.strip() for c in lines[0].split(",")) != HEADER:
-        raise ValueError(f"{path}:1: the reference needs the header 't_s,force_N', got {lines[0][:60] if lines else ''!r}")
-    t, f, skipped = [], [], []
+    header = tuple(c.strip() for c in lines[0].split(",")) if lines else ()
+    if header not in (HEADER, HEADER_3D):
+        raise ValueError(f"{path}:1: the reference needs the header 't_s,force_N' or 't_s,fx_N,fy_N,fz_N', "
+                         f"got {lines[0][:60] if lines else ''!r}")
+    rows, skipped = [], []
     for number, line in enumerate(lines[1:], start=2):
-        values = _numbers(line.strip())
+        values = _numbers(line.strip(), len(header))
         if values is None:
             skipped.append(number)
             continue
-        if t and values[0] <= t[-1]:
-            raise ValueError(f"{path}:{number}: time {values[0]} s does not follow {t[-1]} s "
+        if rows and values[0] <= rows[-1][0]:
+            raise ValueError(f"{path}:{number}: time {values[0]} s does not follow {rows[-1][0]} s "
                              "(the reference must be in time order, without repeats)")
-        t.append(values[0])
-        f.append(values[1])
-    if len(t) < 2:
-        raise ValueError(f"{path}: the reference has {'no' if not t else 'only one'} numeric line "
+        rows.append(values)
+    if len(rows) < 2:
+        raise ValueError(f"{path}: the reference has {'no' if not rows else 'only one'} numeric line "
                          f"({len(skipped)} lines skipped)")
-    return Reference(path, np.array(t), np.array(f), len(skipped), tuple(skipped[:MAX_LISTED_SKIPS]))
+    table = np.array(rows)
+    fxyz = table[:, 1:] if header == HEADER_3D else None
+    return Reference(path, table[:, 0], table[:, -1], len(skipped), tuple(skipped[:MAX_LISTED_SKIPS]), fxyz)
 
 
 def read_reference(path: str | Path) -> Reference:

@@ -49,16 +49,16 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def _pick_grid(sensors: dict[int, SensorInfo], sensor_id: int | None, path: str) -> SensorInfo:
-    grids = {sid: info for sid, info in sensors.items() if info.kind == "grid"}
+def _pick(sensors: dict[int, SensorInfo], sensor_id: int | None, path: str, kind: str) -> SensorInfo:
+    mine = {sid: info for sid, info in sensors.items() if info.kind == kind}
     if sensor_id is not None:
-        if sensor_id not in grids:
-            raise ValueError(f"{path}: no grid sensor {sensor_id} in the session (grids: {sorted(grids) or 'none'})")
-        return grids[sensor_id]
-    if len(grids) != 1:
-        raise ValueError(f"{path}: {len(grids) or 'no'} grid sensors in the session; name one with --sensor "
-                         f"(grids: {sorted(grids)})" if grids else f"{path}: no grid sensor in the session")
-    return next(iter(grids.values()))
+        if sensor_id not in mine:
+            raise ValueError(f"{path}: no {kind} sensor {sensor_id} in the session ({kind}s: {sorted(mine) or 'none'})")
+        return mine[sensor_id]
+    if len(mine) != 1:
+        raise ValueError(f"{path}: {len(mine)} {kind} sensors in the session; name one with --sensor "
+                         f"({kind}s: {sorted(mine)})" if mine else f"{path}: no {kind} sensor in the session")
+    return next(iter(mine.values()))
 
 
 def _chunks(path: str):
@@ -75,8 +75,11 @@ def _chunks(path: str):
             yield block
 
 
+DATA = (FrameType.GRID, FrameType.QUAD)
+
+
 def _frames(path: str) -> tuple[Interpreter, list]:
-    """Every grid data frame as (sensor, t_us, flags, payload, board_restart);
+    """Every data frame as (sensor, t_us, flags, payload, board_restart, type);
     INFO and ERROR frames go to the interpreter (the board's description).
     Data frames skip the interpreter (one array per frame would cost as much
     as decoding); their payloads become one array at the end."""
@@ -84,28 +87,30 @@ def _frames(path: str) -> tuple[Interpreter, list]:
     frames = []
     for chunk in _chunks(path):
         for frame in decoder.feed(chunk):
-            if frame.type == FrameType.GRID:
-                frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart))
+            if frame.type in DATA:
+                frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart, frame.type))
             elif frame.type in (FrameType.INFO, FrameType.ERROR):
                 interpreter.interpret(frame, 0.0)
     for frame in decoder.finish():
-        if frame.type == FrameType.GRID:
-            frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart))
+        if frame.type in DATA:
+            frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart, frame.type))
     return interpreter, frames
 
 
-def load_session(path: str | Path, sensor_id: int | None = None) -> BoardSession:
-    """The frames of one grid sensor (``sensor_id``, or the only grid); a
-    grid announced by no INFO is taken as 8x8 when its payload is 256 bytes."""
+def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "grid") -> BoardSession:
+    """The frames of one ``kind`` sensor (``sensor_id``, or the only one of
+    that kind); a sensor announced by no INFO is taken from its frames (a
+    grid as 8x8 when its payload is 256 bytes)."""
     path = str(path)
     interpreter, frames = _frames(path)
     sensors = dict(interpreter.sensors)
-    for sid in {f[0] for f in frames} - set(sensors):
-        sensors[sid] = SensorInfo(sid, "grid", 8, 8)
-    info = _pick_grid(sensors, sensor_id, path)
+    seen = {f[0]: f[5] for f in frames}  # each sensor's frame type
+    for sid in set(seen) - set(sensors):
+        sensors[sid] = SensorInfo(sid, "quad", 2, 2) if seen[sid] == FrameType.QUAD else SensorInfo(sid, "grid", 8, 8)
+    info = _pick(sensors, sensor_id, path, kind)
     mine = [f for f in frames if f[0] == info.id and len(f[3]) == 4 * info.channels]
     if len(mine) < 100:
-        raise ValueError(f"{path}: only {len(mine)} frames of grid sensor {info.id}; a session needs far more")
+        raise ValueError(f"{path}: only {len(mine)} frames of {kind} sensor {info.id}; a session needs far more")
     restart = next((i for i, f in enumerate(mine) if f[4]), None)
     if restart is not None:
         raise ValueError(f"{path}: the board restarted during the session (sensor {info.id}, frame {restart}); "

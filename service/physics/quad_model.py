@@ -43,6 +43,7 @@ ValueError naming the field and the reason:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,9 +78,11 @@ class QuadModel:
     coupling: float = 0.0
 
     @classmethod
-    def from_fits(cls, normal_fit, shear_fit) -> QuadModel:
+    def from_fits(cls, normal_fit, shear_fit, coupling: float = 0.0) -> QuadModel:
         """A model from an uploaded calibration, checked (module docstring);
-        ValueError names the field and the reason."""
+        ValueError names the field and the reason. ``coupling`` c ≥ 0 (the
+        shear response scaled by 1 − c·n(Fz)) must leave at least a tenth
+        of it at the normal curve's usable end."""
         c2, c1 = _pair("normal_fit", normal_fit, ("c2", "c1"))
         a, b = _pair("shear_fit", shear_fit, ("a", "b"))
         low, high = SLOPE_RANGE_PER_N
@@ -93,7 +96,12 @@ class QuadModel:
             raise ValueError(f"shear_fit: b = {b} must be ≥ 0 (ΔC/C0 = a F − b F²)")
         normal_usable = _usable("normal_fit", "c2", c1, -c2)
         shear_usable = _usable("shear_fit", "b", a, b)
-        model = cls((c2, c1, 0.0), a, b, normal_usable, shear_usable)
+        coupling = float(coupling)
+        top = (c2 * normal_usable + c1) * normal_usable
+        if not (math.isfinite(coupling) and 0.0 <= coupling and coupling * top <= 0.9):
+            raise ValueError(f"coupling: c = {coupling} must be ≥ 0 and leave a tenth of the shear response at "
+                             f"{normal_usable:.3g} N (c ≤ {0.9 / top:.3g})")
+        model = cls((c2, c1, 0.0), a, b, normal_usable, shear_usable, coupling)
         model.check()
         return model
 

@@ -107,11 +107,20 @@ class _Slope:
     xy: float = 0.0
     xx: float = 0.0
     events: int = 0
+    yy: float = 0.0
 
     def add(self, x: np.ndarray, y: np.ndarray) -> None:
         self.xy += float(x @ y)
         self.xx += float(x @ x)
+        self.yy += float(y @ y)
         self.events += len(x)
+
+    def standard_error(self) -> float:
+        """Of the slope, from the residuals' spread (inf with fewer than 2 events)."""
+        if self.events < 2 or self.xx <= 0:
+            return float("inf")
+        residual = max(self.yy - self.xy * self.xy / self.xx, 0.0)
+        return float(np.sqrt(residual / (self.events - 1) / self.xx))
 
     def summary(self) -> dict:
         return {"estimate": self.xy / self.xx if self.events else None, "events": self.events}

@@ -54,7 +54,8 @@ TAXEL_FLAG_NAMES = {
     LOADED_AT_TARE: "loaded_at_tare",  # zero from the calibration's C0 (loaded_tare.py)
 }
 STUCK_FRAMES = 50
-ADOPT_AFTER_EVENTS = 10  # isolated loads needed before a detected coefficient replaces the prior (the first press)
+ADOPT_AFTER_EVENTS = 10  # isolated loads needed before a detected coefficient replaces the prior (within the first press)
+SIGNIFICANT_SIGMAS = 3.0  # a leakage residual is added only when it stands this far above its own error
 ADOPT_PERIOD_FRAMES = 64  # estimates are adopted only at multiples of this frame count
 ESTIMATE_EVERY = 4
 
@@ -128,7 +129,7 @@ class GridProcessor:
                  self.adopted_events, drift.drift, drift._last_t, drift._frozen_since)
         if estimator is None:
             return state
-        slopes = tuple((s, s.xy, s.xx, s.events) for s in (estimator.mechanical, estimator.electrical))
+        slopes = tuple((s, s.xy, s.xx, s.events, s.yy) for s in (estimator.mechanical, estimator.electrical))
         return state + (slopes, crosstalk.electrical, crosstalk.mechanical, crosstalk._unmix)
 
     def rollback(self, checkpoint: tuple) -> None:
@@ -139,9 +140,9 @@ class GridProcessor:
         self._sampled = sampled
         if len(checkpoint) > 9:
             slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[9:]
-            for slope, xy, xx, events in slopes:
-                slope.xy, slope.xx, slope.events = xy, xx, events
-            self.estimator.mechanical, self.estimator.electrical = (slope for slope, _, _, _ in slopes)
+            for slope, xy, xx, events, yy in slopes:
+                slope.xy, slope.xx, slope.events, slope.yy = xy, xx, events, yy
+            self.estimator.mechanical, self.estimator.electrical = (slope for slope, *_ in slopes)
 
     def noise(self, baseline_pF: np.ndarray, baseline_std_pF: np.ndarray) -> np.ndarray:
         """Noise of ΔC/C0 per taxel from the tare window's spread. The
@@ -301,12 +302,16 @@ class GridProcessor:
         were seen. The mechanical slope is measured before unmixing, so it is
         the coupling itself and keeps accumulating; the electrical one is
         measured after the leakage already compensated, so it is a residual:
-        added to the fraction in use, then measured afresh."""
+        added to the fraction in use when it is significant (else the
+        fraction would wander with the noise of every few events), then
+        measured afresh."""
         estimator, crosstalk = self.estimator, self.crosstalk
         if estimator.electrical.events < ADOPT_AFTER_EVENTS:
             return
         report = estimator.report()
-        crosstalk.electrical = float(np.clip(crosstalk.electrical + report["electrical"]["estimate"], 0.0, 0.3))
+        residual = report["electrical"]["estimate"]
+        if abs(residual) > SIGNIFICANT_SIGMAS * estimator.electrical.standard_error():
+            crosstalk.electrical = float(np.clip(crosstalk.electrical + residual, 0.0, 0.3))
         crosstalk.set_mechanical(float(np.clip(report["mechanical"]["estimate"], -0.02, 0.0)))
         self.adopted_events += estimator.electrical.events
         estimator.electrical = type(estimator.electrical)()

@@ -208,7 +208,7 @@ def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
 
 
 def _quad(document: dict, cid: str) -> SensorCalibration:
-    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"))
+    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"), document.get("coupling") or 0.0)
     se = []
     for name, slope in (("normal_fit_se", model.normal_fit[1]), ("shear_fit_se", model.shear_a)):
         value = document.get(name)

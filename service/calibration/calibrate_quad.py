@@ -1,0 +1,76 @@
+"""A whole quad calibration: session + 3-axis reference → curves and coupling → a registry document."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+
+from . import registry
+from .alignment import Alignment, align, total_response
+from .quad_fit import QuadFit, fit_quad
+from .reference import Reference, read_reference
+from .session import BoardSession, file_sha256, load_session
+
+
+@dataclass
+class QuadCalibration:
+    session: BoardSession
+    reference: Reference
+    alignment: Alignment
+    fit: QuadFit
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def calibrate_quad(session_path, reference_path, sensor_id: int | None = None) -> QuadCalibration:
+    """Align the clocks on the normal force (the electrodes' summed response
+    is the normal curve: shear cancels in it), then fit (quad_fit.py)."""
+    started = time.perf_counter()
+    session = load_session(session_path, sensor_id, kind="quad")
+    reference = read_reference(reference_path)
+    if reference.fxyz_N is None:
+        raise ValueError(f"{reference.path}: a quad calibration needs a 3-axis reference 't_s,fx_N,fy_N,fz_N'")
+    read = time.perf_counter()
+    alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
+    t_ref_board = alignment.to_board(reference.t_s)
+    inside = (session.t_s >= t_ref_board[0]) & (session.t_s <= t_ref_board[-1])
+    fxyz = np.stack([np.interp(session.t_s[inside], t_ref_board, reference.fxyz_N[:, k]) for k in range(3)], axis=1)
+    aligned = time.perf_counter()
+    fit = fit_quad(session.capacitance_pF[inside], fxyz, session.saturated[inside], session.rate_hz / reference.rate_hz)
+    done = time.perf_counter()
+    return QuadCalibration(session, reference, alignment, fit,
+                           {"read": read - started, "align": aligned - read, "fit": done - aligned})
+
+
+def quad_document(result: QuadCalibration, created: str | None = None) -> dict:
+    """The registry record (without id)."""
+    fit = result.fit
+    return {
+        "schema": registry.SCHEMA, "kind": "quad",
+        "sensor": registry.sensor_identity(result.session.board, result.session.info),
+        "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "normal_fit": list(fit.normal), "normal_fit_se": list(fit.normal_se),
+        "shear_fit": list(fit.shear), "shear_fit_se": list(fit.shear_se),
+        "coupling": fit.coupling, "coupling_se": fit.coupling_se, "coupling_shown_by_data": fit.coupling_kept,
+        "c0_pF": fit.c0_pF.tolist(),
+        "sources": [{"role": "session", "name": str(result.session.path), "sha256": result.session.sha256},
+                    {"role": "reference", "name": result.reference.path, "sha256": file_sha256(result.reference.path)}],
+        "alignment": result.alignment.as_dict(),
+        "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
+                       "reference_skipped_lines": result.reference.skipped},
+    }
+
+
+def quad_summary(result: QuadCalibration) -> list[str]:
+    a, fit = result.alignment, result.fit
+    c2, c1 = fit.normal
+    return [f"session {result.session.path}: {len(result.session.t_s)} frames of quad {result.session.info.id}; "
+            f"reference {result.reference.path}: {len(result.reference.t_s)} samples, {result.reference.skipped} lines skipped",
+            f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f}",
+            f"normal: ΔC/C0 = {c2:.6f}·F² + {c1:.5f}·F  (± {fit.normal_se[0]:.1e}, {fit.normal_se[1]:.1e})",
+            f"shear:  ΔC/C0 = {fit.shear[0]:.5f}·F − {fit.shear[1]:.6f}·F²  (± {fit.shear_se[0]:.1e}, {fit.shear_se[1]:.1e})",
+            "coupling: " + (f"c = {fit.coupling:.3f} ± {fit.coupling_se:.3f} (normal load reduces the shear response)"
+                            if fit.coupling_kept else f"not shown by the data (c within {3 * fit.coupling_se:.3f} of 0)"),
+            f"residual RMS through the model: Fx {fit.rms_N[0]:.4f}, Fy {fit.rms_N[1]:.4f}, Fz {fit.rms_N[2]:.4f} N "
+            f"over {fit.frames} loaded frames; loads {fit.loads}"]

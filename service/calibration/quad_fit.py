@@ -1,0 +1,124 @@
+"""Calibrating a quad sensor from a force/torque reference (paper 001's curves and §5.3 coupling).
+
+The electrodes' ΔC/C0 (against each electrode's unloaded mean) combine into
+Z (normal), X and Y (shear) and the redundant R (physics/quad_model.py).
+The model is
+
+    Z = c2·Fz² + c1·Fz,     X = t(Fx)·(1 − c·n(Fz)),   Y = t(Fy)·(1 − c·n(Fz)),
+    t(F) = sign(F)·(a|F| − b·F²),   n = the normal curve,
+
+so the normal curve is a linear least-squares fit of Z on (Fz², Fz) over the
+loaded frames, and the shear curve and the coupling c a nonlinear one of X
+and Y on the same frames (scipy's least_squares, Jacobian-scaled), standard
+errors s²(JᵀJ)⁻¹ widened by √(frames per reference sample) when the board
+is faster than the reference (they share its noise). The coupling is kept
+only where the data shows it: |c| > 3 standard errors, else the shear curve
+is refitted without it. Residuals are reported in newtons through the
+fitted model's inverse. The reference (interpolated to the board's frame
+times through the alignment) is smooth at the loads' pace, so interpolation
+adds nothing the noise does not.
+
+Refused, naming the reason: no unloaded stretch to take C0 from, saturated
+frames, a normal range under half of NORMAL_FULL_SCALE_N or a shear range
+under MIN_SHEAR_N, fewer than two loads on an axis.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..physics.quad_model import COMBINATIONS, QuadModel
+from .segmentation import find_runs
+
+UNLOADED_N = 0.05
+LOADED_N = 0.1
+NORMAL_FULL_SCALE_N = 20.0  # fit (34)'s range
+MIN_SHEAR_N = 1.0
+COUPLING_SIGMAS = 3.0
+
+
+@dataclass
+class QuadFit:
+    c0_pF: np.ndarray  # (4,)
+    normal: tuple[float, float]  # c2, c1
+    normal_se: tuple[float, float]
+    shear: tuple[float, float]  # a, b
+    shear_se: tuple[float, float]
+    coupling: float
+    coupling_se: float
+    coupling_kept: bool
+    rms_N: tuple[float, float, float]  # Fx, Fy, Fz through the fitted model's inverse
+    frames: int
+    loads: dict  # axis → number of loads seen
+
+
+def _loads(force: np.ndarray) -> int:
+    return len(find_runs(np.abs(force), LOADED_N, 0.5 * np.abs(force).max())) if force.size and np.abs(force).max() > 0 else 0
+
+
+def check(fxyz: np.ndarray, saturated: np.ndarray, unloaded: np.ndarray) -> dict:
+    """The loads per axis; ValueError for data a fit must not be made from."""
+    if unloaded.sum() < 100:
+        raise ValueError(f"only {int(unloaded.sum())} unloaded frames (|F| < {UNLOADED_N} N): C0 needs an unloaded "
+                         "stretch, e.g. 1 s before the first load")
+    if saturated.any():
+        raise ValueError(f"{int(saturated.sum())} saturated frames (the board's flag): load less")
+    loads = {axis: _loads(fxyz[:, k]) for k, axis in enumerate("xyz")}
+    if fxyz[:, 2].max() < 0.5 * NORMAL_FULL_SCALE_N:
+        raise ValueError(f"normal force range 0–{fxyz[:, 2].max():.2f} N is under half of full scale "
+                         f"({NORMAL_FULL_SCALE_N:g} N)")
+    for k, axis in enumerate("xy"):
+        if np.abs(fxyz[:, k]).max() < MIN_SHEAR_N:
+            raise ValueError(f"shear along {axis.upper()} reaches only {np.abs(fxyz[:, k]).max():.2f} N "
+                             f"(need ≥ {MIN_SHEAR_N:g} N both ways)")
+    thin = [axis for axis, n in loads.items() if n < 2]
+    if thin:
+        raise ValueError(f"fewer than 2 loads along {', '.join(a.upper() for a in thin)} (need at least 2 each)")
+    return loads
+
+
+def _shear_residual(params: np.ndarray, fxy: np.ndarray, normal: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    a, b, c = params
+    t = np.sign(fxy) * (a * np.abs(fxy) - b * fxy * fxy)
+    return (t * (1.0 - c * normal)[:, None] - xy).ravel()
+
+
+def _shear(fxy, normal, xy, with_coupling: bool, widen: float):
+    from scipy.optimize import least_squares  # offline only
+
+    start = np.array([0.0077, 0.0004, 0.0])
+    fun = (lambda p: _shear_residual(p, fxy, normal, xy)) if with_coupling else \
+        (lambda p: _shear_residual(np.r_[p, 0.0], fxy, normal, xy))
+    result = least_squares(fun, start if with_coupling else start[:2], x_scale="jac")
+    dof = max(result.fun.size - result.x.size, 1)
+    cov = np.linalg.pinv(result.jac.T @ result.jac) * float(result.fun @ result.fun) / dof * widen
+    return result.x, np.sqrt(np.diag(cov))
+
+
+def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray, per_frame: float) -> QuadFit:
+    """Fit frames (N, 4) pF against the reference forces at their times (N, 3)."""
+    unloaded = np.linalg.norm(fxyz, axis=1) < UNLOADED_N
+    loads = check(fxyz, saturated, unloaded)
+    c0 = np.nanmean(capacitance_pF[unloaded], axis=0)
+    axes = (capacitance_pF / c0 - 1.0) @ COMBINATIONS
+    loaded = (np.linalg.norm(fxyz, axis=1) > LOADED_N) & np.isfinite(axes).all(axis=1)
+    fz, z = fxyz[loaded, 2], axes[loaded, 2]
+    design = np.stack([fz * fz, fz], axis=1)
+    (c2, c1), *_ = np.linalg.lstsq(design, z, rcond=None)
+    residual = z - design @ np.array([c2, c1])
+    widen = max(per_frame, 1.0)
+    cov = np.linalg.inv(design.T @ design) * float(residual @ residual) / max(z.size - 2, 1) * widen
+    normal = (c2 * fz + c1) * fz
+    fxy, xy = fxyz[loaded, :2], axes[loaded, :2]
+    params, se = _shear(fxy, normal, xy, True, widen)
+    kept = abs(params[2]) > COUPLING_SIGMAS * se[2]
+    if not kept:
+        params, se = _shear(fxy, normal, xy, False, widen)
+        params, se = np.r_[params, 0.0], np.r_[se, 0.0]
+    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], max(params[2], 0.0))
+    forces, _ = model.inverse(capacitance_pF[loaded] / c0 - 1.0)
+    rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[loaded, k]) ** 2))) for k in range(3))
+    return QuadFit(c0, (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
+                   (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(max(params[2], 0.0)),
+                   float(se[2]), bool(kept), rms, int(loaded.sum()), loads)

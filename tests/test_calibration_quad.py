@@ -1,0 +1,98 @@
+"""Calibrating a quad that is not paper 001's from a force/torque reference:
+its curves, the normal–shear coupling (§5.3), the forces before and after,
+the command and the errors. Numbers against the simulator's truth."""
+import io
+
+import numpy as np
+import orjson
+import pytest
+
+from firmware_sim.quad_session import quad_session, validation_loads
+from service.calibration.book import CalibrationBook
+from service.calibration.calibrate_quad import calibrate_quad, quad_document
+from service.calibration.cli import main
+from service.calibration.registry import Registry
+from service.replay import replay
+
+RATE_HZ = 500.0
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    sim = quad_session(rate_hz=RATE_HZ, seed=0)
+    out = tmp_path_factory.mktemp("quad")
+    (out / "session.bin").write_bytes(sim.raw)
+    (out / "reference.csv").write_text(sim.reference_csv)
+    return sim, out, calibrate_quad(out / "session.bin", out / "reference.csv")
+
+
+def test_the_clocks_are_aligned_on_the_normal_force(run):
+    _, _, result = run
+    a = result.alignment
+    assert abs(a.offset_s - 7.5) < 2e-3 and abs(a.rate_ppm - -120.0) < 20.0
+    mid = 60.0
+    assert abs((a.offset_s - 7.5) + mid * (a.rate_ppm + 120.0) * 1e-6) < 0.5e-3
+
+
+def test_curves_and_coupling_are_the_sensors_own(run):
+    sim, _, result = run
+    fit, truth = result.fit, sim.model
+    assert fit.normal[1] == pytest.approx(truth.normal_fit[1], rel=0.01)  # c1, 15 % off fit 34's
+    assert fit.normal[0] == pytest.approx(truth.normal_fit[0], rel=0.03)  # c2
+    assert fit.shear[0] == pytest.approx(truth.shear_a, rel=0.01)
+    assert fit.shear[1] == pytest.approx(truth.shear_b, rel=0.05)
+    assert fit.coupling_kept and fit.coupling == pytest.approx(truth.coupling, abs=0.05)
+    assert np.allclose(fit.c0_pF, sim.c0_pF, rtol=1e-4)
+    assert max(fit.rms_N) < 0.1
+
+
+def forces_rms(raw: bytes, truth_t_us, truth_N, tmp_path, book) -> np.ndarray:
+    path = tmp_path / "validation.bin"
+    path.write_bytes(raw)
+    out = io.BytesIO()
+    replay(path, out, calibrations=book)
+    lines = [orjson.loads(line) for line in out.getvalue().splitlines()]
+    truth = dict(zip(truth_t_us.tolist(), truth_N))
+    got = np.array([line["fxyz_N"] for line in lines], float)
+    expected = np.stack([truth[line["t_us"]] for line in lines])
+    loaded = np.linalg.norm(expected, axis=1) > 0.1
+    return np.sqrt(np.mean((got[loaded] - expected[loaded]) ** 2, axis=0)), {line["calibration"] for line in lines}
+
+
+def test_a_separate_combined_load_sequence_is_reconstructed_with_the_calibration(run, tmp_path):
+    sim, _, result = run
+    registry = tmp_path / "registry.sqlite3"
+    with Registry(registry) as r:
+        cid = r.add(quad_document(result), activate=True)
+    check = quad_session(model=sim.model, loads=validation_loads(), rate_hz=RATE_HZ, seed=3, c0_pF=sim.c0_pF)
+    before, ids_before = forces_rms(check.raw, check.truth_t_us, check.truth_N, tmp_path, None)
+    after, ids_after = forces_rms(check.raw, check.truth_t_us, check.truth_N, tmp_path, CalibrationBook(registry))
+    print(f"quad RMS (Fx, Fy, Fz) on combined loads: fits 34/35 {np.round(before, 4)} N, calibrated {np.round(after, 4)} N")
+    assert ids_before == {"builtin-fits34-35"} and ids_after == {cid}
+    assert before.max() > 0.1 and after.max() < 0.04  # shear at the noise floor (~0.03 N: a small slope amplifies it)
+    assert np.all(after < 0.5 * before)
+
+
+def test_the_command_takes_a_three_axis_reference_as_a_quad_session(run, tmp_path, capsys):
+    _, out, _ = run
+    registry = str(tmp_path / "r.sqlite3")
+    assert main(["calibrate", str(out / "session.bin"), "--reference", str(out / "reference.csv"),
+                 "--registry", registry]) == 0
+    printed = capsys.readouterr().out
+    assert "coupling: c = " in printed and "stored " in printed
+    with Registry(registry) as r:
+        stored = [row for row in r.list() if row["active"]]
+        assert len(stored) == 1 and r.get(stored[0]["id"])["kind"] == "quad"
+
+
+def test_a_session_without_enough_normal_range_is_refused(tmp_path):
+    from firmware_sim.quad_session import quad_schedule
+
+    sim = quad_session(loads=quad_schedule(0, normal_peak_N=6.0, preloads=(3.0,)), rate_hz=200.0)
+    (tmp_path / "s.bin").write_bytes(sim.raw)
+    (tmp_path / "r.csv").write_text(sim.reference_csv)
+    with pytest.raises(ValueError, match="under half of full scale"):
+        calibrate_quad(tmp_path / "s.bin", tmp_path / "r.csv")
+    (tmp_path / "r2.csv").write_text("t_s,force_N\n0,0\n1,1\n")
+    with pytest.raises(ValueError, match="3-axis reference"):
+        calibrate_quad(tmp_path / "s.bin", tmp_path / "r2.csv")
