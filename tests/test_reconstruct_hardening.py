@@ -417,3 +417,13 @@ def test_an_implausible_reading_is_caught_at_table_level_even_after_a_noisy_tare
     (frame,) = rec.process(reading(GRID, counts, 20))
     assert np.isnan(frame.forces_N[7]) and 7 in frame.taxel_flag_lists()["out_of_range"]
     assert np.isfinite(np.delete(frame.forces_N, 7)).all()
+
+
+def test_an_uploaded_calibration_is_set_aside_when_the_sensor_changes_shape():
+    grid8, grid4 = SensorInfo(0, "grid", 8, 8), SensorInfo(0, "grid", 4, 4)
+    rec = Reconstructor(tare_frames=2, level="table")
+    rec.set_calibration(grid8, {"sensitivity_pct_per_N": [1.3] * 64})
+    readings = [Reading(grid4, k, k * 1000, 0.0, 0, 0, np.full(16, 10.0), False, False) for k in range(3)]
+    frames = rec.process_many(readings)
+    assert rec.calibration(0).id == "builtin-mean-4x4"
+    assert "reconstruction_error" not in frames[-1].flags and np.isfinite(frames[-1].forces_N).all()

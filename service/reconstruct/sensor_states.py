@@ -100,7 +100,8 @@ class SensorStates:
         A calibration that does not fit the sensor is set aside, with the
         reason kept, never a reason to stop the sensor's data."""
         chosen = self._chosen.get(info.id)
-        if chosen is not None and chosen.kind == info.kind:
+        if chosen is not None and chosen.kind == info.kind and (
+                chosen.grid is None or (chosen.grid.rows, chosen.grid.cols) == (info.rows, info.cols)):
             return chosen
         self.calibration_problems.pop(info.id, None)
         try:
