@@ -172,7 +172,7 @@ class Pipeline:
             self._reconstruct([r for readings, _ in batches for r in readings], batches[-1][1])
 
     def _interpret(self, frames, t_host: float) -> list[Reading]:
-        return [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
+        return self.interpreter.interpret_many(frames, t_host)
 
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:
