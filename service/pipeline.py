@@ -15,7 +15,7 @@ from collections import deque
 from typing import Callable
 
 from .history import Histories
-from .protocol import Decoder
+from .protocol_bulk import BulkDecoder
 from .readings import Interpreter, Reading, SensorInfo
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
@@ -69,7 +69,7 @@ class Pipeline:
         ``calibrations(board, info)``: a sensor's calibration when it is
         first seen (calibration/book.py), with the board's INFO to identify it."""
         self.keep_history = keep_history
-        self.decoder = Decoder()
+        self.decoder = BulkDecoder()
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
