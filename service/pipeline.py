@@ -177,12 +177,26 @@ class Pipeline:
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:
             return
-        for frame in frames if self.keep_history else ():
-            self.latest[frame.sensor.id] = frame
-            self.history.for_frame(frame).append(frame)
-            meter = self.rates.get(frame.sensor.id)
-            if meter is None:
-                meter = self.rates[frame.sensor.id] = RateMeter()
-            meter.tick(t_host)
+        if self.keep_history:
+            self._keep(frames, t_host)
         for listener in self.listeners:
             listener(frames)
+
+    def _keep(self, frames: list[ForceFrame], t_host: float) -> None:
+        """Latest frame, history and rate of each sensor in ``frames``: the
+        rate meters ticked once per sensor and batch, with its frame count."""
+        latest, histories, rates = self.latest, self.history, self.rates
+        counts: dict[int, int] = {}
+        for frame in frames:
+            sid = frame.sensor.id
+            history = histories.get(sid)
+            if history is None or history.info is not frame.sensor:
+                history = histories.for_frame(frame)
+            history.append(frame)
+            latest[sid] = frame
+            counts[sid] = counts.get(sid, 0) + 1
+        for sid, count in counts.items():
+            meter = rates.get(sid)
+            if meter is None:
+                meter = rates[sid] = RateMeter()
+            meter.tick(t_host, count)

@@ -82,3 +82,22 @@ def test_random_channels_with_sentinels_read_as_frame_by_frame():
         stream.append(quad(3 + seq % 2, seq, values[:4]))
     one, batched, _, _ = both(Decoder().feed(b"".join(stream)), cut=16)
     assert batched == one and len(one) == 600
+
+
+def test_the_pipeline_keeps_latest_history_and_rate_of_every_sensor_of_a_read():
+    """Reads of 1 ms, each holding one scan of every sensor, as live: each
+    sensor's rate is its frames over the time they took, its history all of
+    them and its latest the last."""
+    from firmware_sim.board import Board, BoardConfig
+    from firmware_sim.urlhandler.protocol_sim import parse_sensors
+    from service.pipeline import Pipeline
+
+    board = Board(BoardConfig(sensors=parse_sensors("grid,quad,quad"), scene="press"))
+    pipeline = Pipeline(clock=lambda: 0.0)
+    pipeline.feed(board.power_up(), 0.0)
+    for ms in range(1, 2501):
+        pipeline.feed(board.advance(ms / 1000), ms / 1000)
+    for sid in (0, 1, 2):
+        assert pipeline.rates[sid].count == len(pipeline.history[sid]) == 2500
+        assert abs(pipeline.rates[sid].rate_hz - 1000.0) < 1e-6
+        assert pipeline.latest[sid].seq == 2499 and pipeline.latest[sid].t_host == 2.5
