@@ -27,7 +27,7 @@ class BulkDecoder(Decoder):
     def _parse(self, final: bool) -> list[Frame]:
         buf = self._buffer
         counters = self.counters
-        states, sensor_counters = self._states, counters.sensors
+        states = self._states
         find, unpack_header, unpack_crc = buf.find, _HEADER.unpack_from, _CRC.unpack_from
         n = len(buf)
         pos = 0
@@ -43,21 +43,17 @@ class BulkDecoder(Decoder):
                 break
             discarded += start - pos
             pos = start
-            if n - pos < HEADER_SIZE:
-                if not final:
-                    break
-                counters.truncated += 1
-                discarded += 1
-                pos += 1
-                continue
-            version, ftype, sensor, flags, seq, t_us, length = unpack_header(buf, pos + 2)
-            if version != VERSION or ftype not in _KNOWN_TYPES or not _length_is_valid(ftype, length):
-                counters.header_errors += 1
-                discarded += 1
-                pos += 1
-                continue
-            end = pos + HEADER_SIZE + length + CRC_SIZE
-            if end > n:
+            if n - pos >= HEADER_SIZE:
+                version, ftype, sensor, flags, seq, t_us, length = unpack_header(buf, pos + 2)
+                if version != VERSION or ftype not in _KNOWN_TYPES or not _length_is_valid(ftype, length):
+                    counters.header_errors += 1
+                    discarded += 1
+                    pos += 1
+                    continue
+                end = pos + HEADER_SIZE + length + CRC_SIZE
+            else:
+                end = n + 1  # not even its header yet
+            if end > n:  # truncated: wait for the rest, or at the end of the stream skip its first byte
                 if not final:
                     break
                 counters.truncated += 1
@@ -75,17 +71,7 @@ class BulkDecoder(Decoder):
             frame_type = _DATA.get(ftype)
             step = 0 if state is None else (t_us - state.t_us) % T_US_MODULUS
             if frame_type is not None and 0 < step <= _HALF_CLOCK and state.infos == self._infos:
-                # A sensor's next scan: its clock ran forward and no INFO came since its last frame.
-                sensor_counter = sensor_counters[sensor]
-                gap = (seq - state.seq - 1) % SEQ_MODULUS
-                if gap:
-                    sensor_counter.seq_gaps += 1
-                    sensor_counter.missed_frames += gap
-                state.seq, state.t_us = seq, t_us
-                state.recent.append(hash(body))
-                sensor_counter.frames += 1
-                counters.frames += 1
-                append(Frame(frame_type, sensor, flags, seq, t_us, body[_PAYLOAD_AT:], gap, False))
+                append(self._next_scan(state, frame_type, sensor, flags, seq, t_us, body))
             else:
                 frame = self._accept(ftype, sensor, flags, seq, t_us, body)
                 if frame is None:
@@ -96,3 +82,18 @@ class BulkDecoder(Decoder):
         counters.bytes_discarded += discarded
         del buf[:pos]
         return frames
+
+    def _next_scan(self, state, frame_type: FrameType, sensor: int, flags: int, seq: int, t_us: int,
+                   body: bytes) -> Frame:
+        """A sensor's next scan: its clock ran forward and no INFO came since its last frame."""
+        counters = self.counters
+        sensor_counter = counters.sensors[sensor]
+        gap = (seq - state.seq - 1) % SEQ_MODULUS
+        if gap:
+            sensor_counter.seq_gaps += 1
+            sensor_counter.missed_frames += gap
+        state.seq, state.t_us = seq, t_us
+        state.recent.append(hash(body))
+        sensor_counter.frames += 1
+        counters.frames += 1
+        return Frame(frame_type, sensor, flags, seq, t_us, body[_PAYLOAD_AT:], gap, False)
