@@ -59,11 +59,11 @@ def proc_sample(pid: int) -> tuple[float, int]:
     return cpu, rss
 
 
+# A binary record's head (service/fanout/encoding.py, v2): then the calibration id (m bytes),
+# n forces, n sigmas (field bit 4) and the raw channels (field bit 2: n for a grid, 4 for a quad), f4 each.
 HEADER = np.dtype([("version", "u1"), ("kind", "u1"), ("sid", "u1"), ("field_bits", "u1"), ("seq", "<u2"),
                    ("t_us", "<u4"), ("stamp", "<f8"), ("flag_bits", "<u4"), ("n", "<u2"), ("m", "u1")])
 COUNT_AT = struct.Struct("<H").unpack_from
-FIELDS_AT = struct.Struct("<B").unpack_from
-SIZES_AT = struct.Struct("<HB").unpack_from  # n (forces), m (calibration id bytes)
 HEADER_BYTES = np.arange(HEADER.itemsize)
 SEQ_WRAP = 1 << 16
 
@@ -85,11 +85,11 @@ class Tally:
     def binary(self, message: bytes, now: float) -> None:
         (count,) = COUNT_AT(message, 0)
         starts, pos = [], 2
-        for _ in range(count):  # the record layout: service/fanout/encoding.py (binary version 2)
+        for _ in range(count):
             starts.append(pos)
-            n, m = SIZES_AT(message, pos + HEADER.itemsize - 3)
-            blocks = 1 + bool(FIELDS_AT(message, pos + 3)[0] & 4)  # forces, σ if asked (raw never is, here)
-            pos += HEADER.itemsize + m + 4 * n * blocks
+            kind, field_bits, n, m = message[pos + 1], message[pos + 3], *COUNT_AT(message, pos + 22), message[pos + 24]
+            channels = (n if kind == 0 else 4) if field_bits & 2 else 0
+            pos += HEADER.itemsize + m + 4 * (n * (1 + (field_bits >> 2 & 1)) + channels)
         raw = np.frombuffer(message, np.uint8)[np.add.outer(starts, HEADER_BYTES)]
         headers = raw.view(HEADER)[:, 0]
         self._sids.append(headers["sid"])

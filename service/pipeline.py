@@ -15,7 +15,7 @@ from collections import deque
 from typing import Callable, Protocol
 
 from .history import Histories
-from .protocol import Decoder
+from .protocol_bulk import BulkDecoder
 from .readings import Interpreter, Reading, SensorInfo
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
@@ -78,7 +78,7 @@ class Pipeline:
         calibration and load cycles when it is first seen, with the board's
         INFO to identify it."""
         self.keep_history = keep_history
-        self.decoder = Decoder()
+        self.decoder = BulkDecoder()
         self.interpreter = Interpreter(clock)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
@@ -182,17 +182,31 @@ class Pipeline:
             self._reconstruct([r for readings, _ in batches for r in readings], batches[-1][1])
 
     def _interpret(self, frames, t_host: float) -> list[Reading]:
-        return [r for r in (self.interpreter.interpret(frame, t_host) for frame in frames) if r is not None]
+        return self.interpreter.interpret_many(frames, t_host)
 
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:
             return
-        for frame in frames if self.keep_history else ():
-            self.latest[frame.sensor.id] = frame
-            self.history.for_frame(frame).append(frame)
-            meter = self.rates.get(frame.sensor.id)
-            if meter is None:
-                meter = self.rates[frame.sensor.id] = RateMeter()
-            meter.tick(t_host)
+        if self.keep_history:
+            self._keep(frames, t_host)
         for listener in self.listeners:
             listener(frames)
+
+    def _keep(self, frames: list[ForceFrame], t_host: float) -> None:
+        """Latest frame, history and rate of each sensor in ``frames``: the
+        rate meters ticked once per sensor and batch, with its frame count."""
+        latest, histories, rates = self.latest, self.history, self.rates
+        counts: dict[int, int] = {}
+        for frame in frames:
+            sid = frame.sensor.id
+            history = histories.get(sid)
+            if history is None or history.info is not frame.sensor:
+                history = histories.for_frame(frame)
+            history.append(frame)
+            latest[sid] = frame
+            counts[sid] = counts.get(sid, 0) + 1
+        for sid, count in counts.items():
+            meter = rates.get(sid)
+            if meter is None:
+                meter = rates[sid] = RateMeter()
+            meter.tick(t_host, count)

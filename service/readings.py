@@ -172,6 +172,53 @@ class Interpreter:
         """Return a reading for a data frame, or None for INFO/ERROR frames and
         for data frames whose payload does not fit the announced sensor."""
         t_host = self._clock() if t_host is None else t_host
+        info = self._sensor_for(frame, t_host)
+        if info is None:
+            return None
+        raw = np.frombuffer(frame.payload, dtype="<u4")
+        capacitance = raw / AF_PER_PF
+        # The two sentinels are the ends of the u32 range: one wrapped compare finds both.
+        sentinel = (raw - np.uint32(SHORT_SENTINEL + 1)) >= np.uint32(OPEN_SENTINEL - 1)
+        opened = shorted = False
+        if np.count_nonzero(sentinel):  # ndarray.any() costs 5x more at this size
+            capacitance[sentinel] = np.nan
+            opened = bool((raw == OPEN_SENTINEL).any())
+            shorted = bool((raw == SHORT_SENTINEL).any())
+        return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted,
+                       frame.board_restart)
+
+    def interpret_many(self, frames: list[Frame], t_host: float) -> list[Reading]:
+        """``interpret`` of each frame, in order, None left out: the same
+        decisions and values, but the channels of all data frames of one
+        size (a read's grids, its quads) converted by one numpy call each,
+        not one per frame — at 1 kHz the per-call cost is what a frame
+        costs. Each reading's ``capacitance_pF`` is a row of its group's array."""
+        accepted: list[tuple[SensorInfo, Frame]] = []
+        groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
+        for frame in frames:
+            info = self._sensor_for(frame, t_host)
+            if info is not None:
+                groups.setdefault(len(frame.payload), []).append(len(accepted))
+                accepted.append((info, frame))
+        out: list[Reading | None] = [None] * len(accepted)
+        for size, indices in groups.items():
+            raw = np.frombuffer(b"".join([accepted[i][1].payload for i in indices]), dtype="<u4")
+            raw = raw.reshape(len(indices), size // 4)
+            capacitance = raw / AF_PER_PF
+            sentinel = (raw - np.uint32(SHORT_SENTINEL + 1)) >= np.uint32(OPEN_SENTINEL - 1)
+            opened = shorted = [False] * len(indices)
+            if np.count_nonzero(sentinel):
+                capacitance[sentinel] = np.nan
+                opened = (raw == OPEN_SENTINEL).any(axis=1).tolist()
+                shorted = (raw == SHORT_SENTINEL).any(axis=1).tolist()
+            for i, row, o, s in zip(indices, capacitance, opened, shorted):
+                info, f = accepted[i]
+                out[i] = Reading(info, f.seq, f.t_us, t_host, f.flags, f.gap, row, o, s, f.board_restart)
+        return out
+
+    def _sensor_for(self, frame: Frame, t_host: float) -> SensorInfo | None:
+        """The sensor a data frame fits; None, having taken in an INFO or
+        ERROR frame or counted a rejected data frame, otherwise."""
         if frame.type == FrameType.INFO:
             self._on_info(frame.payload)
             return None
@@ -197,17 +244,7 @@ class Interpreter:
         if info.kind != expected_kind or len(frame.payload) != 4 * info.channels:
             self.rejected["shape_mismatch"] += 1
             return None
-        raw = np.frombuffer(frame.payload, dtype="<u4")
-        capacitance = raw / AF_PER_PF
-        # The two sentinels are the ends of the u32 range: one wrapped compare finds both.
-        sentinel = (raw - np.uint32(SHORT_SENTINEL + 1)) >= np.uint32(OPEN_SENTINEL - 1)
-        opened = shorted = False
-        if np.count_nonzero(sentinel):  # ndarray.any() costs 5x more at this size
-            capacitance[sentinel] = np.nan
-            opened = bool((raw == OPEN_SENTINEL).any())
-            shorted = bool((raw == SHORT_SENTINEL).any())
-        return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted,
-                       frame.board_restart)
+        return info
 
     def _on_info(self, payload: bytes) -> None:
         try:

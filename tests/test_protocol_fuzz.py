@@ -1,15 +1,21 @@
 """Property-based fuzzing of the decoder with hypothesis, and a seeded
-byte-mutation fuzz of real captures."""
+byte-mutation fuzz of real captures; each on both decoders (protocol.py's
+and protocol_bulk.py's), and the two compared frame for frame and counter
+for counter on the mutated captures."""
 import random
 from binascii import crc_hqx
 from pathlib import Path
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimQuad
 from service.protocol import RESTART_JUMP_US, Decoder, FrameType, encode_frame
+from service.protocol_bulk import BulkDecoder
+
+DECODERS = pytest.mark.parametrize("decoder_class", [Decoder, BulkDecoder])
 
 frame_specs = st.one_of(
     st.tuples(st.just(FrameType.QUAD), st.integers(0, 255), st.binary(min_size=16, max_size=16)),
@@ -29,8 +35,8 @@ def encode_all(specs):
     ]
 
 
-def decode_in_chunks(data, cuts):
-    decoder = Decoder()
+def decode_in_chunks(data, cuts, decoder_class=Decoder):
+    decoder = decoder_class()
     points = sorted({c % (len(data) + 1) for c in cuts}) if data else []
     frames, last = [], 0
     for point in points + [len(data)]:
@@ -79,27 +85,30 @@ def passed_on(expected):
     return kept
 
 
+@DECODERS
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=2000), st.lists(st.integers(0, 4000), max_size=10))
-def test_arbitrary_bytes_never_raise_and_only_yield_valid_frames(data, cuts):
-    frames, decoder = decode_in_chunks(data, cuts)
+def test_arbitrary_bytes_never_raise_and_only_yield_valid_frames(decoder_class, data, cuts):
+    frames, decoder = decode_in_chunks(data, cuts, decoder_class)
     for frame in frames:
         assert encode_frame(frame.type, frame.sensor, frame.seq, frame.t_us, frame.payload, frame.flags) in data
     assert decoder.counters.bytes_discarded + sum(len(f.payload) + 16 for f in frames) == len(data)
 
 
+@DECODERS
 @settings(max_examples=300, deadline=None)
 @given(frames_st, st.lists(st.binary(max_size=30), min_size=13, max_size=13), st.lists(st.integers(0, 5000), max_size=10))
-def test_frames_survive_any_garbage_and_any_chunking(specs, garbage, cuts):
+def test_frames_survive_any_garbage_and_any_chunking(decoder_class, specs, garbage, cuts):
     encoded = encode_all(specs)
     stream = b"".join(junk + data for junk, (data, _) in zip(garbage, encoded + [(b"", None)]))
-    frames, _ = decode_in_chunks(stream, cuts)
+    frames, _ = decode_in_chunks(stream, cuts, decoder_class)
     assert [key(f) for f in frames] == passed_on([expected for _, expected in encoded])
 
 
+@DECODERS
 @settings(max_examples=200, deadline=None)
 @given(frames_st, st.data())
-def test_a_damaged_frame_never_becomes_a_different_frame(specs, data):
+def test_a_damaged_frame_never_becomes_a_different_frame(decoder_class, specs, data):
     encoded = encode_all(specs)
     if not encoded:
         return
@@ -108,7 +117,7 @@ def test_a_damaged_frame_never_becomes_a_different_frame(specs, data):
     position = data.draw(st.integers(0, len(raw) - 1))
     raw[position] ^= data.draw(st.integers(1, 255))
     stream = b"".join(bytes(raw) if i == victim else d for i, (d, _) in enumerate(encoded))
-    frames, _ = decode_in_chunks(stream, [])
+    frames, _ = decode_in_chunks(stream, [], decoder_class)
     expected = [k for i, (_, k) in enumerate(encoded) if i != victim]
     assert [key(f) for f in frames] == passed_on(expected)
 
@@ -126,16 +135,17 @@ clashing_specs = st.lists(
 )
 
 
+@DECODERS
 @settings(max_examples=300, deadline=None)
 @given(clashing_specs, st.lists(st.tuples(st.integers(0, 29), st.integers(0, 30)), max_size=10))
-def test_repeats_and_restarts_follow_the_protocols_rule(specs, copies):
+def test_repeats_and_restarts_follow_the_protocols_rule(decoder_class, specs, copies):
     # Copies of earlier frames put later in the stream are the link's repeats.
     specs = list(specs)
     for source, target in copies:
         if source < len(specs):
             specs.insert(max(target, source + 1), specs[source])
     encoded = encode_all(specs)
-    frames, _ = decode_in_chunks(b"".join(data for data, _ in encoded), [])
+    frames, _ = decode_in_chunks(b"".join(data for data, _ in encoded), [], decoder_class)
     assert [key(f) for f in frames] == passed_on([expected for _, expected in encoded])
 
 
@@ -182,11 +192,13 @@ def test_fifty_thousand_mutations_of_real_captures_never_raise_or_pass_a_bad_crc
     emitted = 0
     for _ in range(MUTATIONS):
         data = mutate(rng, rng.choice(bases))
-        decoder = Decoder()
         cut = rng.randrange(len(data) + 1)
+        decoder, bulk = Decoder(), BulkDecoder()
         frames = decoder.feed(data[:cut]) + decoder.feed(data[cut:]) + decoder.finish()
         encoded = [hand_encoded(f) for f in frames]
         assert all(e in data for e in encoded)  # each frame is in the input whole, its CRC good
         assert decoder.counters.bytes_discarded + sum(map(len, encoded)) == len(data)
+        assert bulk.feed(data[:cut]) + bulk.feed(data[cut:]) + bulk.finish() == frames
+        assert bulk.counters.as_dict() == decoder.counters.as_dict()
         emitted += len(frames)
     assert emitted > 5 * MUTATIONS  # most frames survive: the check above ran on real frames
