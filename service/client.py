@@ -152,7 +152,8 @@ class TactileClient:
         kind = record["kind"]
         frame: dict = {"header": {"sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
                                   "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],
-                                  "stamp": record["stamp"], "calibration": record["calibration"]}}
+                                  "stamp": record["stamp"], "scan_stamp": _none_if_nan(record["scan_stamp"]),
+                                  "calibration": record["calibration"]}}
         if kind == "grid":
             frame["rows"], frame["cols"] = info["rows"], info["cols"]
         if "force" in fields:

@@ -126,4 +126,5 @@ def health_report(service) -> dict:
         "replay": service.source.startswith("replay://"),
         "recording": None if service.recorder is None else service.recorder.status(),
         "reconstruction": reconstruction,
+        "clock": None if pipeline.clock is None else pipeline.clock.status(),
     }

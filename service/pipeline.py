@@ -14,6 +14,9 @@ import time
 from collections import deque
 from typing import Callable, Protocol
 
+import numpy as np
+
+from .clock_map import ClockMap
 from .history import Histories
 from .protocol_bulk import BulkDecoder
 from .readings import Interpreter, Reading, SensorInfo
@@ -71,12 +74,15 @@ class Pipeline:
 
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
                  histories: Histories | None = None, keep_history: bool = True,
-                 calibrations: CalibrationSource | None = None) -> None:
+                 calibrations: CalibrationSource | None = None, map_clock: bool = True) -> None:
         """``keep_history=False`` (offline export) keeps no latest frame,
         history or rates: each batch only goes to the listeners.
         ``calibrations`` (calibration/book.py's CalibrationBook): a sensor's
         calibration and load cycles when it is first seen, with the board's
-        INFO to identify it."""
+        INFO to identify it. ``map_clock``: estimate each scan's host time
+        from the receive times (False for a stream without them, a raw
+        capture)."""
+        self.clock = ClockMap() if map_clock else None
         self.keep_history = keep_history
         self.decoder = BulkDecoder()
         self.interpreter = Interpreter(clock)
@@ -165,8 +171,20 @@ class Pipeline:
             for listener in self.byte_listeners:
                 listener(data, t_host)
             with self._lock:
-                readings += self._interpret(self.decoder.feed(data), t_host)
+                read = self._interpret(self.decoder.feed(data), t_host)
+                if read and self.clock is not None:
+                    self._map_clock(read, t_host)
+                readings += read
         return readings
+
+    def _map_clock(self, readings: list[Reading], t_host: float) -> None:
+        """Each reading's scan time on the host clock, from the board's
+        clock mapped by the frames' arrival times (clock_map.py)."""
+        if any(r.board_restart for r in readings):
+            self.clock.restart()
+        scans = self.clock.observe(np.fromiter((r.t_us for r in readings), np.int64, len(readings)), t_host)
+        for reading, scan in zip(readings, scans.tolist()):
+            reading.t_host_scan = scan
 
     def _reconstruct(self, readings: list[Reading], t_host: float) -> list[ForceFrame]:
         with self._lock:

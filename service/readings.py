@@ -8,6 +8,7 @@ sentinels (0xFFFFFFFF open, 0 shorted) become NaN, never a capacitance.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -63,6 +64,7 @@ class Reading:
     open_channel: bool
     shorted_channel: bool
     board_restart: bool = False
+    t_host_scan: float = math.nan  # the scan's time on the host clock (clock_map.py); NaN: not mapped
 
     def frame_flags(self) -> list[str]:
         flags = []

@@ -40,7 +40,7 @@ def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAUL
     pacer = pacer or Pacer(math.inf)
     hold = not is_timed_by_host(path)
     pipeline = Pipeline(Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0,
-                        keep_history=False, calibrations=calibrations)
+                        keep_history=False, calibrations=calibrations, map_clock=not hold)
     writer = writer or (JsonLines(export) if export is not None else None)
     if writer is not None:
         pipeline.listeners.append(writer.write)

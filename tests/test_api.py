@@ -148,8 +148,9 @@ def test_websocket_decimates_and_batches_on_request(client):
     assert min(b - a for a, b in zip(t, t[1:])) >= 0.045  # 20 Hz, minus scheduling slack
     with client.websocket_connect("ws://localhost/ws?sensors=0&batch_ms=100") as ws:
         sizes = [len(orjson.loads(ws.receive_text())["frames"]) for _ in range(3)]
-    # ~100 frames of 1 kHz per batch, sent as messages of at most MERGE_FRAMES (each is encoded in one go)
-    assert sizes == [MERGE_FRAMES] * 3
+    # ~100 frames of 1 kHz per batch (fewer on a loaded host), sent as messages of at most MERGE_FRAMES
+    # (each is encoded in one go): the batch's first two messages are full, the third holds the rest
+    assert sizes[:2] == [MERGE_FRAMES] * 2 and 0 < sizes[2] <= MERGE_FRAMES
 
 
 @pytest.mark.parametrize(

@@ -32,6 +32,8 @@ class Header(BaseModel):
     seq: int = Field(description="board scan counter, wraps at 65536")
     board_time_us: int = Field(description="board clock at the end of the scan, µs, wraps at 2^32")
     stamp: float = Field(description="host receive time, s since the epoch")
+    scan_stamp: float | None = Field(description="the scan's time on the host clock, s since the epoch: the board "
+                                     "clock mapped by the arrival times (docs/clock.md); null until mapped")
     calibration: str = Field(description="id of the calibration the forces rest on: a registry id, or "
                              "builtin-table1 / builtin-fits34-35 (the papers', not measured on this sensor)")
 

@@ -6,7 +6,7 @@ geometry_msgs/WrenchStamped for the quad):
 
     {"header": {"sensor_id": 0, "sensor_name": "grid0", "kind": "grid",
                 "seq": 1250, "board_time_us": 1251000, "stamp": 1795342752.12,
-                "calibration": "3f2a…" | "builtin-table1"},
+                "scan_stamp": 1795342752.1187, "calibration": "3f2a…" | "builtin-table1"},
      "rows": 8, "cols": 8,
      "force_N": [64 numbers, row-major, null = no reading],      # grid, calibrated
      "sigma_N": [64 numbers: 1-σ of each force, null = none],    # grid, fields=sigma
@@ -17,7 +17,9 @@ geometry_msgs/WrenchStamped for the quad):
      "flags": [...], "taxel_flags": {"saturated": [27]}}
 
 ``stamp`` is the host time at which the bytes were received (s since the
-epoch), ``board_time_us`` the board clock (wraps at 2^32), ``calibration``
+epoch), ``board_time_us`` the board clock (wraps at 2^32), ``scan_stamp``
+the scan's time on the host clock (the board clock mapped to it,
+service/clock_map.py; null until mapped), ``calibration``
 the id of the calibration the forces rest on (the registry's, or a
 built-in: docs/calibration.md). Numbers are numbers, never strings; null
 means no value.
@@ -27,7 +29,7 @@ concatenated; a message starts with the u16 record count:
 
     u8 version (2) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
     (1 force, 2 raw, 4 sigma) · u16 seq · u32 board_time_us · f64 stamp ·
-    u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
+    f64 scan_stamp (NaN: not mapped) · u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
     m bytes calibration id (ASCII) · f32[n] force · f32[n] sigma (if
     requested) · f32[n'] raw (if requested; n' = channels) — NaN = no value.
 
@@ -51,7 +53,7 @@ FRAME_FLAG_BITS = (
     "board_restart", "reconstruction_error", "loaded_at_tare",
 )
 _FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
-_RECORD = struct.Struct("<BBBBHIdIHB")
+_RECORD = struct.Struct("<BBBBHIddIHB")
 BINARY_VERSION = 2
 
 
@@ -69,6 +71,7 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
             "seq": frame.seq,
             "board_time_us": frame.t_us,
             "stamp": frame.t_host,
+            "scan_stamp": None if frame.t_host_scan != frame.t_host_scan else frame.t_host_scan,
             "calibration": frame.calibration,
         }
     }
@@ -129,7 +132,7 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields or with_sigma else np.empty(0, "<f4")
     calibration = frame.calibration.encode("ascii", "replace")[:255]
     head = _RECORD.pack(BINARY_VERSION, 0 if info.kind == "grid" else 1, info.id, field_bits, frame.seq,
-                        frame.t_us, frame.t_host, flag_bits, forces.size, len(calibration))
+                        frame.t_us, frame.t_host, frame.t_host_scan, flag_bits, forces.size, len(calibration))
     sigma = b""
     if with_sigma:
         sigma = (np.full(forces.size, np.nan, "<f4") if frame.sigma_N is None else np.asarray(frame.sigma_N, "<f4")).tobytes()
@@ -146,14 +149,14 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
     (count,) = struct.unpack_from("<H", message, 0)
     pos, out = 2, []
     for _ in range(count):
-        version, kind, sid, field_bits, seq, t_us, stamp, flag_bits, n, m = _RECORD.unpack_from(message, pos)
+        version, kind, sid, field_bits, seq, t_us, stamp, scan_stamp, flag_bits, n, m = _RECORD.unpack_from(message, pos)
         if version != BINARY_VERSION:
             raise ValueError(f"binary record version {version}, this decoder reads {BINARY_VERSION}")
         pos += _RECORD.size
         calibration = message[pos:pos + m].decode("ascii")
         pos += m
         record = {"sensor_id": sid, "kind": "grid" if kind == 0 else "quad", "seq": seq, "board_time_us": t_us,
-                  "stamp": stamp, "calibration": calibration,
+                  "stamp": stamp, "scan_stamp": scan_stamp, "calibration": calibration,
                   "flags": [name for name, bit in _FLAG_BIT.items() if flag_bits & bit]}
         record["force_N"] = np.frombuffer(message, "<f4", n, pos)
         pos += 4 * n

@@ -227,7 +227,7 @@ class Reconstructor(SensorStates):
         if sigma is None:
             sigma = [None] * len(readings)
         if taxel_flags is None:
-            return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, None, calibration, sg)
-                    for r, f, fl, sg in zip(readings, forces, flags, sigma)]
-        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, tf, calibration, sg)
-                for r, f, fl, tf, sg in zip(readings, forces, flags, taxel_flags, sigma)]
+            return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, None, calibration, sg,
+                               r.t_host_scan) for r, f, fl, sg in zip(readings, forces, flags, sigma)]
+        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, tf, calibration, sg,
+                           r.t_host_scan) for r, f, fl, tf, sg in zip(readings, forces, flags, taxel_flags, sigma)]
