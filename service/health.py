@@ -125,4 +125,5 @@ def health_report(service) -> dict:
         "replay": service.source.startswith("replay://"),
         "recording": None if service.recorder is None else service.recorder.status(),
         "reconstruction": reconstruction,
+        "zenoh": None if getattr(service, "zenoh", None) is None else service.zenoh.status(),
     }

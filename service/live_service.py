@@ -63,6 +63,7 @@ class TactileService:
         self.readout: Readout | None = None
         self.started_at = time.time()
         self.recorder: Recorder | None = None
+        self.zenoh = None  # a net.zenoh_publisher.ZenohPublisher to attach at start (tactile serve --zenoh)
         self._recording_lock = threading.Lock()  # start and stop come from the API's worker threads
 
     def start(self) -> None:
@@ -73,9 +74,13 @@ class TactileService:
         self.pipeline.listeners += [self._measure_published, self.hub.publish]
         self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
         self.readout.start(loop)
+        if self.zenoh is not None:
+            self.zenoh.attach(self)
 
     def stop(self) -> None:
         self.stop_recording()
+        if self.zenoh is not None:
+            self.zenoh.close()
         if self.readout is not None:
             self.readout.stop()
         for listener in (self._measure_published, self.hub.publish):
