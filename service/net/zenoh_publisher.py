@@ -168,7 +168,7 @@ class ZenohPublisher:
         if publisher is None:
             publisher = self._publishers[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.REAL_TIME,
-                express=True, reliability=zenoh.Reliability.BEST_EFFORT)
+                express=False, reliability=zenoh.Reliability.BEST_EFFORT)
         return publisher
 
     def _send_loop(self) -> None:
