@@ -112,15 +112,15 @@ def latency(seconds: float) -> None:
 def cpu(seconds: float) -> None:
     for zenoh in (False, True):
         service = Service(zenoh)
-        subscriber = None
+        subscriber, frames = None, [0]
         try:
             if zenoh:
                 client = ZenohClient([service.endpoint])
-                frames = [0]
-                subscriber = client.session.declare_subscriber(
-                    frame_key(BOARD, "*"), lambda s: frames.__setitem__(0, frames[0] + 1))
+                subscriber = client.session.declare_subscriber(  # a sample's first u16 counts its frames
+                    frame_key(BOARD, "*"),
+                    lambda s: frames.__setitem__(0, frames[0] + int.from_bytes(s.payload.to_bytes()[:2], "little")))
             time.sleep(2.0)
-            before, start = service.cpu_s(), time.monotonic()
+            before, start, frames[0] = service.cpu_s(), time.monotonic(), 0
             time.sleep(seconds)
             used, wall = service.cpu_s() - before, time.monotonic() - start
             rate = sum(s["rate_hz"] for s in service.client.health()["sensors"].values())

@@ -15,7 +15,7 @@ import pytest
 
 from service.cli import main
 from service.client import TactileClient, TactileError
-from service.client_zenoh import ZenohClient
+from service.client_zenoh import ZenohClient, subscribe_zenoh
 from service.live_service import TactileService
 from service.net.zenoh_config import board_key, health_key, key_part, session_config
 from service.net.zenoh_publisher import FrameQueue, ZenohPublisher
@@ -117,9 +117,11 @@ def test_the_frame_queue_never_blocks_drops_the_oldest_and_counts_them():
 
 
 def test_every_frame_reaches_the_subscriber_with_the_services_forces(live, client):
-    service, _ = live
+    service, endpoint = live
     board = key_part(BOARD)
-    captured, got = capture(service, 3.0, client.subscribe(board))
+    subscription = subscribe_zenoh(board, endpoints=[endpoint])
+    captured, got = capture(service, 3.0, subscription)
+    subscription.close()
     assert len(captured.frames) > 0.9 * 2 * 1000 * 3.0
     arrived = [key for key in captured.frames if key in got]
     assert len(arrived) >= 0.999 * len(captured.frames)
