@@ -17,15 +17,17 @@ key. A grid's rows and cols are not in the binary records: the client asks
 the board's ``tactile/<board>/sensors`` queryable once per board (and again
 for a sensor it does not know yet). Keys and QoS: docs/scale.md.
 
-Every failure — no frame within ``timeout``, no answer to a query, a sample
-that does not decode — is a ``TactileError`` saying what.
+A consumer slower than the stream loses the oldest waiting frames, never
+the service's time or memory: ``dropped`` counts them. Every failure — no
+frame within ``timeout``, no answer to a query, a sample that does not
+decode — is a ``TactileError`` saying what.
 """
 from __future__ import annotations
 
-import queue
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable, Iterator
 
 import orjson
@@ -34,6 +36,8 @@ import zenoh
 from .client import TactileClient, TactileError
 from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 from .net.zenoh_config import PREFIX, frame_key, latest_key, open_session, sensors_key, session_config
+
+INBOX_SAMPLES = 4096  # ~2 s of a grid and a quad at 1 kHz
 
 
 def _board_of(key: zenoh.KeyExpr | str) -> str:
@@ -52,6 +56,33 @@ class _BoardFrames(TactileClient):
         return self._shapes(sensor_id)
 
 
+class _Inbox:
+    """Samples from Zenoh's threads to the consumer: at most ``capacity``;
+    a consumer that falls behind loses the oldest (their frames counted)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.dropped = 0
+        self._samples: deque[tuple[str, bytes]] = deque(maxlen=capacity)
+        self._ready = threading.Event()
+        self._lock = threading.Lock()  # several subscribers may deliver at once
+
+    def put(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            if len(self._samples) == self._samples.maxlen:
+                self.dropped += int.from_bytes(self._samples[0][1][:2], "little")  # its u16 record count
+            self._samples.append((str(sample.key_expr), sample.payload.to_bytes()))
+        self._ready.set()
+
+    def get(self, timeout: float) -> tuple[str, bytes] | None:
+        deadline = time.monotonic() + timeout
+        while True:
+            self._ready.clear()  # before looking: a sample put after the look sets it again
+            if self._samples:
+                return self._samples.popleft()
+            if not self._ready.wait(deadline - time.monotonic()):
+                return None
+
+
 class ZenohClient:
     """A Zenoh session to the services: ``endpoints`` to connect to (then
     multicast scouting is off), or a whole ``config`` (service.net.zenoh_config.
@@ -63,6 +94,7 @@ class ZenohClient:
         if config is None:
             config = session_config(connect=endpoints, multicast=False if endpoints else None)
         self.timeout = timeout
+        self.dropped = 0  # frames lost because the consumer of subscribe fell behind
         self.session = open_session(config)
         self._health: dict[str, tuple[float, dict]] = {}
         self._shapes: dict[str, dict[int, dict]] = {}
@@ -150,23 +182,24 @@ class ZenohClient:
         sample = self._get(key)[0]
         return self._frames(_board_of(sample.key_expr), sample.payload.to_bytes(), key)[-1]
 
-    def subscribe(self, board: str = "*", sensors: Iterable[int] | None = None,
-                  timeout: float | None = None) -> Iterator[dict]:
+    def subscribe(self, board: str = "*", sensors: Iterable[int] | None = None, timeout: float | None = None,
+                  queue_samples: int = INBOX_SAMPLES) -> Iterator[dict]:
         """Frames as they arrive, from ``board`` ("*": every board) and
         ``sensors`` (None: all). TactileError when none comes within
-        ``timeout`` s (default: the client's)."""
+        ``timeout`` s (default: the client's). At most ``queue_samples``
+        samples wait for the consumer: one that falls behind loses the
+        oldest, counted in ``dropped``."""
         timeout = self.timeout if timeout is None else timeout
         keys = [frame_key(board, "*")] if sensors is None else [frame_key(board, sid) for sid in sensors]
-        inbox: queue.SimpleQueue = queue.SimpleQueue()
-        subscribers = [self.session.declare_subscriber(key, lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes())))
-                       for key in keys]
+        inbox, dropped_before = _Inbox(queue_samples), self.dropped
+        subscribers = [self.session.declare_subscriber(key, inbox.put) for key in keys]
         try:
             while True:
-                try:
-                    key, payload = inbox.get(timeout=timeout)
-                except queue.Empty:
-                    raise TactileError(f"no frame on {', '.join(keys)} within {timeout} s") from None
-                yield from self._frames(_board_of(key), payload, key)
+                received = inbox.get(timeout)
+                self.dropped = dropped_before + inbox.dropped
+                if received is None:
+                    raise TactileError(f"no frame on {', '.join(keys)} within {timeout} s")
+                yield from self._frames(_board_of(received[0]), received[1], received[0])
         finally:
             for subscriber in subscribers:
                 subscriber.undeclare()

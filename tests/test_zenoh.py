@@ -164,6 +164,17 @@ def test_health_comes_once_a_second_under_the_boards_key(live, client):
     assert service.health()["zenoh"]["health_published"] >= len(arrivals)
 
 
+def test_a_slow_consumer_loses_the_oldest_frames_and_is_told(client):
+    subscription, dropped_before = client.subscribe(key_part(BOARD), queue_samples=10), client.dropped
+    first = next(subscription)["header"]
+    time.sleep(0.5)  # ~1 000 frames published meanwhile
+    woke = time.time()
+    stamps = [next(subscription)["header"]["stamp"] for _ in range(40)]  # the rest of the first's sample, then the kept
+    subscription.close()
+    assert max(stamps) > woke - 0.1 > first["stamp"]  # the newest waited, not the oldest
+    assert client.dropped - dropped_before > 0.8 * 2 * 1000 * 0.5 - 10 * 32  # all but the 10 samples kept (≤ 32 frames each)
+
+
 STALLED_SUBSCRIBER = r"""
 import json, sys, zenoh
 config = zenoh.Config.from_json5(json.dumps({"scouting": {"multicast": {"enabled": False}},

@@ -172,12 +172,13 @@ class ZenohPublisher:
         return publisher
 
     def _send_loop(self) -> None:
+        """Until closed and nothing is left to send."""
         while True:
             frames = self.queue.take()
             if frames:
                 self._use_board(self._board_key())
                 self._send(frames)
-            elif self._closing.is_set():
+            if self._closing.is_set() and not len(self.queue):
                 return
 
     def _send(self, frames: list) -> None:
