@@ -7,7 +7,8 @@ from the services (``tactile serve --zenoh``), no gateway.
         for frame in client.subscribe(board="*", sensors=[1]):
             board = frame["header"]["board"]
             fx, fy, fz = frame["force_N"]
-            if client.last_health_age_s(board) > 2:   # that service is gone
+            age = client.last_health_age_s(board)  # None: no health heard yet
+            if age is None or age > 2.0:           # that service is gone
                 ...
 
 Frames have the shape ``TactileClient.subscribe(binary=True)`` gives
