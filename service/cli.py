@@ -120,7 +120,23 @@ def _add_serve(sub) -> None:
     serve.add_argument("--source", default=DEFAULT_SOURCE,
                        help="pyserial URL or device path (default: %(default)s, the built-in simulator)")
     _add_serving_options(serve)
+    _add_zenoh_options(serve)
     serve.set_defaults(func=cmd_serve)
+
+
+def _add_zenoh_options(parser: argparse.ArgumentParser) -> None:
+    """``serve --zenoh``: frames, health and latest frames on Zenoh (docs/scale.md)."""
+    zenoh = parser.add_argument_group("zenoh", "publish on Zenoh under tactile/<board>/ (docs/scale.md)")
+    zenoh.add_argument("--zenoh", nargs="?", const="", metavar="CONFIG",
+                       help="publish on Zenoh; CONFIG: a Zenoh JSON5 configuration file (default: Zenoh's defaults)")
+    zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
+                       help="connect to this Zenoh endpoint, e.g. tcp/192.168.1.10:7447 (repeatable)")
+    zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
+                       help="listen on this Zenoh endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
+    zenoh.add_argument("--no-multicast", action="store_true", help="turn Zenoh's multicast scouting off")
+    zenoh.add_argument("--board-name", metavar="NAME",
+                       help="the board's key in tactile/<board>/… (default: the serial, else the board name, from INFO)")
 
 
 def _add_sim(sub) -> None:

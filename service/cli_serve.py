@@ -138,10 +138,12 @@ def cmd_serve(args) -> int:
     token = args.token or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         token = secrets.token_urlsafe(16)
+    publisher = zenoh_publisher(args)
     book = book_from_options(args.registry, args.calibration, args.mounting, getattr(args, "recording", None))
     service = TactileService(args.source, level=args.level, mounting=args.mounting,
                              sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
                              silence_s=args.silence_s, calibrations=book)
+    service.zenoh = publisher
     app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
                      allow_origins=tuple(args.allow_origin))
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
@@ -173,6 +175,23 @@ def cmd_serve(args) -> int:
     if interrupted:
         raise KeyboardInterrupt  # uvicorn stopped on Ctrl-C and swallowed it: end as every command does (130)
     return 0
+
+
+def zenoh_publisher(args):
+    """The ``--zenoh`` options as a ZenohPublisher, its session open (a listen
+    port in use fails here, before anything is printed); None without --zenoh."""
+    if getattr(args, "zenoh", None) is None:
+        given = [name for name in ("zenoh_endpoint", "zenoh_listen", "zenoh_mode", "no_multicast", "board_name")
+                 if getattr(args, name, None)]
+        if given:
+            raise ValueError(f"--{given[0].replace('_', '-')} needs --zenoh")
+        return None
+    from .net.zenoh_config import session_config
+    from .net.zenoh_publisher import ZenohPublisher
+
+    config = session_config(args.zenoh or None, args.zenoh_endpoint, args.zenoh_listen, args.zenoh_mode,
+                            False if args.no_multicast else None)
+    return ZenohPublisher(config, board_name=args.board_name)
 
 
 def _wait_until_listening(host: str, port: int, done: threading.Event, poll_s: float = 0.05) -> bool:

@@ -127,4 +127,5 @@ def health_report(service) -> dict:
         "recording": None if service.recorder is None else service.recorder.status(),
         "reconstruction": reconstruction,
         "clock": None if pipeline.clock is None else pipeline.clock.status(),
+        "zenoh": None if getattr(service, "zenoh", None) is None else service.zenoh.status(),
     }

@@ -67,6 +67,7 @@ class TactileService:
         self.readout: Readout | None = None
         self.started_at = time.time()
         self.recorder: Recorder | None = None
+        self.zenoh = None  # a net.zenoh_publisher.ZenohPublisher to attach at start (tactile serve --zenoh)
         self._recording_lock = threading.Lock()  # start and stop come from the API's worker threads
         self._cycles_stop = threading.Event()
 
@@ -80,9 +81,13 @@ class TactileService:
         self.readout.start(loop)
         self._cycles_stop.clear()
         threading.Thread(target=self._keep_cycles, name="tactile-cycles", daemon=True).start()
+        if self.zenoh is not None:
+            self.zenoh.attach(self)
 
     def stop(self) -> None:
         self.stop_recording()
+        if self.zenoh is not None:
+            self.zenoh.close()
         if self.readout is not None:
             self.readout.stop()
         self._cycles_stop.set()

@@ -17,10 +17,12 @@ LAYERS = [
     ("service.readings", 1),
     ("service.reconstruct", 2),
     ("service.history", 3), ("service.fanout", 3), ("service.record", 3), ("service.sources", 3),
+    ("service.net", 3),
     ("service.calibration.registry", 3), ("service.calibration.book", 3),
     ("service.pipeline", 4), ("service.handover", 4), ("service.readout", 4),
     ("service.live_service", 5), ("service.health", 5), ("service.replay", 5),
-    ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.calibration", 6),
+    ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.client_zenoh", 6),
+    ("service.calibration", 6),
     ("service.cli", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7), ("service.cli_serve", 7),
     ("service.cli_signals", 7),
 ]

@@ -1,0 +1,214 @@
+"""The Python client on Zenoh: frames of every board of every host, straight
+from the services (``tactile serve --zenoh``), no gateway.
+
+    from service.client_zenoh import ZenohClient
+
+    with ZenohClient(["tcp/lab-pc:7447", "tcp/arm-pc:7447"]) as client:
+        for frame in client.subscribe(board="*", sensors=[1]):
+            board = frame["header"]["board"]
+            fx, fy, fz = frame["force_N"]
+            age = client.last_health_age_s(board)  # None: no health heard yet
+            if age is None or age > 2.0:           # that service is gone
+                ...
+
+Frames have the shape ``TactileClient.subscribe(binary=True)`` gives
+(service/client.py: header, rows/cols for grids, force_N and a quad's wrench,
+sigma, flags; numpy float32 with NaN), plus ``header["board"]``, the board's
+key. A grid's rows and cols are not in the binary records: the client asks
+the board's ``tactile/<board>/sensors`` queryable once per board (and again
+for a sensor it does not know yet). Keys and QoS: docs/scale.md.
+
+A consumer slower than the stream loses the oldest waiting frames, never
+the service's time or memory: ``dropped`` counts them. Every failure — no
+frame within ``timeout``, no answer to a query, a sample that does not
+decode — is a ``TactileError`` saying what.
+"""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+
+import orjson
+import zenoh
+
+from .client import TactileClient, TactileError
+from .fanout.encoding import DEFAULT_FIELDS, decode_binary
+from .net.zenoh_config import PREFIX, frame_key, latest_key, open_session, sensors_key, session_config
+
+INBOX_SAMPLES = 4096  # ~2 s of a grid and a quad at 1 kHz
+
+
+def _board_of(key: zenoh.KeyExpr | str) -> str:
+    return str(key).split("/")[1]
+
+
+class _BoardFrames(TactileClient):
+    """The WebSocket client's conversion of binary records into the frame
+    shape, with the sensors' shapes asked over Zenoh instead of GET /sensors."""
+
+    def __init__(self, shapes) -> None:
+        super().__init__()
+        self._shapes = shapes
+
+    def _sensor(self, sensor_id: int) -> dict:
+        return self._shapes(sensor_id)
+
+
+class _Inbox:
+    """Samples from Zenoh's threads to the consumer: at most ``capacity``;
+    a consumer that falls behind loses the oldest (their frames counted)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.dropped = 0
+        self._samples: deque[tuple[str, bytes]] = deque(maxlen=capacity)
+        self._ready = threading.Event()
+        self._lock = threading.Lock()  # several subscribers may deliver at once
+
+    def put(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            if len(self._samples) == self._samples.maxlen:
+                self.dropped += int.from_bytes(self._samples[0][1][:2], "little")  # its u16 record count
+            self._samples.append((str(sample.key_expr), sample.payload.to_bytes()))
+        self._ready.set()
+
+    def get(self, timeout: float) -> tuple[str, bytes] | None:
+        deadline = time.monotonic() + timeout
+        while True:
+            self._ready.clear()  # before looking: a sample put after the look sets it again
+            if self._samples:
+                return self._samples.popleft()
+            if not self._ready.wait(deadline - time.monotonic()):
+                return None
+
+
+class ZenohClient:
+    """A Zenoh session to the services: ``endpoints`` to connect to (then
+    multicast scouting is off), or a whole ``config`` (service.net.zenoh_config.
+    session_config), or Zenoh's defaults (peers found by multicast scouting).
+    Health samples of every board are followed from the start."""
+
+    def __init__(self, endpoints: Iterable[str] = (), config: zenoh.Config | None = None, timeout: float = 5.0) -> None:
+        endpoints = list(endpoints)
+        if config is None:
+            config = session_config(connect=endpoints, multicast=False if endpoints else None)
+        self.timeout = timeout
+        self.dropped = 0  # frames lost because the consumer of subscribe fell behind
+        self.session = open_session(config)
+        self._health: dict[str, tuple[float, dict]] = {}
+        self._shapes: dict[str, dict[int, dict]] = {}
+        self._converters: dict[str, _BoardFrames] = {}
+        self._lock = threading.Lock()
+        self._health_subscriber = self.session.declare_subscriber(f"{PREFIX}/*/health", self._on_health)
+
+    def __enter__(self) -> "ZenohClient":
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.session.close()
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        try:
+            document = orjson.loads(sample.payload.to_bytes())
+        except orjson.JSONDecodeError:
+            return  # not a health document: nothing to learn from it
+        with self._lock:
+            self._health[_board_of(sample.key_expr)] = (time.monotonic(), document)
+
+    def boards(self) -> list[str]:
+        """Boards whose health was heard since the client started."""
+        with self._lock:
+            return sorted(self._health)
+
+    def health(self, board: str) -> dict | None:
+        """The board's last health document (its /health), None if none came."""
+        with self._lock:
+            entry = self._health.get(board)
+        return None if entry is None else entry[1]
+
+    def last_health_age_s(self, board: str) -> float | None:
+        """Seconds since the board's last health sample (one a second while its
+        service runs), None if none came: a service that is gone grows old."""
+        with self._lock:
+            entry = self._health.get(board)
+        return None if entry is None else time.monotonic() - entry[0]
+
+    def _get(self, key: str) -> list[zenoh.Sample]:
+        replies = [reply.ok for reply in self.session.get(key, timeout=self.timeout) if reply.ok is not None]
+        if not replies:
+            raise TactileError(f"zenoh query {key}: no answer within {self.timeout} s (is that board's service running?)")
+        return replies
+
+    def sensors(self, board: str) -> list[dict]:
+        """The board's sensors (id, kind, rows, cols), as its service knows them."""
+        document = orjson.loads(self._get(sensors_key(board))[0].payload.to_bytes())
+        with self._lock:
+            self._shapes[board] = {s["id"]: s for s in document["sensors"]}
+        return document["sensors"]
+
+    def _shape(self, board: str, sensor_id: int) -> dict:
+        with self._lock:
+            shape = self._shapes.get(board, {}).get(sensor_id)
+        if shape is None:
+            self.sensors(board)  # the board, or this sensor, is new to us
+            with self._lock:
+                shape = self._shapes[board].get(sensor_id)
+        if shape is None:
+            raise TactileError(f"a frame from board {board}'s sensor {sensor_id}, which its service does not list")
+        return shape
+
+    def _frames(self, board: str, payload: bytes, key: str) -> list[dict]:
+        try:
+            records = decode_binary(payload)
+        except (ValueError, IndexError, UnicodeDecodeError, struct.error) as exc:
+            raise TactileError(f"zenoh sample on {key} does not decode ({exc})") from None
+        converter = self._converters.get(board)
+        if converter is None:
+            converter = self._converters[board] = _BoardFrames(lambda sid: self._shape(board, sid))
+        frames = []
+        for record in records:
+            frame = converter._from_binary(record, DEFAULT_FIELDS)
+            frame["header"]["board"] = board
+            frames.append(frame)
+        return frames
+
+    def latest(self, board: str, sensor: int) -> dict:
+        """The sensor's latest frame, asked from its service."""
+        key = latest_key(board, sensor)
+        sample = self._get(key)[0]
+        return self._frames(_board_of(sample.key_expr), sample.payload.to_bytes(), key)[-1]
+
+    def subscribe(self, board: str = "*", sensors: Iterable[int] | None = None, timeout: float | None = None,
+                  queue_samples: int = INBOX_SAMPLES) -> Iterator[dict]:
+        """Frames as they arrive, from ``board`` ("*": every board) and
+        ``sensors`` (None: all). TactileError when none comes within
+        ``timeout`` s (default: the client's). At most ``queue_samples``
+        samples wait for the consumer: one that falls behind loses the
+        oldest, counted in ``dropped``."""
+        timeout = self.timeout if timeout is None else timeout
+        keys = [frame_key(board, "*")] if sensors is None else [frame_key(board, sid) for sid in sensors]
+        inbox, dropped_before = _Inbox(queue_samples), self.dropped
+        subscribers = [self.session.declare_subscriber(key, inbox.put) for key in keys]
+        try:
+            while True:
+                received = inbox.get(timeout)
+                self.dropped = dropped_before + inbox.dropped
+                if received is None:
+                    raise TactileError(f"no frame on {', '.join(keys)} within {timeout} s")
+                yield from self._frames(_board_of(received[0]), received[1], received[0])
+        finally:
+            for subscriber in subscribers:
+                subscriber.undeclare()
+
+
+def subscribe_zenoh(board: str = "*", sensors: Iterable[int] | None = None, endpoints: Iterable[str] = (),
+                    config: zenoh.Config | None = None, timeout: float = 5.0) -> Iterator[dict]:
+    """Frames of ``board``'s ``sensors`` over Zenoh, in a session of their own
+    (ZenohClient.subscribe; a ZenohClient also gives health and latest)."""
+    with ZenohClient(endpoints, config, timeout) as client:
+        yield from client.subscribe(board, sensors)

@@ -1,0 +1,87 @@
+"""Zenoh sessions for the service and its clients: the command line's options
+mapped onto Zenoh's own configuration keys, and the key expressions used.
+
+Keys (docs/scale.md):
+
+    tactile/<board>/<sensor>/frame    every frame (binary encoding, u16 count + records)
+    tactile/<board>/<sensor>/latest   queryable: the latest frame, same encoding
+    tactile/<board>/sensors           queryable: the board's INFO and sensor shapes (JSON)
+    tactile/<board>/health            the /health document (JSON), once per second
+"""
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterable
+from pathlib import Path
+
+import zenoh
+
+PREFIX = "tactile"
+MODES = ("peer", "client", "router")
+DEFAULT_PORT = 7447
+UNNAMED_BOARD = "unnamed"
+_NOT_IN_KEY = re.compile(r"[^A-Za-z0-9_-]")
+
+
+def key_part(text: str) -> str:
+    """``text`` as one chunk of a key expression: only letters, digits, '_'
+    and '-' (anything else becomes '_'; nothing gives the unnamed board)."""
+    return _NOT_IN_KEY.sub("_", text) or UNNAMED_BOARD
+
+
+def board_key(info: dict, override: str | None = None) -> str:
+    """The board's chunk in every key: ``override`` (``--board-name``), else
+    INFO's "serial", else its "board" name, else ``unnamed``."""
+    name = override or info.get("serial") or info.get("board") or UNNAMED_BOARD
+    return key_part(str(name))
+
+
+def frame_key(board: str, sensor: int | str) -> str:
+    return f"{PREFIX}/{board}/{sensor}/frame"
+
+
+def latest_key(board: str, sensor: int | str) -> str:
+    return f"{PREFIX}/{board}/{sensor}/latest"
+
+
+def sensors_key(board: str) -> str:
+    return f"{PREFIX}/{board}/sensors"
+
+
+def health_key(board: str) -> str:
+    return f"{PREFIX}/{board}/health"
+
+
+def session_config(file: str | Path | None = None, connect: Iterable[str] = (), listen: Iterable[str] = (),
+                   mode: str | None = None, multicast: bool | None = None) -> zenoh.Config:
+    """A zenoh.Config: ``file`` (a Zenoh JSON5 configuration) or Zenoh's
+    defaults, then the options over it on Zenoh's keys — connect/endpoints,
+    listen/endpoints, mode, scouting/multicast/enabled. ValueError naming
+    what Zenoh refused (a bad file, endpoint or mode)."""
+    if mode is not None and mode not in MODES:
+        raise ValueError(f"zenoh mode {mode!r} is none of {', '.join(MODES)}")
+    try:
+        config = zenoh.Config.from_file(str(file)) if file is not None else zenoh.Config()
+        connect, listen = list(connect), list(listen)
+        if connect:
+            config.insert_json5("connect/endpoints", json.dumps(connect))
+        if listen:
+            config.insert_json5("listen/endpoints", json.dumps(listen))
+        if mode is not None:
+            config.insert_json5("mode", json.dumps(mode))
+        if multicast is not None:
+            config.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    except zenoh.ZError as exc:
+        raise ValueError(f"zenoh configuration{f' {file}' if file else ''}: {exc}") from None
+    return config
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """Open a session; OSError saying why not (e.g. a listen port in use).
+    Zenoh's own log goes to stdout only when RUST_LOG asks for it."""
+    zenoh.try_init_log_from_env()
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise OSError(f"zenoh session: {exc}") from None
