@@ -4,7 +4,7 @@ replay — against a per-taxel state machine written from the definition."""
 import numpy as np
 import pytest
 
-from service.reconstruct.fatigue import FEW_FRAMES, HIGH_N, LOW_N, CycleCounter
+from service.reconstruct.fatigue import FEW_FRAMES, HIGH_N, JUDGE_EVERY, LOW_N, CycleCounter
 
 
 def reference(forces: np.ndarray) -> np.ndarray:
@@ -39,7 +39,7 @@ def test_counts_do_not_depend_on_how_the_stream_is_cut(cuts, taxels):
         size = cuts[i % len(cuts)]
         counter.update(forces[start:start + size])
         start, i = start + size, i + 1
-    expected = reference(forces)
+    expected = reference(forces[::JUDGE_EVERY])  # every JUDGE_EVERY-th frame of the stream is judged
     assert expected.sum() > 100  # the stream does cycle
     np.testing.assert_array_equal(counter.counts, expected)
 
@@ -47,7 +47,7 @@ def test_counts_do_not_depend_on_how_the_stream_is_cut(cuts, taxels):
 def test_a_cycle_spanning_batches_of_both_paths_is_counted_once():
     counter = CycleCounter(1)
     counter.update(np.array([[2.0]] * (FEW_FRAMES + 2)))  # armed in a whole-batch scan
-    counter.update(np.array([[0.5]]))  # in the band: still armed
-    counter.update(np.array([[0.1]]))  # falls, frame by frame
+    counter.update(np.array([[0.5]]))  # in the band (and not a judged frame)
+    counter.update(np.array([[0.1]]))  # falls, frame by frame (judged from the next judged frame)
     counter.update(np.array([[0.1]] * (FEW_FRAMES + 2)))
     assert counter.counts.tolist() == [1]

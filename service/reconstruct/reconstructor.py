@@ -217,9 +217,15 @@ class Reconstructor(SensorStates):
 
     @staticmethod
     def _sensitivity(state: SensorState) -> float:
-        """What load cycles left of a quad's sensitivity (1: no fatigue model)."""
+        """What load cycles left of a quad's sensitivity (1: no fatigue model);
+        recomputed only when the count moved."""
         model = state.calibration.fatigue
-        return 1.0 if model is None else float(model.factor(state.cycles.counts[0]))
+        if model is None:
+            return 1.0
+        count = int(state.cycles.counts[0])
+        if state.sensitivity_for is None or state.sensitivity_for[0] != count or state.sensitivity_for[1] is not model:
+            state.sensitivity_for = (count, model, float(model.factor(count)))
+        return state.sensitivity_for[2]
 
     def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None,
                 calibration: str, sigma: np.ndarray | None) -> list[ForceFrame]:

@@ -42,6 +42,7 @@ class SensorState:
     judge_tare: bool = True  # False after a forced tare: the user says the load is the zero
     loaded: np.ndarray | None = None  # (n,) taxels loaded at tare (their zero is the calibration's C0)
     cycles: CycleCounter | None = None  # load cycles per taxel (a quad: of Fz), fatigue.py
+    sensitivity_for: tuple | None = None  # (cycles, model, factor): a quad's fatigue factor, kept until the count moves
 
 
 class SensorStates:
