@@ -31,7 +31,7 @@ router = APIRouter()
 
 MAX_HEAVY_READS = 2
 SEND_PIECE_BYTES = 1 << 16
-HISTORY_CHUNK = 20  # frames encoded between two turns of the event loop (~0.5 ms)
+HISTORY_CHUNK = 8  # frames encoded between two turns of the event loop (~0.2 ms; 20 gave a 5000-point storm p99 of 5 ms, 8 gives 2.7–3.7)
 
 
 @router.get("/clients")
