@@ -128,7 +128,8 @@ def _add_zenoh_options(parser: argparse.ArgumentParser) -> None:
     """``serve --zenoh``: frames, health and latest frames on Zenoh (docs/scale.md)."""
     zenoh = parser.add_argument_group("zenoh", "publish on Zenoh under tactile/<board>/ (docs/scale.md)")
     zenoh.add_argument("--zenoh", nargs="?", const="", metavar="CONFIG",
-                       help="publish on Zenoh; CONFIG: a Zenoh JSON5 configuration file (default: Zenoh's defaults)")
+                       help="publish on Zenoh; CONFIG: a Zenoh JSON5 configuration file (default: listen on "
+                            "tcp/127.0.0.1:7447 only, multicast scouting off, unless --zenoh-listen is given)")
     zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
                        help="connect to this Zenoh endpoint, e.g. tcp/192.168.1.10:7447 (repeatable)")
     zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",

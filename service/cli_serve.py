@@ -186,12 +186,28 @@ def zenoh_publisher(args):
         if given:
             raise ValueError(f"--{given[0].replace('_', '-')} needs --zenoh")
         return None
-    from .net.zenoh_config import session_config
     from .net.zenoh_publisher import ZenohPublisher
 
-    config = session_config(args.zenoh or None, args.zenoh_endpoint, args.zenoh_listen, args.zenoh_mode,
-                            False if args.no_multicast else None)
+    config, note = zenoh_config(args)
+    if note:
+        print(f"tactile: {note}", file=sys.stderr)
     return ZenohPublisher(config, board_name=args.board_name)
+
+
+def zenoh_config(args):
+    """(zenoh.Config, what to tell the user) of the ``--zenoh`` options.
+    Without a CONFIG file and without --zenoh-listen the service listens on
+    loopback only, multicast scouting off: like the HTTP side's 127.0.0.1,
+    nothing reachable from the LAN and nothing connecting out to peers that
+    scouting finds, unless asked."""
+    from .net.zenoh_config import DEFAULT_PORT, session_config
+
+    listen, multicast, note = args.zenoh_listen, False if args.no_multicast else None, None
+    if not args.zenoh and not listen:
+        listen, multicast = [f"tcp/127.0.0.1:{DEFAULT_PORT}"], False
+        note = (f"zenoh listens on tcp/127.0.0.1:{DEFAULT_PORT} only, multicast scouting off; "
+                "--zenoh-listen tcp/0.0.0.0:7447 (or a CONFIG) to be reachable from other hosts")
+    return session_config(args.zenoh or None, args.zenoh_endpoint, listen, args.zenoh_mode, multicast), note
 
 
 def _wait_until_listening(host: str, port: int, done: threading.Event, poll_s: float = 0.05) -> bool:

@@ -260,3 +260,16 @@ def test_serve_refuses_zenoh_options_without_zenoh_and_a_zenoh_port_in_use(live,
     err = capsys.readouterr().err
     assert "zenoh session" in err and "in use" in err
 
+
+
+def test_without_a_config_or_listen_endpoint_the_service_is_reachable_from_loopback_only():
+    from argparse import Namespace
+
+    from service.cli_serve import zenoh_config
+
+    options = dict(zenoh_endpoint=[], zenoh_mode=None, no_multicast=False)
+    config, note = zenoh_config(Namespace(zenoh="", zenoh_listen=[], **options))
+    assert config.get_json("listen/endpoints") == '["tcp/127.0.0.1:7447"]'
+    assert config.get_json("scouting/multicast/enabled") == "false" and "127.0.0.1" in note
+    config, note = zenoh_config(Namespace(zenoh="", zenoh_listen=["tcp/0.0.0.0:7448"], **options))
+    assert config.get_json("listen/endpoints") == '["tcp/0.0.0.0:7448"]' and note is None
