@@ -39,11 +39,14 @@ class History:
         self._t_host = np.zeros(capacity)
         self._seq = np.zeros(capacity, dtype=np.int64)
         self._t_us = np.zeros(capacity, dtype=np.int64)
+        self._t_scan = np.zeros(capacity)
         self._forces = np.zeros((capacity, outputs))
+        self._sigma = np.zeros((capacity, outputs), dtype=np.float32)  # σ to a tenth of a per cent is plenty
         self._raw = np.zeros((capacity, info.channels))
         self._taxel_flags = np.zeros((capacity, outputs), dtype=np.uint8) if info.kind == "grid" else None
         self._flags: list[tuple[str, ...]] = [()] * capacity
         self._levels: list[str] = [""] * capacity
+        self._calibrations: list[str] = [""] * capacity  # the frames' own id strings: one object per calibration
         self._count = 0  # frames ever appended
 
     def __len__(self) -> int:
@@ -51,8 +54,8 @@ class History:
 
     @staticmethod
     def bytes_per_frame(info: SensorInfo, outputs: int) -> int:
-        """What one kept frame costs: stamps, forces, raw channels, flags."""
-        return 3 * 8 + 8 * outputs + 8 * info.channels + (outputs if info.kind == "grid" else 0) + 2 * 8
+        """What one kept frame costs: stamps, forces, σ, raw channels, flags, level and calibration."""
+        return 4 * 8 + 12 * outputs + 8 * info.channels + (outputs if info.kind == "grid" else 0) + 3 * 8
 
     def shrink(self, capacity: int) -> None:
         """Keep only the newest ``capacity`` frames (and room for no more)."""
@@ -60,7 +63,8 @@ class History:
             return
         kept = min(len(self), capacity)
         order = (self._count - kept + np.arange(kept)) % self.capacity  # oldest first
-        arrays = ("_t_host", "_seq", "_t_us", "_forces", "_raw") + (("_taxel_flags",) if self._taxel_flags is not None else ())
+        arrays = ("_t_host", "_t_scan", "_seq", "_t_us", "_forces", "_sigma", "_raw") + (
+            ("_taxel_flags",) if self._taxel_flags is not None else ())
         for name in arrays:
             old = getattr(self, name)
             new = np.zeros((capacity,) + old.shape[1:], dtype=old.dtype)
@@ -68,6 +72,7 @@ class History:
             setattr(self, name, new)
         self._flags = [self._flags[i] for i in order.tolist()] + [()] * (capacity - kept)
         self._levels = [self._levels[i] for i in order.tolist()] + [""] * (capacity - kept)
+        self._calibrations = [self._calibrations[i] for i in order.tolist()] + [""] * (capacity - kept)
         self.capacity, self._count = capacity, kept
 
     def append(self, frame: ForceFrame) -> None:
@@ -76,13 +81,16 @@ class History:
             raise ValueError(f"history of sensor {self.info.id} was given a frame of sensor {frame.sensor.id}")
         i = self._count % self.capacity
         self._t_host[i], self._seq[i], self._t_us[i] = frame.t_host, frame.seq, frame.t_us
+        self._t_scan[i] = frame.t_host_scan
         self._forces[i] = frame.forces_N
+        self._sigma[i] = np.nan if frame.sigma_N is None else frame.sigma_N
         self._raw[i] = frame.capacitance_pF
         if self._taxel_flags is not None:
             self._taxel_flags[i] = 0 if frame.taxel_flags is None else frame.taxel_flags
         flags = tuple(frame.flags)
         self._flags[i] = _FLAG_SETS.setdefault(flags, flags)  # one tuple per distinct set of flags, not per frame
         self._levels[i] = frame.level
+        self._calibrations[i] = frame.calibration
         self._count += 1
 
     def window(self, seconds: float, max_points: int) -> list[ForceFrame]:
@@ -110,7 +118,8 @@ class History:
         return ForceFrame(
             self.info, int(self._seq[i]), int(self._t_us[i]), float(self._t_host[i]), self._forces[i].copy(),
             self._raw[i].copy(), list(self._flags[i]), self._levels[i],
-            None if self._taxel_flags is None else self._taxel_flags[i].copy(),
+            None if self._taxel_flags is None else self._taxel_flags[i].copy(), self._calibrations[i],
+            self._sigma[i].astype(float), float(self._t_scan[i]),
         )
 
 

@@ -91,6 +91,11 @@ def test_contact_and_history(client):
     assert client.get("/sensors/1/contact").status_code == 400
     history = client.get("/sensors/0/history?seconds=0.5&max_points=50").json()
     assert 2 <= len(history) <= 50
+    # The history keeps what the live frames carried: calibration id, σ and the scan stamp.
+    kept = client.get("/sensors/0/history?seconds=0.5&max_points=5&fields=force,sigma").json()
+    assert {m["header"]["calibration"] for m in kept} == {"builtin-table1"}
+    assert all(len(m["sigma_N"]) == 64 and all(s is None or s > 0 for s in m["sigma_N"]) for m in kept)
+    assert all(m["header"]["scan_stamp"] <= m["header"]["stamp"] for m in kept)
     stamps = [m["header"]["stamp"] for m in history]
     assert stamps == sorted(stamps) and stamps[-1] - stamps[0] <= 0.5
     bad = client.get("/sensors/0/history?seconds=50")

@@ -13,7 +13,8 @@ def frame(seq: int, info: SensorInfo = GRID) -> ForceFrame:
     forces = np.array([seq, seq + 0.5, np.nan, -seq], dtype=float)
     flags = ["seq_gap"] if seq % 3 == 0 else []
     return ForceFrame(info, seq, seq * 1000, 100.0 + seq * 1e-3, forces, forces + 10.0, flags, "full",
-                      np.array([0, 1, 1, 0], dtype=np.uint8) * (seq % 2))
+                      np.array([0, 1, 1, 0], dtype=np.uint8) * (seq % 2), f"cal{seq % 2}",
+                      np.array([0.01, 0.02, np.nan, 0.03]) * (1 + seq), 99.9 + seq * 1e-3)
 
 
 def test_the_ring_keeps_the_newest_frames_as_they_were():
@@ -54,7 +55,8 @@ def test_histories_share_one_budget_and_keep_the_newest_frames():
 
     sensors = [SensorInfo(sid, "grid", 2, 2) for sid in range(4)]
     per_frame = History.bytes_per_frame(sensors[0], 4)
-    assert per_frame == 24 + 32 + 32 + 4 + 16
+    # stamps (t_host, scan, seq, t_us), forces, σ (float32), raw, taxel flags, flags/level/calibration references
+    assert per_frame == 32 + 32 + 16 + 32 + 4 + 24
     histories = Histories(budget_bytes=40 * per_frame, frames=30)
     for seq in range(25):  # sensor 0 alone: 30 frames fit, 25 kept
         histories.for_frame(frame(seq)).append(frame(seq))
@@ -69,6 +71,8 @@ def test_histories_share_one_budget_and_keep_the_newest_frames():
         np.testing.assert_array_equal(got.forces_N, frame(got.seq).forces_N)
         np.testing.assert_array_equal(got.taxel_flags, frame(got.seq).taxel_flags)
         assert got.flags == frame(got.seq).flags
+        assert got.calibration == frame(got.seq).calibration and got.t_host_scan == frame(got.seq).t_host_scan
+        np.testing.assert_array_equal(got.sigma_N, np.asarray(frame(got.seq).sigma_N, np.float32))
     for seq in range(25, 40):  # the shrunk ring goes on from where it was
         histories.for_frame(frame(seq)).append(frame(seq))
     assert [f.seq for f in histories[0].window(100.0, 100)] == list(range(30, 40))
