@@ -44,7 +44,8 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
         "note": document.get("note") or ("the papers' calibration, not measured on this sensor" if calibration.builtin else None),
         "created": calibration.created,
         "age_s": _age_s(calibration.created, now),
-        "activated": None if book is None or info is None else book.activated_at(pipeline.interpreter.board, info),
+        "activated": None if book is None or info is None else book.activated_at(pipeline.interpreter.board, info,
+                                                                                            calibration.id),
         "problem": reconstructor.calibration_problems.get(sid),
         "loaded_at_tare": reconstructor.loaded_at_tare(sid),
     }

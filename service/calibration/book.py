@@ -86,6 +86,7 @@ class CalibrationBook:
         self.use_registry = use_registry
         self.mounting = mounting
         self.problems: list[str] = []
+        self._activated: dict[tuple[str, str], str | None] = {}  # (sensor key, calibration id) → activation time
 
     def for_sensor(self, board: dict, info: SensorInfo) -> SensorCalibration | None:
         """ValueError (the reconstruction keeps the built-in one and says why)
@@ -142,13 +143,20 @@ class CalibrationBook:
     def store(self, document: dict) -> str:
         """Store and activate ``document`` (an upload through the API); its id."""
         with Registry(self.registry_path) as registry:
-            return registry.add(document, activate=True)
+            cid = registry.add(document, activate=True)
+        self._activated.clear()
+        return cid
 
-    def activated_at(self, board: dict, info: SensorInfo) -> str | None:
+    def activated_at(self, board: dict, info: SensorInfo, calibration_id: str) -> str | None:
+        """When the sensor's calibration ``calibration_id`` was activated in the
+        registry; read once per calibration in use (/health asks every second)."""
         if not self.use_registry:
             return None
-        try:
-            with Registry(self.registry_path) as registry:
-                return registry.activated_at(sensor_identity(board, info)["key"])
-        except Exception:  # noqa: BLE001 — only for /health; the problem is reported by lookups
-            return None
+        key = (sensor_identity(board, info)["key"], calibration_id)
+        if key not in self._activated:
+            try:
+                with Registry(self.registry_path) as registry:
+                    self._activated[key] = registry.activated_at(key[0])
+            except Exception:  # noqa: BLE001 — only for /health; the problem is reported by lookups
+                return None
+        return self._activated[key]
