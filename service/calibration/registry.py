@@ -31,9 +31,8 @@ from pathlib import Path
 
 from ..physics.paper_data import BUILTIN_GRID_ID, grid_calibration
 from ..readings import SensorInfo
-from ..reconstruct.sensor_calibration import calibration_id, canonical
+from ..reconstruct.sensor_calibration import SCHEMA, calibration_id, canonical
 
-SCHEMA = 1
 BUILTIN_ID = BUILTIN_GRID_ID
 BUILTIN_NOTE = ("built-in: table 1 of Liang et al. 2015 (paper 000), the calibration every 8x8 array without "
                 "its own uses; not measured on this sensor")

@@ -21,9 +21,7 @@ from .crosstalk import Crosstalk
 from .grid import GridProcessor
 from .level0 import tare_window_pF
 from .quad import QuadProcessor
-from .sensor_calibration import SensorCalibration, calibration_id, from_document
-
-SCHEMA = 1
+from .sensor_calibration import SCHEMA, SensorCalibration, calibration_id, from_document
 
 
 def processor_for(info: SensorInfo, level: str, mounting: str,

@@ -40,6 +40,7 @@ from .crosstalk import Crosstalk
 from .fatigue import PAPER_001, FatigueModel
 
 ID_HEX = 16
+SCHEMA = 1  # the calibration document's format (registry documents, uploads, exports)
 BUILTIN_RELATIVE_SE = 0.07
 # Plausible gains: those of the uploadable sensitivities (0.1–10 %/N) on the
 # flat table, whose slope at gain 1 is ~1.25 %/N.
