@@ -59,8 +59,8 @@ def proc_sample(pid: int) -> tuple[float, int]:
     return cpu, rss
 
 
-# A binary record's head (service/fanout/encoding.py, v2): then the calibration id (m bytes),
-# n forces, n sigmas (field bit 4) and the raw channels (field bit 2: n for a grid, 4 for a quad), f4 each.
+# A binary record's head (service/fanout/encoding.py, v3): then the calibration id (m bytes), the
+# board name (u8 length b, b bytes), n forces, n sigmas (field bit 4) and the raw channels (field bit 2: n for a grid, 4 for a quad), f4 each.
 HEADER = np.dtype([("version", "u1"), ("kind", "u1"), ("sid", "u1"), ("field_bits", "u1"), ("seq", "<u2"),
                    ("t_us", "<u4"), ("stamp", "<f8"), ("scan_stamp", "<f8"), ("flag_bits", "<u4"),
                    ("n", "<u2"), ("m", "u1")])
@@ -90,7 +90,8 @@ class Tally:
             starts.append(pos)
             kind, field_bits, n, m = message[pos + 1], message[pos + 3], *COUNT_AT(message, pos + 30), message[pos + 32]
             channels = (n if kind == 0 else 4) if field_bits & 2 else 0
-            pos += HEADER.itemsize + m + 4 * (n * (1 + (field_bits >> 2 & 1)) + channels)
+            b = message[pos + HEADER.itemsize + m]
+            pos += HEADER.itemsize + m + 1 + b + 4 * (n * (1 + (field_bits >> 2 & 1)) + channels)
         raw = np.frombuffer(message, np.uint8)[np.add.outer(starts, HEADER_BYTES)]
         headers = raw.view(HEADER)[:, 0]
         self._sids.append(headers["sid"])

@@ -116,9 +116,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_serve(sub) -> None:
-    serve = sub.add_parser("serve", help="read a board and serve the API and dashboard")
-    serve.add_argument("--source", default=DEFAULT_SOURCE,
-                       help="pyserial URL or device path (default: %(default)s, the built-in simulator)")
+    serve = sub.add_parser("serve", help="read one or several boards and serve the API and dashboard")
+    boards = serve.add_mutually_exclusive_group()
+    boards.add_argument("--source", action="append", metavar="[NAME=]URL",
+                        help=f"pyserial URL or device path, optionally named (left=/dev/ttyACM0); repeat for several "
+                             f"boards; a bare URL is named from its INFO (default: {DEFAULT_SOURCE}, the built-in "
+                             f"simulator)")
+    boards.add_argument("--config", metavar="ROBOT.toml",
+                        help="the boards from a robot description file: name, source, level, mounting, calibration "
+                             "per board (docs/scale.md)")
+    serve.add_argument("--board-name", metavar="NAME",
+                       help="name a single bare --source (as NAME=URL does): its address in the API and its key in "
+                            "tactile/<board>/… (default: the serial, else the board name, from INFO)")
     _add_serving_options(serve)
     _add_zenoh_options(serve)
     serve.set_defaults(func=cmd_serve)
@@ -136,8 +145,7 @@ def _add_zenoh_options(parser: argparse.ArgumentParser) -> None:
                        help="listen on this Zenoh endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
     zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
     zenoh.add_argument("--no-multicast", action="store_true", help="turn Zenoh's multicast scouting off")
-    zenoh.add_argument("--board-name", metavar="NAME",
-                       help="the board's key in tactile/<board>/… (default: the serial, else the board name, from INFO)")
+
 
 
 def _add_sim(sub) -> None:

@@ -133,16 +133,17 @@ def cmd_serve(args) -> int:
     from .health import stale_after_s
     from .live_service import TactileService
 
-    check_source(args.source)
+    specs = board_specs(args)
+    for spec in specs:
+        check_source(spec.source)
     check_port_free(args.host, args.port)  # before anything is printed: not a URL that points at another instance
     token = args.token or os.environ.get("TACTILE_TOKEN")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         token = secrets.token_urlsafe(16)
     publisher = zenoh_publisher(args)
     book = book_from_options(args.registry, args.calibration, args.mounting, getattr(args, "recording", None))
-    service = TactileService(args.source, level=args.level, mounting=args.mounting,
-                             sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
-                             silence_s=args.silence_s, calibrations=book)
+    service = TactileService(sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
+                             silence_s=args.silence_s, calibrations=book, boards=specs, mounting=args.mounting)
     service.zenoh = publisher
     app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
                      allow_origins=tuple(args.allow_origin))
@@ -154,13 +155,15 @@ def cmd_serve(args) -> int:
         """Say where once uvicorn listens (the port was free: whoever answers on it now is us)."""
         if _wait_until_listening(args.host, args.port, done):
             listening.set()
-            print(f"tactile: reading {args.source}; dashboard at {url}", flush=True)
+            reading = ", ".join(spec.source if spec.name is None else f"{spec.name}={spec.source}" for spec in specs)
+            print(f"tactile: reading {reading}; dashboard at {url}", flush=True)
             if token:
                 print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
 
     quiet_readout_transitions()
-    watcher = LinkWatcher(lambda: service.readout.link if service.readout is not None else None,
-                          lambda: stale_after_s(service.pipeline.interpreter.board)).start()
+    watchers = [LinkWatcher(lambda b=board: b.readout.link if b.readout is not None else None,
+                            lambda b=board: stale_after_s(b.pipeline.interpreter.board)).start()
+                for board in service.all_boards]
     threading.Thread(target=announce, name="tactile-announce", daemon=True).start()
     interrupted = []
     try:
@@ -171,17 +174,38 @@ def cmd_serve(args) -> int:
                         timeout_graceful_shutdown=1)
     finally:
         done.set()
-        watcher.stop(final_look=False)
+        for watcher in watchers:
+            watcher.stop(final_look=False)
     if interrupted:
         raise KeyboardInterrupt  # uvicorn stopped on Ctrl-C and swallowed it: end as every command does (130)
     return 0
+
+
+def board_specs(args) -> list:
+    """The boards to read: --config's, else each --source (default: the
+    built-in simulator); --board-name names a single bare source."""
+    from .board import BoardSpec
+    from .robot_config import load_robot, specs_from_sources
+    from .sources import DEFAULT_SOURCE
+
+    if getattr(args, "config", None):
+        specs = load_robot(args.config, args.level, args.mounting)
+    else:
+        sources = args.source if isinstance(args.source, list) else [args.source or DEFAULT_SOURCE]
+        specs = specs_from_sources(sources, args.level, args.mounting)
+    name = getattr(args, "board_name", None)
+    if name:
+        if len(specs) != 1 or specs[0].name is not None:
+            raise ValueError("--board-name names a single bare --source; name several as --source NAME=URL")
+        specs = [BoardSpec(specs[0].source, name, specs[0].level, specs[0].mounting)]
+    return specs
 
 
 def zenoh_publisher(args):
     """The ``--zenoh`` options as a ZenohPublisher, its session open (a listen
     port in use fails here, before anything is printed); None without --zenoh."""
     if getattr(args, "zenoh", None) is None:
-        given = [name for name in ("zenoh_endpoint", "zenoh_listen", "zenoh_mode", "no_multicast", "board_name")
+        given = [name for name in ("zenoh_endpoint", "zenoh_listen", "zenoh_mode", "no_multicast")
                  if getattr(args, name, None)]
         if given:
             raise ValueError(f"--{given[0].replace('_', '-')} needs --zenoh")
@@ -191,7 +215,7 @@ def zenoh_publisher(args):
     config, note = zenoh_config(args)
     if note:
         print(f"tactile: {note}", file=sys.stderr)
-    return ZenohPublisher(config, board_name=args.board_name)
+    return ZenohPublisher(config)
 
 
 def zenoh_config(args):

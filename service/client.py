@@ -17,7 +17,8 @@ naming what failed.
 One frame shape, whichever the encoding (``latest``, ``history`` and
 ``subscribe`` with ``binary`` False or True all give it):
 
-    {"header": {"sensor_id", "sensor_name", "kind", "seq", "board_time_us", "stamp"},
+    {"header": {"board", "sensor_id", "sensor_name", "kind", "seq", "board_time_us", "stamp",
+                "scan_stamp", "calibration"},
      "rows", "cols",                          # grids
      "force_N",                               # grid: rows*cols taxels, row-major;
                                               # quad: [fx, fy, fz] (also as "wrench")
@@ -53,6 +54,11 @@ from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 class TactileError(RuntimeError):
     """Anything that went wrong talking to the service; the message says what
     (the request or stream, and the service's detail or the network's error)."""
+
+
+def _sensor_path(sensor: int | str) -> str:
+    """``/sensors/{id}`` or, for an address "board/id", ``/sensors/{board}/{id}``."""
+    return f"/sensors/{urllib.parse.quote(str(sensor))}".replace("%2F", "/")
 
 
 def _none_if_nan(value) -> float | None:
@@ -122,35 +128,37 @@ class TactileClient:
 
     def sensors(self) -> list[dict]:
         sensors = self._request("GET", "/sensors")["sensors"]
-        self._sensors = {s["id"]: s for s in sensors}
+        self._sensors = {(s["board"], s["id"]): s for s in sensors}
         return sensors
 
-    def latest(self, sensor_id: int) -> dict:
-        return _normalized(self._request("GET", f"/sensors/{sensor_id}/latest"))
+    def latest(self, sensor: int | str) -> dict:
+        """``sensor``: an id (on a one-board service, or the only board with
+        it) or an address ``"board/id"``; likewise below."""
+        return _normalized(self._request("GET", f"{_sensor_path(sensor)}/latest"))
 
-    def contact(self, sensor_id: int) -> dict:
-        return self._request("GET", f"/sensors/{sensor_id}/contact")
+    def contact(self, sensor: int | str) -> dict:
+        return self._request("GET", f"{_sensor_path(sensor)}/contact")
 
-    def history(self, sensor_id: int, seconds: float = 2.0, max_points: int = 200) -> list[dict]:
-        frames = self._request("GET", f"/sensors/{sensor_id}/history?seconds={seconds}&max_points={max_points}")
+    def history(self, sensor: int | str, seconds: float = 2.0, max_points: int = 200) -> list[dict]:
+        frames = self._request("GET", f"{_sensor_path(sensor)}/history?seconds={seconds}&max_points={max_points}")
         return [_normalized(f) for f in frames]
 
-    def tare(self, sensor_id: int | None = None) -> dict:
-        return self._request("POST", "/tare" if sensor_id is None else f"/sensors/{sensor_id}/tare")
+    def tare(self, sensor: int | str | None = None) -> dict:
+        return self._request("POST", "/tare" if sensor is None else f"{_sensor_path(sensor)}/tare")
 
-    def _sensor(self, sensor_id: int) -> dict:
-        if sensor_id not in self._sensors:
+    def _sensor(self, board: str, sensor_id: int) -> dict:
+        if (board, sensor_id) not in self._sensors:
             self.sensors()  # a sensor announced since we last asked
         try:
-            return self._sensors[sensor_id]
+            return self._sensors[(board, sensor_id)]
         except KeyError:
-            raise TactileError(f"a frame from sensor {sensor_id}, which GET /sensors does not list") from None
+            raise TactileError(f"a frame from sensor {board}/{sensor_id}, which GET /sensors does not list") from None
 
     def _from_binary(self, record: dict, fields: frozenset[str]) -> dict:
         """A decoded binary record in the JSON frame shape."""
-        info = self._sensor(record["sensor_id"])
+        info = self._sensor(record["board"], record["sensor_id"])
         kind = record["kind"]
-        frame: dict = {"header": {"sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
+        frame: dict = {"header": {"board": record["board"], "sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
                                   "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],
                                   "stamp": record["stamp"], "scan_stamp": _none_if_nan(record["scan_stamp"]),
                                   "calibration": record["calibration"]}}
@@ -172,12 +180,13 @@ class TactileClient:
             frame["flags"] = record["flags"]
         return frame
 
-    def subscribe(self, sensors: list[int] | None = None, fields: list[str] | None = None, max_rate: float | None = None,
+    def subscribe(self, sensors: list[int | str] | None = None, fields: list[str] | None = None, max_rate: float | None = None,
                   batch_ms: float | None = None, binary: bool = False, timeout: float = 5.0) -> Iterator[dict]:
         """Frames as they arrive, in the one frame shape (module docstring).
         A controller must not wait forever on a silent stream: TactileError
         when no message comes within ``timeout`` s, and when the stream ends
-        (the service stopped, the network failed)."""
+        (the service stopped, the network failed). ``sensors``: ids and
+        "board/id" addresses."""
         from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
 
         query = {"encoding": "binary" if binary else "json"}
@@ -224,7 +233,7 @@ class TactileClient:
         except OSError as exc:
             raise TactileError(f"stream {url}: cannot reach the service: {exc}") from None
 
-    def _frames_in(self, message: str | bytes, url: str, channels: dict[int, int],
+    def _frames_in(self, message: str | bytes, url: str, channels: dict[tuple[str, int], int],
                    wanted: frozenset[str]) -> Iterator[dict]:
         """The frames one stream message carries; counts ``dropped`` and keeps
         ``notices`` on the way."""

@@ -53,8 +53,8 @@ class _BoardFrames(TactileClient):
         super().__init__()
         self._shapes = shapes
 
-    def _sensor(self, sensor_id: int) -> dict:
-        return self._shapes(sensor_id)
+    def _sensor(self, board: str, sensor_id: int) -> dict:
+        return self._shapes(board, sensor_id)
 
 
 class _Inbox:
@@ -169,13 +169,8 @@ class ZenohClient:
             raise TactileError(f"zenoh sample on {key} does not decode ({exc})") from None
         converter = self._converters.get(board)
         if converter is None:
-            converter = self._converters[board] = _BoardFrames(lambda sid: self._shape(board, sid))
-        frames = []
-        for record in records:
-            frame = converter._from_binary(record, DEFAULT_FIELDS)
-            frame["header"]["board"] = board
-            frames.append(frame)
-        return frames
+            converter = self._converters[board] = _BoardFrames(lambda _, sid: self._shape(board, sid))
+        return [converter._from_binary(record, DEFAULT_FIELDS) for record in records]
 
     def latest(self, board: str, sensor: int) -> dict:
         """The sensor's latest frame, asked from its service."""

@@ -53,12 +53,15 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
 
 def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None) -> dict:
     sensors = {}
+    name = pipeline.interpreter.name
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
         age = None if latest is None else now - latest.t_host
         stale = age is None or age > stale_after
         sensors[str(sid)] = {
+            "board": name,
+            "id": sid,
             "kind": info.kind,
             "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
             "stale": stale,
@@ -95,28 +98,52 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     return problems
 
 
-def health_report(service) -> dict:
-    """``service``: a live_service.TactileService."""
-    now = time.time()
-    pipeline = service.pipeline
+BOARD_FIELDS = ("link", "level", "stream", "rejected", "board_errors", "sensors", "reconstruction", "clock")
+
+
+def board_health(board, now: float, book=None) -> dict:
+    """One board's part of /health (``board``: a board.Board)."""
+    pipeline = board.pipeline
     counters = pipeline.decoder.counters.as_dict()
-    link = service.readout.link if service.readout is not None else LinkState(service.source)
+    link = board.readout.link if board.readout is not None else LinkState(board.source)
     stale_after = stale_after_s(pipeline.interpreter.board)
     link_state = link.as_dict(now, stale_after)
-    book = getattr(service, "calibrations", None)
     sensors = _sensors(pipeline, now, counters, stale_after, book)
     reconstruction = _reconstruction(pipeline)
-    problems = _problems(link_state, sensors, reconstruction["errors"]) + (book.problems if book is not None else [])
+    problems = _problems(link_state, sensors, reconstruction["errors"])
     return {
+        "source": board.source,
         "status": "ok" if not problems else "degraded",
         "problems": problems,
-        "uptime_s": round(now - service.started_at, 1),
         "link": link_state,
         "level": pipeline.reconstructor.level,
         "stream": {k: v for k, v in counters.items() if k != "sensors"},
         "rejected": dict(pipeline.interpreter.rejected),
         "board_errors": [{"t_host": t, "text": text} for t, text in pipeline.interpreter.board_errors],
         "sensors": sensors,
+        "reconstruction": reconstruction,
+        "clock": None if pipeline.clock is None else pipeline.clock.status(),
+        "replay": board.source.startswith("replay://"),
+    }
+
+
+def health_report(service) -> dict:
+    """``service``: a live_service.TactileService. Each board's part is under
+    ``boards``; a one-board service also has it at the top level, as before
+    boards were named; with several, the top level's ``sensors`` are keyed
+    by address (board/id) and each problem names its board."""
+    now = time.time()
+    book = getattr(service, "calibrations", None)
+    boards = {board.name: board_health(board, now, book) for board in service.all_boards}
+    several = len(boards) > 1
+    problems = [(f"board {name}: " if several else "") + problem
+                for name, part in boards.items() for problem in part["problems"]]
+    problems += book.problems if book is not None else []
+    report = {
+        "status": "ok" if not problems else "degraded",
+        "problems": problems,
+        "uptime_s": round(now - service.started_at, 1),
+        "boards": boards,
         "websocket_clients": len(service.hub.subscribers),
         "latency": {
             "published": service.published_latency.summary(),
@@ -124,9 +151,13 @@ def health_report(service) -> dict:
         },
         "scheduling": service.scheduling.as_dict(),
         "frames_published": service.hub.frames_published,
-        "replay": service.source.startswith("replay://"),
+        "replay": all(part["replay"] for part in boards.values()),
         "recording": None if service.recorder is None else service.recorder.status(),
-        "reconstruction": reconstruction,
-        "clock": None if pipeline.clock is None else pipeline.clock.status(),
         "zenoh": None if getattr(service, "zenoh", None) is None else service.zenoh.status(),
     }
+    if several:
+        report["sensors"] = {f"{name}/{sid}": sensor for name, part in boards.items()
+                             for sid, sensor in part["sensors"].items()}
+    else:
+        report.update({key: next(iter(boards.values()))[key] for key in BOARD_FIELDS})
+    return report

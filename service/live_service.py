@@ -1,8 +1,9 @@
-"""The live service: source → readout → pipeline → fan-out hub, wired once.
+"""The live service: per board source → readout → pipeline, into one fan-out hub.
 
-``start`` runs on the event loop that serves the API: the readout hands its
-bytes to the loop (handover.py), the pipeline reconstructs them there and
-publishes to the hub and the recorder. /health is assembled in health.py.
+``start`` runs on the event loop that serves the API: each board's readout
+hands its bytes to the loop (handover.py), its pipeline reconstructs them
+there and publishes to the hub and the recorder (board.py). /health is
+assembled in health.py.
 """
 from __future__ import annotations
 
@@ -13,15 +14,15 @@ import threading
 import time
 from pathlib import Path
 
+from .board import BOARD_NAME, Board, BoardSpec
 from .calibration.book import CalibrationBook
-from .calibration.registry import sensor_identity
 from .fanout.hub import Hub
-from .handover import LoopHandover
 from .health import health_report
+from .history import DEFAULT_BUDGET_BYTES, Histories
 from .latency import LatencyMeter
-from .pipeline import Pipeline
-from .readout import DEFAULT_SILENCE_S, Readout
-from .reconstruct import DEFAULT_LEVEL, Reconstructor
+from .readings import name_from_info
+from .readout import DEFAULT_SILENCE_S
+from .reconstruct import DEFAULT_LEVEL
 from .record.recorder import Recorder
 from .sched import SliceRequest, current_slice_us, tune_for_latency
 from .sources import DEFAULT_SOURCE
@@ -47,38 +48,85 @@ def recording_name(name: str | None) -> str:
 
 
 class TactileService:
-    """Owns the data path for one source."""
+    """Owns the data path of one or several boards and what they share: the
+    fan-out hub, the recorder, the calibration book, the Zenoh publisher."""
 
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat",
                  sched_slice_us: int | None = None, recordings_dir: str | Path = "recordings",
-                 silence_s: float = DEFAULT_SILENCE_S, calibrations: CalibrationBook | None = None) -> None:
-        """``calibrations``: where sensors' calibrations come from and uploads
-        go (default: the registry at its default place, calibration/book.py)."""
-        self.source = source
+                 silence_s: float = DEFAULT_SILENCE_S, calibrations: CalibrationBook | None = None,
+                 boards: list[BoardSpec] | None = None, history_budget_bytes: int = DEFAULT_BUDGET_BYTES) -> None:
+        """``boards``: the boards to read (default: one, ``source``, named
+        from its INFO). ``calibrations``: where sensors' calibrations come
+        from and uploads go (default: the registry at its default place,
+        calibration/book.py). The history budget is shared equally by the boards."""
+        specs = boards or [BoardSpec(source, level=level, mounting=mounting)]
+        names = [spec.name for spec in specs if spec.name is not None]
+        if len(set(names)) != len(names):
+            raise ValueError(f"board names must differ: {sorted(names)}")
         self.recordings_dir = Path(recordings_dir).resolve()
-        self.silence_s = silence_s
         self.sched_slice_us = sched_slice_us
         self.scheduling = SliceRequest(None, current_slice_us())
         self.calibrations = calibrations if calibrations is not None else CalibrationBook(mounting=mounting)
-        self.pipeline = Pipeline(Reconstructor(level=level, mounting=mounting), calibrations=self.calibrations)
+        share = max(1, history_budget_bytes // len(specs))
+        self._boards = [Board(spec, self.calibrations.with_pinned(list(spec.calibration)) if spec.calibration
+                              else self.calibrations, Histories(share), self._name_board, silence_s)
+                        for spec in specs]
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
-        self.handover: LoopHandover | None = None
-        self.readout: Readout | None = None
         self.started_at = time.time()
         self.recorder: Recorder | None = None
         self.zenoh = None  # a net.zenoh_publisher.ZenohPublisher to attach at start (tactile serve --zenoh)
         self._recording_lock = threading.Lock()  # start and stop come from the API's worker threads
         self._cycles_stop = threading.Event()
 
+    @property
+    def all_boards(self) -> list[Board]:
+        """Every board, in the order given (named or not yet)."""
+        return list(self._boards)
+
+    def board(self, name: str) -> Board | None:
+        for board in self._boards:
+            if board.name == name:
+                return board
+        return None
+
+    @property
+    def primary(self) -> Board:
+        """The first board: the only one of a one-board service."""
+        return self._boards[0]
+
+    @property
+    def pipeline(self):
+        """The first board's pipeline (one-board set-ups and tests)."""
+        return self.primary.pipeline
+
+    @property
+    def readout(self):
+        """The first board's readout (one-board set-ups and tests)."""
+        return self.primary.readout
+
+    @property
+    def source(self) -> str:
+        return self.primary.source
+
+    def _name_board(self, info: dict) -> str:
+        """A bare source's name from its first INFO, made unique among the boards."""
+        name = name_from_info(info)
+        if not BOARD_NAME.fullmatch(name):
+            name = f"b{name}"[:32]
+        taken = {b.pipeline.interpreter.board_name for b in self._boards}
+        unique, n = name, 2
+        while unique in taken:
+            unique, n = f"{name[:28]}-{n}", n + 1
+        return unique
+
     def start(self) -> None:
-        """On the event loop: tune, wire the listeners, start reading."""
+        """On the event loop: tune, wire the listeners, start reading every board."""
         loop = asyncio.get_running_loop()
         self.scheduling = tune_for_latency(self.sched_slice_us)
-        self.handover = LoopHandover(self.pipeline.feed_reads, self.pipeline.link_lost, loop)
-        self.pipeline.listeners += [self._measure_published, self.hub.publish]
-        self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
-        self.readout.start(loop)
+        for board in self._boards:
+            board.pipeline.listeners += [self._measure_published, self.hub.publish]
+            board.start(loop)
         self._cycles_stop.clear()
         threading.Thread(target=self._keep_cycles, name="tactile-cycles", daemon=True).start()
         if self.zenoh is not None:
@@ -88,47 +136,38 @@ class TactileService:
         self.stop_recording()
         if self.zenoh is not None:
             self.zenoh.close()
-        if self.readout is not None:
-            self.readout.stop()
         self._cycles_stop.set()
-        self.save_cycles()
-        for listener in (self._measure_published, self.hub.publish):
-            if listener in self.pipeline.listeners:
-                self.pipeline.listeners.remove(listener)
+        for board in self._boards:
+            board.stop()
+            for listener in (self._measure_published, self.hub.publish):
+                if listener in board.pipeline.listeners:
+                    board.pipeline.listeners.remove(listener)
 
     def start_recording(self, name: str | None = None) -> dict:
         """Record the live stream to ``name`` (a bare .mcap file name) in the
         recordings directory, the raw bytes beside it (.bin). ValueError for a
-        name that is not a bare .mcap name, FileExistsError for one taken,
+        name that is not a bare .mcap name (with several boards the raw bytes
+        are only in the .mcap, one channel per board), FileExistsError for one taken,
         RuntimeError while recording."""
         path = self.recordings_dir / recording_name(name)
         with self._recording_lock:
             if self.recorder is not None and self.recorder.active:
                 raise RuntimeError(f"already recording to {self.recorder.path}")
             self.recordings_dir.mkdir(parents=True, exist_ok=True)
-            self.recorder = Recorder(path, path.with_suffix(".bin"), exclusive=True)
-            self.recorder.attach(self.pipeline)
+            self.recorder = Recorder(path, path.with_suffix(".bin") if len(self._boards) == 1 else None,
+                                     exclusive=True)
+            for board in self._boards:
+                self.recorder.attach(board.pipeline)
             return self.recorder.status()
 
     def save_cycles(self) -> None:
-        """Keep every sensor's load-cycle counts in the registry (a failure is logged, never raised)."""
-        try:
-            self.calibrations.save_cycles(self.pipeline.interpreter.board, self.pipeline.reconstructor.cycle_counts())
-        except Exception as exc:  # noqa: BLE001 — counts are kept again at the next period
-            log.warning("load-cycle counts not kept: %s", exc)
+        for board in self._boards:
+            board.save_cycles()
 
     def _keep_cycles(self) -> None:
         """Every CYCLES_SAVE_S, off the event loop (a registry write takes milliseconds)."""
         while not self._cycles_stop.wait(CYCLES_SAVE_S):
             self.save_cycles()
-
-    def set_calibration(self, info, upload: dict) -> dict:
-        """Validate an upload (ValueError naming the field), store it in the
-        registry and make it the sensor's active calibration there, then
-        reconstruct with it from the next frame; returns the document."""
-        sensor = sensor_identity(self.pipeline.interpreter.board, info)
-        store = self.calibrations.store if self.calibrations.use_registry else None
-        return self.pipeline.set_calibration(info, upload, sensor, store)
 
     def stop_recording(self) -> dict | None:
         with self._recording_lock:
@@ -141,8 +180,9 @@ class TactileService:
         unbatched clients' frames of it. Instead a read waiting for the loop
         is drained now, and the sender steps back one turn while an unbatched
         client has a message to send."""
-        if self.handover is not None and self.handover.pending:
-            self.handover.drain()
+        for board in self._boards:
+            if board.handover is not None and board.handover.pending:
+                board.handover.drain()
         if self.hub.unbatched_due():
             await asyncio.sleep(0)
 

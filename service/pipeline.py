@@ -19,7 +19,7 @@ import numpy as np
 from .clock_map import ClockMap
 from .history import Histories
 from .protocol_bulk import BulkDecoder
-from .readings import Interpreter, Reading, SensorInfo
+from .readings import Interpreter, Reading, SensorInfo, name_from_info
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
 
@@ -33,7 +33,7 @@ RATE_WINDOW_S = 1.0
 class CalibrationSource(Protocol):
     """Where sensors' calibrations and load cycles come from (calibration/book.py)."""
 
-    def for_sensor(self, board: dict, info: SensorInfo) -> SensorCalibration | None: ...
+    def for_sensor(self, board: dict, info: SensorInfo, mounting: str) -> SensorCalibration | None: ...
 
     def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None: ...
 
@@ -74,21 +74,25 @@ class Pipeline:
 
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
                  histories: Histories | None = None, keep_history: bool = True,
-                 calibrations: CalibrationSource | None = None, map_clock: bool = True) -> None:
+                 calibrations: CalibrationSource | None = None, map_clock: bool = True,
+                 board_name: str | None = None, name_board: Callable[[dict], str] | None = None) -> None:
         """``keep_history=False`` (offline export) keeps no latest frame,
         history or rates: each batch only goes to the listeners.
         ``calibrations`` (calibration/book.py's CalibrationBook): a sensor's
         calibration and load cycles when it is first seen, with the board's
         INFO to identify it. ``map_clock``: estimate each scan's host time
         from the receive times (False for a stream without them, a raw
-        capture)."""
+        capture). ``board_name``: the board's name in every sensor's address
+        (board/id); without it ``name_board`` (readings.name_from_info by
+        default) names the board from its first INFO."""
         self.clock = ClockMap() if map_clock else None
         self.keep_history = keep_history
         self.decoder = BulkDecoder()
-        self.interpreter = Interpreter(clock)
+        self.interpreter = Interpreter(clock, board_name=board_name, name_board=name_board or name_from_info)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
-            self.reconstructor.resolve = lambda info: calibrations.for_sensor(self.interpreter.board, info)
+            self.reconstructor.resolve = lambda info: calibrations.for_sensor(self.interpreter.board, info,
+                                                                              self.reconstructor.mounting)
             self.reconstructor.load_cycles = lambda info, cid: calibrations.load_cycles(self.interpreter.board, info, cid)
         self.latest: dict[int, ForceFrame] = {}
         self.history = histories if histories is not None else Histories()
@@ -142,14 +146,23 @@ class Pipeline:
         calibration's C0 (that load would become the zero); with ``force``
         the load present is the zero."""
         with self._lock:
-            ids = self.reconstructor.sensor_ids() if sensor_id is None else [sensor_id]
             if not force:
-                loaded = {sid: self.reconstructor.loaded_now(sid, self.latest[sid].capacitance_pF)
-                          for sid in ids if sid in self.latest}
-                loaded = {sid: taxels for sid, taxels in loaded.items() if taxels}
+                loaded = self._loaded(sensor_id)
                 if loaded:
                     raise LoadedAtTare(loaded)
             return self.reconstructor.tare(sensor_id, judge=not force)
+
+    def loaded(self, sensor_id: int | None = None) -> dict[int, list[int]]:
+        """{sensor id: taxels} whose latest reading stands above the
+        calibration's C0, of one sensor (or all): what a tare would refuse."""
+        with self._lock:
+            return self._loaded(sensor_id)
+
+    def _loaded(self, sensor_id: int | None) -> dict[int, list[int]]:
+        ids = self.reconstructor.sensor_ids() if sensor_id is None else [sensor_id]
+        loaded = {sid: self.reconstructor.loaded_now(sid, self.latest[sid].capacitance_pF)
+                  for sid in ids if sid in self.latest}
+        return {sid: taxels for sid, taxels in loaded.items() if taxels}
 
     def set_calibration(self, info, upload: dict, sensor: dict | None = None,
                         store: Callable[[dict], object] | None = None) -> dict:

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import orjson
@@ -35,10 +36,15 @@ class SensorInfo:
     rows: int
     cols: int
     serial: str | None = None  # the sensor's own identity, when INFO carries one
+    board: str = ""  # the name of the board it is on: a sensor's address is board/id
 
     @property
     def channels(self) -> int:
         return self.rows * self.cols
+
+    @property
+    def address(self) -> str:
+        return f"{self.board}/{self.id}"
 
     def as_dict(self) -> dict:
         # Without the serial: this is the export format the replay goldens pin.
@@ -158,10 +164,29 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
     return doc, sensors
 
 
-class Interpreter:
-    """Keeps the board description and turns data frames into readings."""
+UNNAMED_BOARD = "board"
 
-    def __init__(self, clock=time.time, max_unannounced_sensors: int = MAX_UNANNOUNCED_SENSORS) -> None:
+
+def name_from_info(board: dict) -> str:
+    """A board's name from its INFO: its serial, else its model name, made
+    address-safe (letters, digits, '_', '-'), else ``board``."""
+    text = board.get("serial") or board.get("board") or ""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", text)[:32] or UNNAMED_BOARD
+
+
+class Interpreter:
+    """Keeps the board description and turns data frames into readings.
+
+    Every SensorInfo it makes carries the board's name: ``board_name`` when
+    given (``--source NAME=URL``), else settled once, at the first valid
+    INFO, by ``name_board`` (default: name_from_info) and kept thereafter,
+    so that a sensor's address does not change under its clients; until
+    then ``board``."""
+
+    def __init__(self, clock=time.time, max_unannounced_sensors: int = MAX_UNANNOUNCED_SENSORS,
+                 board_name: str | None = None, name_board=name_from_info) -> None:
+        self.board_name = board_name
+        self.name_board = name_board
         self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
         self.sensors: dict[int, SensorInfo] = {}
         self.board_errors: deque[tuple[float, str]] = deque(maxlen=50)
@@ -169,6 +194,11 @@ class Interpreter:
         self.max_unannounced_sensors = max_unannounced_sensors
         self._unannounced: set[int] = set()  # sensors known only from their data frames
         self._clock = clock
+
+    @property
+    def name(self) -> str:
+        """The board's name (``board`` until one is settled)."""
+        return self.board_name or UNNAMED_BOARD
 
     def interpret(self, frame: Frame, t_host: float | None = None) -> Reading | None:
         """Return a reading for a data frame, or None for INFO/ERROR frames and
@@ -240,6 +270,7 @@ class Interpreter:
             if info is None:
                 self.rejected["unknown_shape"] += 1
                 return None
+            info = replace(info, board=self.name)
             self.sensors[frame.sensor] = info
             self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
@@ -256,5 +287,7 @@ class Interpreter:
             log.warning("ignoring INFO frame: %s", exc)
             return
         self.board = {k: v for k, v in doc.items() if k != "sensors"}
-        self.sensors.update(sensors)
+        if self.board_name is None:
+            self.board_name = self.name_board(self.board)
+        self.sensors.update({sid: replace(info, board=self.board_name) for sid, info in sensors.items()})
         self._unannounced.difference_update(sensors)

@@ -137,7 +137,8 @@ def test_a_recording_replays_with_its_own_calibration_after_the_registry_changed
     assert recorder.stop()["error"] is None
     recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
     documents, cycles = recorded_calibrations(tmp_path / "run.mcap")
-    assert documents[0]["id"] == cid and cycles[0] == (cid, [0] * 64)
+    address = f"{pipeline.interpreter.name}/0"  # the recording names each sensor by its board and id
+    assert documents[address]["id"] == cid and cycles[address] == (cid, [0] * 64)
     with reg.Registry(registry_path) as registry:  # another calibration becomes the active one
         other = registry.get(cid)
         other["taxels"]["gain"] = [g * 1.05 for g in other["taxels"]["gain"]]

@@ -75,7 +75,7 @@ def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
 
     async def scenario():
         loop = asyncio.get_running_loop()
-        service.handover = LoopHandover(service.pipeline.feed_reads, service.pipeline.link_lost, loop)
+        service.primary.handover = LoopHandover(service.pipeline.feed_reads, service.pipeline.link_lost, loop)
         service.pipeline.listeners.append(service.hub.publish)
         controller, dashboard = Subscriber(), Subscriber(batch_ms=1.0)
         service.hub.add(controller)
@@ -94,12 +94,12 @@ def test_a_batched_send_lets_a_read_waiting_and_its_unbatched_frames_go_first():
         await asyncio.sleep(0)  # both senders wait
         dashboard.take([Outgoing(earlier)])
         await asyncio.sleep(0)  # the batch flushes: the batched sender is due first ...
-        service.handover.from_thread(data, time.time())  # ... when a read comes in
+        service.primary.handover.from_thread(data, time.time())  # ... when a read comes in
         await asyncio.wait_for(asyncio.gather(*tasks), 1.0)
 
     asyncio.run(scenario())
     assert order == ["unbatched", "batched"]
-    assert service.pipeline.decoder.counters.sensor(1).frames == 200 and not service.handover.pending
+    assert service.pipeline.decoder.counters.sensor(1).frames == 200 and not service.primary.handover.pending
 
 
 def test_reads_wait_when_the_loop_falls_behind_instead_of_piling_up():

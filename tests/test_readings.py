@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import numpy as np
 import orjson
@@ -166,7 +167,8 @@ def test_malformed_info_is_rejected_whole_and_counted_never_raised(doc):
     first = {"board": "old", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 16}]}
     feed(interpreter, info_frame(first), info_frame(doc))
     assert interpreter.rejected["info_invalid"] == 1
-    assert interpreter.sensors == {0: parse_info(orjson.dumps(first))[1][0]}
+    assert interpreter.sensors == {0: replace(parse_info(orjson.dumps(first))[1][0], board="old")}
+    assert interpreter.board_name == "old"  # named by the first valid INFO, kept
     assert (interpreter.sensors[0].rows, interpreter.sensors[0].cols) == (4, 16)
     assert interpreter.board == {"board": "old"}
 

@@ -110,8 +110,11 @@ def test_write_errors_are_reported(tmp_path):
     full = tmp_path / "full.mcap"
     os.symlink("/dev/full", full)
     recorder = Recorder(full)
+    pipeline = Pipeline(Reconstructor())
+    recorder.attach(pipeline)
     for _ in range(300):
-        recorder.on_bytes(b"x" * 4096, time.time())
+        for listener in pipeline.byte_listeners:
+            listener(b"x" * 4096, time.time())
     status = recorder.stop()
     assert status["error"] and "No space left" in status["error"] and not status["active"]
 

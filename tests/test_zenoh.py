@@ -15,12 +15,13 @@ from service.cli import main
 from service.client import TactileError
 from service.client_zenoh import ZenohClient, subscribe_zenoh
 from service.live_service import TactileService
-from service.net.zenoh_config import board_key, health_key, key_part, session_config
+from service.board import BoardSpec
+from service.net.zenoh_config import health_key, session_config
 from service.net.zenoh_publisher import FrameQueue, ZenohPublisher
 from tests.conftest import free_port
 
 SOURCE = "sim://?scene=press&sensors=grid,quad"  # 1 kHz: 2 000 frames/s
-BOARD = "lab board#1"  # the key is lab_board_1
+BOARD = "lab_board-1"
 SNDBUF = 65536  # the service's TCP send buffer: a stalled peer is congested within ~0.1 s, not after megabytes
 
 
@@ -48,8 +49,8 @@ def live():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     config = session_config(listen=[endpoint], multicast=False)
     config.insert_json5("transport/link/tcp/so_sndbuf", str(SNDBUF))
-    service = TactileService(SOURCE)
-    service.zenoh = ZenohPublisher(config, board_name=BOARD)
+    service = TactileService(boards=[BoardSpec(SOURCE, BOARD)])
+    service.zenoh = ZenohPublisher(config)
     service.loop = asyncio.new_event_loop()
     thread = threading.Thread(target=service.loop.run_forever, daemon=True)
     thread.start()
@@ -88,10 +89,6 @@ def capture(service, seconds: float, subscription, until: float = 0.3) -> tuple[
 
 
 def test_keys_and_session_options_follow_zenohs_own_keys(tmp_path):
-    assert key_part("lab board#1") == "lab_board_1" and key_part("a/b*c$") == "a_b_c_" and key_part("") == "unnamed"
-    assert board_key({"board": "tactile-sim", "serial": "SN 7"}) == "SN_7"
-    assert board_key({"board": "tactile-sim"}) == "tactile-sim" and board_key({}) == "unnamed"
-    assert board_key({"serial": "SN7"}, override="arm/left") == "arm_left"
     config = session_config(connect=["tcp/10.0.0.2:7447"], listen=["tcp/0.0.0.0:7447"], mode="client", multicast=False)
     assert [config.get_json(key) for key in ("connect/endpoints", "listen/endpoints", "mode", "scouting/multicast/enabled")] \
         == ['["tcp/10.0.0.2:7447"]', '["tcp/0.0.0.0:7447"]', '"client"', "false"]
@@ -115,7 +112,7 @@ def test_the_frame_queue_never_blocks_drops_the_oldest_and_counts_them():
 
 def test_every_frame_reaches_the_subscriber_with_the_services_forces(live, client):
     service, endpoint = live
-    board = key_part(BOARD)
+    board = BOARD
     subscription = subscribe_zenoh(board, endpoints=[endpoint])
     captured, got = capture(service, 3.0, subscription)
     subscription.close()
@@ -138,7 +135,7 @@ def test_latest_answers_the_frame_the_service_holds(live, client):
     service.pipeline.listeners = [*service.pipeline.listeners, captured]
     for sensor in (0, 1):
         before = service.pipeline.latest[sensor].seq
-        frame = client.latest(key_part(BOARD), sensor)
+        frame = client.latest(BOARD, sensor)
         after = service.pipeline.latest[sensor].seq
         seq = frame["header"]["seq"]
         assert frame["header"]["sensor_id"] == sensor and before <= seq <= after
@@ -152,20 +149,20 @@ def test_latest_answers_the_frame_the_service_holds(live, client):
 def test_health_comes_once_a_second_under_the_boards_key(live, client):
     service, _ = live
     arrivals = []
-    subscriber = client.session.declare_subscriber(health_key(key_part(BOARD)), lambda _: arrivals.append(time.monotonic()))
+    subscriber = client.session.declare_subscriber(health_key(BOARD), lambda _: arrivals.append(time.monotonic()))
     time.sleep(3.3)
     subscriber.undeclare()
     assert len(arrivals) in (3, 4)
     gaps = np.diff(arrivals)
     assert np.all(np.abs(gaps - 1.0) < 0.25), gaps
-    document = client.health(key_part(BOARD))
-    assert document["zenoh"]["board"] == key_part(BOARD) and set(document["sensors"]) == {"0", "1"}
-    assert client.last_health_age_s(key_part(BOARD)) < 1.3 and client.boards() == [key_part(BOARD)]
+    document = client.health(BOARD)
+    assert document["zenoh"]["board"] == BOARD and set(document["sensors"]) == {"0", "1"}
+    assert client.last_health_age_s(BOARD) < 1.3 and client.boards() == [BOARD]
     assert service.health()["zenoh"]["health_published"] >= len(arrivals)
 
 
 def test_a_slow_consumer_loses_the_oldest_frames_and_is_told(client):
-    subscription, dropped_before = client.subscribe(key_part(BOARD), queue_samples=10), client.dropped
+    subscription, dropped_before = client.subscribe(BOARD, queue_samples=10), client.dropped
     first = next(subscription)["header"]
     time.sleep(0.5)  # ~1 000 frames published meanwhile
     woke = time.time()
@@ -201,7 +198,7 @@ def test_a_stalled_subscriber_loses_its_own_frames_only(live, client):
         time.sleep(0.3)
         published_before, dropped_before = publisher.frames_published, publisher.queue.dropped
         stalled.send_signal(signal.SIGSTOP)
-        captured, got = capture(service, 2.0, client.subscribe(key_part(BOARD)))
+        captured, got = capture(service, 2.0, client.subscribe(BOARD))
         stalled.send_signal(signal.SIGCONT)
         time.sleep(0.5)
         published = publisher.frames_published - published_before

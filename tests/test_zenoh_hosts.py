@@ -35,9 +35,8 @@ def collect(client: ZenohClient, stop: threading.Event, into: list) -> None:
 
 
 def same_frame(ours: dict, theirs: dict) -> bool:
-    """A Zenoh frame equals a WebSocket binary frame, key for key (beside the board)."""
-    header = {k: v for k, v in ours["header"].items() if k != "board"}
-    return ours.keys() == theirs.keys() and header == theirs["header"] and all(
+    """A Zenoh frame equals a WebSocket binary frame, key for key, the board in the header included."""
+    return ours.keys() == theirs.keys() and ours["header"] == theirs["header"] and all(
         np.array_equal(ours[k], theirs[k], equal_nan=True) if isinstance(ours[k], np.ndarray) else ours[k] == theirs[k]
         for k in ours if k != "header")
 

@@ -8,6 +8,7 @@ the routes are module-level and the API never imports the runtime to run.
 from __future__ import annotations
 
 import hmac
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import orjson
@@ -18,6 +19,7 @@ from fastapi.responses import Response
 from ..fanout.encoding import DEFAULT_FIELDS, FIELDS
 
 if TYPE_CHECKING:
+    from ..board import Board
     from ..live_service import TactileService
     from ..readings import SensorInfo
     from ..reconstruct import ForceFrame
@@ -54,29 +56,70 @@ def authorised(
         raise HTTPException(401, "this endpoint needs 'Authorization: Bearer <token>' (printed by tactile serve)")
 
 
-def known_sensor(sensor_id: int, service: TactileService = Depends(get_service)) -> SensorInfo:
-    sensors = service.pipeline.interpreter.sensors
-    if sensor_id not in sensors:
-        known = ", ".join(str(s) for s in sorted(sensors)) or "none yet"
-        raise HTTPException(404, f"unknown sensor id {sensor_id}; known: {known}")
-    return sensors[sensor_id]
+@dataclass(frozen=True)
+class Addressed:
+    """A sensor found by its address: the board it is on and its description."""
+
+    board: Board
+    info: SensorInfo
 
 
-def latest_frame(sensor_id: int, service: TactileService = Depends(get_service)) -> ForceFrame:
-    known_sensor(sensor_id, service)
-    frame = service.pipeline.latest.get(sensor_id)
+def _known_on(board: Board) -> str:
+    return ", ".join(f"{board.name}/{s}" for s in sorted(board.sensors)) or f"none yet on {board.name}"
+
+
+def find_sensor(service: TactileService, sensor_id: int, board: str | None = None) -> Addressed:
+    """The sensor at ``board``/``sensor_id``; without a board, the sensor
+    with that id on the only board that has one (404 or 409 naming the
+    boards otherwise)."""
+    boards = service.all_boards
+    if board is not None:
+        found = service.board(board)
+        if found is None:
+            raise HTTPException(404, f"unknown board {board!r}; boards: {', '.join(b.name for b in boards)}")
+        if sensor_id not in found.sensors:
+            raise HTTPException(404, f"unknown sensor {board}/{sensor_id}; known: {_known_on(found)}")
+        return Addressed(found, found.sensors[sensor_id])
+    if len(boards) == 1:
+        sensors = boards[0].sensors
+        if sensor_id not in sensors:
+            known = ", ".join(str(s) for s in sorted(sensors)) or "none yet"
+            raise HTTPException(404, f"unknown sensor id {sensor_id}; known: {known}")
+        return Addressed(boards[0], sensors[sensor_id])
+    having = [b for b in boards if sensor_id in b.sensors]
+    if len(having) == 1:
+        return Addressed(having[0], having[0].sensors[sensor_id])
+    if having:
+        raise HTTPException(409, f"sensor id {sensor_id} is on boards {', '.join(b.name for b in having)}: "
+                                 f"address it as /sensors/{{board}}/{sensor_id}")
+    raise HTTPException(404, f"unknown sensor id {sensor_id}; known: {'; '.join(_known_on(b) for b in boards)}")
+
+
+def known_sensor(sensor_id: int, board: str | None = None,
+                 service: TactileService = Depends(get_service)) -> Addressed:
+    """The route's sensor: ``/sensors/{sensor_id}/…`` or ``/sensors/{board}/{sensor_id}/…``."""
+    return find_sensor(service, sensor_id, board)
+
+
+def latest_frame(found: Addressed = Depends(known_sensor)) -> ForceFrame:
+    frame = found.board.pipeline.latest.get(found.info.id)
     if frame is None:
-        raise HTTPException(404, f"sensor {sensor_id} has not delivered a frame yet")
+        raise HTTPException(404, f"sensor {found.info.address} has not delivered a frame yet")
     return frame
 
 
-def parse_sensors(text: str | None) -> frozenset[int] | None:
+def parse_sensors(text: str | None) -> frozenset | None:
+    """``0,1,left/2``: a bare id is that sensor on any board, ``board/id`` one board's."""
     if text is None or text == "":
         return None
-    try:
-        return frozenset(int(part) for part in text.split(","))
-    except ValueError:
-        raise ValueError(f"sensors={text!r} must be a comma-separated list of integer ids") from None
+    wanted = set()
+    for part in text.split(","):
+        board, _, sid = part.strip().rpartition("/")
+        try:
+            wanted.add((board, int(sid)) if board else int(sid))
+        except ValueError:
+            raise ValueError(f"sensors={text!r} must be a comma-separated list of ids or board/id addresses") from None
+    return frozenset(wanted)
 
 
 def parse_fields(text: str | None) -> frozenset[str]:

@@ -12,12 +12,11 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 
 from ..health import calibration_state
 from ..pipeline import LoadedAtTare
-from .deps import JSONResponse, authorised, get_service, known_sensor
+from .deps import Addressed, JSONResponse, authorised, find_sensor, get_service, known_sensor
 from .schemas import GridCalibrationUpload, QuadCalibrationUpload
 
 if TYPE_CHECKING:
     from ..live_service import TactileService
-    from ..readings import SensorInfo
 
 router = APIRouter()
 MUTATION = [Depends(authorised)]
@@ -27,48 +26,72 @@ FORCE = Query(False, description="tare even where taxels read loaded against the
                                  "(the load present becomes their zero)")
 
 
-def _loaded(exc: LoadedAtTare) -> HTTPException:
-    return HTTPException(409, {"error": str(exc), "loaded_taxels": {str(k): v for k, v in exc.taxels.items()}})
+def _loaded(exc: LoadedAtTare, board: str | None = None) -> HTTPException:
+    """``board``: named in the keys of a service with several boards."""
+    return HTTPException(409, {"error": (f"board {board}: " if board else "") + str(exc),
+                               "loaded_taxels": {(f"{board}/{k}" if board else str(k)): v
+                                                 for k, v in exc.taxels.items()}})
+
+
+def _tared(service: TactileService, boards, force: bool, sensor_id: int | None = None) -> JSONResponse:
+    """Tare on each of ``boards``; a LoadedAtTare on any is a 409 and tares none
+    (the boards are judged first, then tared)."""
+    several = len(service.all_boards) > 1
+    for board in boards if not force else ():
+        loaded = board.pipeline.loaded(sensor_id)
+        if loaded:
+            raise _loaded(LoadedAtTare(loaded), board.name if several else None)
+    tared, frames = [], 0
+    for board in boards:
+        try:
+            done = board.pipeline.tare(sensor_id, force=force)
+        except LoadedAtTare as exc:  # loaded between the look and the tare
+            raise _loaded(exc, board.name if several else None) from None
+        tared += [f"{board.name}/{sid}" for sid in done] if several else done
+        frames = board.pipeline.reconstructor.tare_frames
+    return JSONResponse({"tared": tared, "frames": frames})
 
 
 @router.post("/sensors/{sensor_id}/tare", dependencies=MUTATION, responses={409: {"description": "no frames yet, or taxels read loaded"}})
-def tare_sensor(info: SensorInfo = Depends(known_sensor), force: bool = FORCE,
+@router.post("/sensors/{board}/{sensor_id}/tare", dependencies=MUTATION, responses={409: {"description": "no frames yet, or taxels read loaded"}})
+def tare_sensor(found: Addressed = Depends(known_sensor), force: bool = FORCE,
                 service: TactileService = Depends(get_service)) -> JSONResponse:
     try:
-        tared = service.pipeline.tare(info.id, force=force)
+        return _tared(service, [found.board], force, found.info.id)
     except KeyError:
-        raise HTTPException(409, f"sensor {info.id} has no frames yet to tare") from None
-    except LoadedAtTare as exc:
-        raise _loaded(exc) from None
-    return JSONResponse({"tared": tared, "frames": service.pipeline.reconstructor.tare_frames})
+        raise HTTPException(409, f"sensor {found.info.address} has no frames yet to tare") from None
 
 
 @router.post("/tare", dependencies=MUTATION, responses={409: {"description": "taxels read loaded against their calibration's C0"}})
-def tare_all(force: bool = FORCE, service: TactileService = Depends(get_service)) -> JSONResponse:
-    try:
-        tared = service.pipeline.tare(force=force)
-    except LoadedAtTare as exc:
-        raise _loaded(exc) from None
-    return JSONResponse({"tared": tared, "frames": service.pipeline.reconstructor.tare_frames})
+def tare_all(force: bool = FORCE, board: str | None = Query(None, description="only this board's sensors"),
+             service: TactileService = Depends(get_service)) -> JSONResponse:
+    boards = service.all_boards
+    if board is not None:
+        boards = [b for b in boards if b.name == board]
+        if not boards:
+            raise HTTPException(404, f"unknown board {board!r}; boards: {', '.join(b.name for b in service.all_boards)}")
+    return _tared(service, boards, force)
 
 
 @router.put("/sensors/{sensor_id}/calibration", dependencies=MUTATION)
-def upload_calibration(sensor_id: int, body: GridCalibrationUpload | QuadCalibrationUpload,
+@router.put("/sensors/{board}/{sensor_id}/calibration", dependencies=MUTATION)
+def upload_calibration(sensor_id: int, body: GridCalibrationUpload | QuadCalibrationUpload, board: str | None = None,
                        service: TactileService = Depends(get_service)) -> JSONResponse:
-    info = known_sensor(sensor_id, service)  # after the body is validated: a bad body is 422 for any sensor
+    found = find_sensor(service, sensor_id, board)  # after the body is validated: a bad body is 422 for any sensor
     try:
-        document = service.set_calibration(info, body.model_dump(exclude_none=True))
+        document = found.board.set_calibration(found.info, body.model_dump(exclude_none=True))
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     return JSONResponse({**document, "active": True, "stored": service.calibrations.use_registry})
 
 
 @router.get("/sensors/{sensor_id}/calibration")
-def sensor_calibration(info: SensorInfo = Depends(known_sensor),
+@router.get("/sensors/{board}/{sensor_id}/calibration")
+def sensor_calibration(found: Addressed = Depends(known_sensor),
                        service: TactileService = Depends(get_service)) -> JSONResponse:
     """The calibration the sensor's forces rest on (as /health shows it) and its document."""
-    state = calibration_state(service.pipeline, info.id, time.time(), service.calibrations)
+    pipeline, sid = found.board.pipeline, found.info.id
+    state = calibration_state(pipeline, sid, time.time(), service.calibrations)
     if state is None:
-        raise HTTPException(409, f"sensor {info.id} has no frames yet")
-    calibration = service.pipeline.reconstructor.calibration(info.id)
-    return JSONResponse({**state, "document": calibration.document})
+        raise HTTPException(409, f"sensor {found.info.address} has no frames yet")
+    return JSONResponse({**state, "document": pipeline.reconstructor.calibration(sid).document})

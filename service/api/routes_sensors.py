@@ -16,8 +16,8 @@ from ..fanout.encoding import FIELDS, to_json_dict
 from .deps import (
     ALL_FIELDS,
     JSONResponse,
+    find_sensor,
     get_service,
-    known_sensor,
     latest_frame,
     parse_fields,
 )
@@ -45,37 +45,42 @@ def clients(service: TactileService = Depends(get_service)) -> JSONResponse:
 
 @router.get("/sensors")
 def sensors(service: TactileService = Depends(get_service)) -> JSONResponse:
-    interpreter = service.pipeline.interpreter
-    baseline = service.pipeline.reconstructor.baseline
-    return JSONResponse(
-        {
-            "board": interpreter.board,
-            "sensors": [
-                {**info.as_dict(), "name": f"{info.kind}{sid}", "tared": baseline(sid) is not None}
-                for sid, info in sorted(interpreter.sensors.items())
-            ],
-        }
-    )
+    """Every board (its name, source and INFO) and every sensor, each with
+    its board and address (board/id). ``board`` is the INFO of a one-board
+    service's board, as before boards were named."""
+    boards = service.all_boards
+    listed = [{**info.as_dict(), "board": board.name, "address": f"{board.name}/{sid}", "name": f"{info.kind}{sid}",
+               "tared": board.pipeline.reconstructor.baseline(sid) is not None}
+              for board in boards for sid, info in sorted(board.sensors.items())]
+    return JSONResponse({
+        "board": boards[0].pipeline.interpreter.board if len(boards) == 1 else None,
+        "boards": [{"name": b.name, "source": b.source, "info": b.pipeline.interpreter.board} for b in boards],
+        "sensors": listed,
+    })
 
 
 @router.get("/sensors/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
+@router.get("/sensors/{board}/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
 def latest(frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
     return JSONResponse(to_json_dict(frame, ALL_FIELDS))
 
 
 @router.get("/sensors/{sensor_id}/contact", responses={200: {"model": Contact}})
-def contact(sensor_id: int, frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
+@router.get("/sensors/{board}/{sensor_id}/contact", responses={200: {"model": Contact}})
+def contact(frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
     if frame.sensor.kind != "grid":
-        raise HTTPException(400, f"sensor {sensor_id} is a {frame.sensor.kind}; contact summaries are for grids")
+        raise HTTPException(400, f"sensor {frame.sensor.address} is a {frame.sensor.kind}; contact summaries are for grids")
     if frame.contact is None:
-        raise HTTPException(404, f"sensor {sensor_id} is still taring")
+        raise HTTPException(404, f"sensor {frame.sensor.address} is still taring")
     return JSONResponse(frame.contact)
 
 
 @router.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}, 429: {}})
+@router.get("/sensors/{board}/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}, 429: {}})
 async def history(
     request: Request,
     sensor_id: int,
+    board: str | None = None,
     seconds: float = Query(2.0, gt=0, le=5, description="window length back from the latest frame (5 s kept at 1 kHz)"),
     max_points: int = Query(200, ge=1, le=5000, description="decimate to at most this many frames"),
     fields: str = Query("force,contact,flags", description=f"comma-separated: {', '.join(FIELDS)}"),
@@ -90,7 +95,7 @@ async def history(
     milliseconds at a time whatever the switch interval). The same read
     asked again within ``RecentReads.max_age_s`` (dashboards polling) is
     not encoded again."""
-    known_sensor(sensor_id, service)  # after the query is validated: a bad query is 422 for any sensor
+    found = find_sensor(service, sensor_id, board)  # after the query is validated: a bad query is 422 for any sensor
     try:
         wanted = parse_fields(fields)
     except ValueError as exc:
@@ -101,7 +106,7 @@ async def history(
                             headers={"Retry-After": "1"})
     permit = Permit(gate)
     try:
-        body = await encoded_history(request.app.state.recent_reads, service, sensor_id, seconds, max_points, wanted)
+        body = await encoded_history(request.app.state.recent_reads, found, seconds, max_points, wanted)
     except BaseException:
         permit.release()
         raise
@@ -109,12 +114,11 @@ async def history(
                              headers={"Content-Length": str(len(body))}, background=BackgroundTask(permit.release))
 
 
-async def encoded_history(recent, service, sensor_id: int, seconds: float, max_points: int,
-                          wanted: frozenset[str]) -> bytes:
-    key = (sensor_id, seconds, max_points, wanted)
+async def encoded_history(recent, found, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
+    key = (found.info.address, seconds, max_points, wanted)
     body = recent.get(key)
     if body is None:
-        history = service.pipeline.history.get(sensor_id)
+        history = found.board.pipeline.history.get(found.info.id)
         body = b"[]" if history is None else await encode_history(history, seconds, max_points, wanted)
         recent.put(key, body)
     return body

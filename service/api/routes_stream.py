@@ -75,11 +75,14 @@ class StreamSession:
     async def tell_unknown_sensors(self) -> None:
         """Sensors asked for that the board has not announced: a notice, not a
         refusal (a board that connects later may announce them)."""
-        known = self.service.pipeline.interpreter.sensors
-        unknown = sorted((self.subscriber.sensors or frozenset()) - set(known))
+        boards = self.service.all_boards
+        ids = {sid for board in boards for sid in board.sensors}
+        addresses = {(board.name, sid) for board in boards for sid in board.sensors}
+        unknown = sorted((f"{s[0]}/{s[1]}" if isinstance(s, tuple) else str(s))
+                         for s in self.subscriber.sensors or () if s not in ids and s not in addresses)
         if unknown:
-            detail = (f"sensors {', '.join(map(str, unknown))} are not known (yet); known: "
-                      f"{', '.join(map(str, sorted(known))) or 'none yet'}")
+            known = sorted(str(sid) for sid in ids) if len(boards) == 1 else sorted(f"{b}/{s}" for b, s in addresses)
+            detail = f"sensors {', '.join(unknown)} are not known (yet); known: {', '.join(known) or 'none yet'}"
             await self.websocket.send_text(orjson.dumps({"type": "notice", "detail": detail}).decode())
 
     async def reject(self, detail: str) -> None:
@@ -118,6 +121,6 @@ class StreamSession:
 
 @router.websocket("/ws")
 async def stream(websocket: WebSocket) -> None:
-    """Query: sensors=0,1 · fields=force,raw,contact,flags · max_rate=Hz ·
+    """Query: sensors=0,1 or left/0,right/1 · fields=force,raw,contact,flags · max_rate=Hz ·
     batch_ms=ms · encoding=json|binary."""
     await StreamSession(websocket, await get_service(websocket)).run()

@@ -88,16 +88,32 @@ class CalibrationBook:
         self.problems: list[str] = []
         self._activated: dict[tuple[str, str], str | None] = {}  # (sensor key, calibration id) → activation time
 
-    def for_sensor(self, board: dict, info: SensorInfo) -> SensorCalibration | None:
+    def with_pinned(self, values: list[str]) -> CalibrationBook:
+        """This book with ``values`` (ids or files, as ``--calibration``)
+        pinned first: one board's own choice (robot.toml); ValueError naming
+        a value that is neither."""
+        book = CalibrationBook(self.registry_path, load_pinned(values, self.registry_path) + self.pinned,
+                               self.recorded, self.use_registry, self.mounting, self.recorded_cycles)
+        book.problems = self.problems  # one list of problems for /health
+        return book
+
+    def for_sensor(self, board: dict, info: SensorInfo, mounting: str | None = None) -> SensorCalibration | None:
         """ValueError (the reconstruction keeps the built-in one and says why)
-        when the calibration found does not fit the sensor."""
+        when the calibration found does not fit the sensor. ``mounting``: the
+        board's (default: the book's)."""
         key = sensor_identity(board, info)["key"]
-        document = self.recorded.get(info.id) or self._pinned_for(key, info)
+        document = self._recorded(self.recorded, info) or self._pinned_for(key, info)
         if document is None and self.use_registry:
             document = self._active(key)
         if document is None or str(document.get("id", "")).startswith("builtin"):
             return None
-        return from_document(document, info, self.mounting)
+        return from_document(document, info, mounting or self.mounting)
+
+    @staticmethod
+    def _recorded(found: dict, info: SensorInfo):
+        """A recording's entry for the sensor: by its address (board/id), or
+        by its id in a recording made before boards were named."""
+        return found.get(info.address) or found.get(info.id)
 
     def _pinned_for(self, key: str, info: SensorInfo) -> dict | None:
         for document in self.pinned:
@@ -124,7 +140,7 @@ class CalibrationBook:
     def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None:
         """Load cycles kept for the sensor under this calibration: a
         recording's own at its start, else the registry's (None: none)."""
-        recorded = self.recorded_cycles.get(info.id)
+        recorded = self._recorded(self.recorded_cycles, info)
         if recorded is not None and recorded[0] == calibration_id:
             return recorded[1]
         if not self.use_registry or self.recorded:

@@ -4,7 +4,7 @@ compact binary form, and the replay export's JSON line.
 Shaped after ROS habits (std_msgs/Header, TactileState-like named arrays,
 geometry_msgs/WrenchStamped for the quad):
 
-    {"header": {"sensor_id": 0, "sensor_name": "grid0", "kind": "grid",
+    {"header": {"board": "left", "sensor_id": 0, "sensor_name": "grid0", "kind": "grid",
                 "seq": 1250, "board_time_us": 1251000, "stamp": 1795342752.12,
                 "scan_stamp": 1795342752.1187, "calibration": "3f2a…" | "builtin-table1"},
      "rows": 8, "cols": 8,
@@ -16,7 +16,8 @@ geometry_msgs/WrenchStamped for the quad):
      "contact": {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"},
      "flags": [...], "taxel_flags": {"saturated": [27]}}
 
-``stamp`` is the host time at which the bytes were received (s since the
+``board`` is the name of the board the sensor is on (a sensor's address is
+board/sensor_id); ``stamp`` is the host time at which the bytes were received (s since the
 epoch), ``board_time_us`` the board clock (wraps at 2^32), ``scan_stamp``
 the scan's time on the host clock (the board clock mapped to it,
 service/clock_map.py; null until mapped), ``calibration``
@@ -27,10 +28,10 @@ means no value.
 Binary (``encoding=binary``), little-endian, one record per frame,
 concatenated; a message starts with the u16 record count:
 
-    u8 version (2) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
+    u8 version (3) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
     (1 force, 2 raw, 4 sigma) · u16 seq · u32 board_time_us · f64 stamp ·
     f64 scan_stamp (NaN: not mapped) · u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
-    m bytes calibration id (ASCII) · f32[n] force · f32[n] sigma (if
+    m bytes calibration id (ASCII) · u8 b · b bytes board name (ASCII) · f32[n] force · f32[n] sigma (if
     requested) · f32[n'] raw (if requested; n' = channels) — NaN = no value.
 
 The replay export (``tactile replay --export``, the recorder's ``forces``
@@ -54,7 +55,7 @@ FRAME_FLAG_BITS = (
 )
 _FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
 _RECORD = struct.Struct("<BBBBHIddIHB")
-BINARY_VERSION = 2
+BINARY_VERSION = 3
 
 
 def sensor_name(frame: ForceFrame) -> str:
@@ -65,6 +66,7 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
     info = frame.sensor
     out: dict = {
         "header": {
+            "board": info.board,
             "sensor_id": info.id,
             "sensor_name": sensor_name(frame),
             "kind": info.kind,
@@ -107,6 +109,7 @@ def to_export_dict(frame: ForceFrame) -> dict:
     """The replay export / recording shape (one JSON object per frame)."""
     key = "taxels_N" if frame.sensor.kind == "grid" else "fxyz_N"
     out = {
+        "board": frame.sensor.board,
         "sensor": frame.sensor.id,
         "seq": frame.seq,
         "t_us": frame.t_us,
@@ -131,6 +134,7 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     field_bits = (1 if "force" in fields else 0) | (2 if "raw" in fields else 0) | (4 if with_sigma else 0)
     forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields or with_sigma else np.empty(0, "<f4")
     calibration = frame.calibration.encode("ascii", "replace")[:255]
+    board = info.board.encode("ascii", "replace")[:255]
     head = _RECORD.pack(BINARY_VERSION, 0 if info.kind == "grid" else 1, info.id, field_bits, frame.seq,
                         frame.t_us, frame.t_host, frame.t_host_scan, flag_bits, forces.size, len(calibration))
     sigma = b""
@@ -139,12 +143,12 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     if "force" not in fields:
         forces = np.full(forces.size, np.nan, "<f4")
     raw = np.asarray(frame.capacitance_pF, dtype="<f4").tobytes() if "raw" in fields else b""
-    return head + calibration + forces.tobytes() + sigma + raw
+    return head + calibration + bytes((len(board),)) + board + forces.tobytes() + sigma + raw
 
 
 def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> list[dict]:
     """Parse a binary message (for clients and tests). ``channels`` gives the
-    raw channel count per sensor id (needed only when raw was requested;
+    raw channel count per (board, sensor id) or sensor id (needed only when raw was requested;
     default: the force count for a grid, 4 for a quad)."""
     (count,) = struct.unpack_from("<H", message, 0)
     pos, out = 2, []
@@ -155,7 +159,9 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
         pos += _RECORD.size
         calibration = message[pos:pos + m].decode("ascii")
         pos += m
-        record = {"sensor_id": sid, "kind": "grid" if kind == 0 else "quad", "seq": seq, "board_time_us": t_us,
+        board = message[pos + 1:pos + 1 + message[pos]].decode("ascii")
+        pos += 1 + message[pos]
+        record = {"board": board, "sensor_id": sid, "kind": "grid" if kind == 0 else "quad", "seq": seq, "board_time_us": t_us,
                   "stamp": stamp, "scan_stamp": scan_stamp, "calibration": calibration,
                   "flags": [name for name, bit in _FLAG_BIT.items() if flag_bits & bit]}
         record["force_N"] = np.frombuffer(message, "<f4", n, pos)
@@ -164,7 +170,8 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
             record["sigma_N"] = np.frombuffer(message, "<f4", n, pos)
             pos += 4 * n
         if field_bits & 2:
-            m = (channels or {}).get(sid, n if kind == 0 else 4)
+            channels = channels or {}
+            m = channels.get((board, sid)) or channels.get(sid, n if kind == 0 else 4)
             record["capacitance_pF"] = np.frombuffer(message, "<f4", m, pos)
             pos += 4 * m
         out.append(record)

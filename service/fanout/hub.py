@@ -61,9 +61,10 @@ class Outgoing:
 
 @dataclass(eq=False)
 class Subscriber:
-    """One WebSocket client. ``sensors`` None means all."""
+    """One WebSocket client. ``sensors``: ids (that sensor on any board) and
+    (board, id) addresses; None means all."""
 
-    sensors: frozenset[int] | None = None
+    sensors: frozenset | None = None
     fields: frozenset[str] = DEFAULT_FIELDS
     binary: bool = False
     max_rate_hz: float | None = None
@@ -73,7 +74,7 @@ class Subscriber:
     dropped_total: int = 0
     # Receive stamp → handed to this client's socket, per message (its oldest frame).
     latency: LatencyMeter = field(default_factory=lambda: LatencyMeter(CLIENT_WINDOW_SAMPLES))
-    _next_due: dict[int, float] = field(default_factory=dict)
+    _next_due: dict[tuple[str, int], float] = field(default_factory=dict)
     _batch: list[Outgoing] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
     _wakeup: asyncio.Future | None = None  # set while its sender waits for a message
@@ -85,11 +86,13 @@ class Subscriber:
 
     def wants(self, item: Outgoing) -> bool:
         frame = item.frame
-        sid = frame.sensor.id
-        if self.sensors is not None and sid not in self.sensors:
+        info = frame.sensor
+        sid = info.id
+        if self.sensors is not None and sid not in self.sensors and (info.board, sid) not in self.sensors:
             return False
         if self.max_rate_hz is None:
             return True
+        sid = (info.board, sid)
         due = self._next_due.get(sid, 0.0)
         if frame.t_host < due:
             return False
@@ -115,7 +118,8 @@ class Subscriber:
     def describe(self) -> dict:
         """What this client asked for and how it is served (GET /clients)."""
         return {
-            "sensors": None if self.sensors is None else sorted(self.sensors),
+            "sensors": None if self.sensors is None else sorted(
+                (f"{s[0]}/{s[1]}" if isinstance(s, tuple) else s for s in self.sensors), key=str),
             "fields": sorted(self.fields),
             "encoding": "binary" if self.binary else "json",
             "max_rate_hz": self.max_rate_hz,

@@ -11,7 +11,6 @@ Keys (docs/scale.md):
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -20,21 +19,6 @@ import zenoh
 PREFIX = "tactile"
 MODES = ("peer", "client", "router")
 DEFAULT_PORT = 7447
-UNNAMED_BOARD = "unnamed"
-_NOT_IN_KEY = re.compile(r"[^A-Za-z0-9_-]")
-
-
-def key_part(text: str) -> str:
-    """``text`` as one chunk of a key expression: only letters, digits, '_'
-    and '-' (anything else becomes '_'; nothing gives the unnamed board)."""
-    return _NOT_IN_KEY.sub("_", text) or UNNAMED_BOARD
-
-
-def board_key(info: dict, override: str | None = None) -> str:
-    """The board's chunk in every key: ``override`` (``--board-name``), else
-    INFO's "serial", else its "board" name, else ``unnamed``."""
-    name = override or info.get("serial") or info.get("board") or UNNAMED_BOARD
-    return key_part(str(name))
 
 
 def frame_key(board: str, sensor: int | str) -> str:

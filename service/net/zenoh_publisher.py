@@ -3,7 +3,7 @@ health document once per second, and answers queries for the latest frames.
 
 ``ZenohPublisher(config)`` opens the session (a listen port in use fails
 here, before the service starts); ``attach(service)`` makes it listen to
-the service's pipeline; ``close()`` detaches and closes the session.
+every board's pipeline; ``close()`` detaches and closes the session.
 
 A put costs ~20 µs (p99 ~100 µs) on loopback, too much for the pipeline's
 thread at 2 000 frames/s: that thread only appends the frames to a bounded
@@ -26,7 +26,7 @@ import zenoh
 
 from ..fanout.encoding import DEFAULT_FIELDS, to_binary
 from ..latency import LatencyMeter
-from .zenoh_config import board_key, frame_key, health_key, latest_key, open_session, sensors_key
+from .zenoh_config import PREFIX, frame_key, health_key, latest_key, open_session, sensors_key
 
 log = logging.getLogger(__name__)
 
@@ -78,15 +78,12 @@ class FrameQueue:
 
 
 class ZenohPublisher:
-    """Publishes one service's frames and health; answers its latest frames.
+    """Publishes a service's frames and health, per board under
+    ``tactile/<board>/``; answers each board's latest frames and sensors."""
 
-    ``board_name`` (``--board-name``) fixes the board's key; without it the
-    key follows the board's INFO (board_key)."""
-
-    def __init__(self, config: zenoh.Config, board_name: str | None = None, queue_frames: int = QUEUE_FRAMES,
+    def __init__(self, config: zenoh.Config, queue_frames: int = QUEUE_FRAMES,
                  health_period_s: float = HEALTH_PERIOD_S) -> None:
         self.session = open_session(config)
-        self.board_name = board_name
         self.health_period_s = health_period_s
         self.queue = FrameQueue(queue_frames)
         self.sent_latency = LatencyMeter()  # receive stamp → put on the session, per sample (its oldest frame)
@@ -94,21 +91,26 @@ class ZenohPublisher:
         self.samples_published = 0
         self.health_published = 0
         self.put_errors = 0
-        self.board: str | None = None  # the board's key chunk in use
         self._service = None
         self._publishers: dict[str, zenoh.Publisher] = {}
-        self._queryables: list = []
+        self._queryables: dict[str, list] = {}  # board name → its queryables
+        self._declare_lock = threading.Lock()  # the sender and the health thread both declare
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
 
+    @property
+    def boards(self) -> list[str]:
+        """The boards' key chunks in use."""
+        return sorted(self._queryables)
+
     def attach(self, service) -> "ZenohPublisher":
-        """Listen to ``service``'s pipeline (a live_service.TactileService)
-        and start the sender and health threads."""
+        """Listen to every board's pipeline of ``service`` (a
+        live_service.TactileService) and start the sender and health threads."""
         self._service = service
-        pipeline = service.pipeline
-        # A new list, not an append: the pipeline may be iterating the old one.
-        pipeline.listeners = [*pipeline.listeners, self.on_frames]
-        self._use_board(self._board_key())
+        for board in service.all_boards:
+            # A new list, not an append: the pipeline may be iterating the old one.
+            board.pipeline.listeners = [*board.pipeline.listeners, self.on_frames]
+        self._declare_boards()
         self._threads = [threading.Thread(target=self._send_loop, name="tactile-zenoh-send", daemon=True),
                          threading.Thread(target=self._health_loop, name="tactile-zenoh-health", daemon=True)]
         for thread in self._threads:
@@ -116,14 +118,14 @@ class ZenohPublisher:
         return self
 
     def on_frames(self, frames: list) -> None:
-        """The pipeline's listener: queue the frames, never block."""
+        """A pipeline's listener: queue the frames, never block."""
         self.queue.push(frames)
 
     def close(self, timeout: float = 2.0) -> None:
         """Detach, stop the threads, send what is queued, close the session."""
         service, self._service = self._service, None
-        if service is not None:
-            service.pipeline.listeners = [f for f in service.pipeline.listeners if f != self.on_frames]
+        for board in service.all_boards if service is not None else ():
+            board.pipeline.listeners = [f for f in board.pipeline.listeners if f != self.on_frames]
         self._closing.set()
         self.queue.wake()
         for thread in self._threads:
@@ -134,7 +136,7 @@ class ZenohPublisher:
         """What /health shows under "zenoh"."""
         info = self.session.info
         return {
-            "board": self.board,
+            "boards": self.boards,
             "zid": str(info.zid()),
             "peers": len(info.peers_zid()),
             "routers": len(info.routers_zid()),
@@ -147,23 +149,27 @@ class ZenohPublisher:
             "latency": self.sent_latency.summary(),
         }
 
-    def _board_key(self) -> str:
+    def _declare_boards(self) -> None:
+        """Queryables under each board's name (again when a board's first
+        INFO named it: the provisional name's are undeclared)."""
         service = self._service
-        return board_key(service.pipeline.interpreter.board if service is not None else {}, self.board_name)
-
-    def _use_board(self, board: str) -> None:
-        """Answer queries under ``board``'s keys (again, if INFO renamed it)."""
-        if board == self.board:
+        if service is None:
             return
-        for entity in [*self._queryables, *self._publishers.values()]:
-            entity.undeclare()
-        self._publishers.clear()
-        self.board = board
-        self._queryables = [self.session.declare_queryable(latest_key(board, "*"), self._answer_latest),
-                            self.session.declare_queryable(sensors_key(board), self._answer_sensors)]
+        names = {board.name: board for board in service.all_boards}
+        with self._declare_lock:
+            for gone in set(self._queryables) - set(names):
+                for entity in self._queryables.pop(gone):
+                    entity.undeclare()
+                for key in [k for k in self._publishers if k.startswith(f"{PREFIX}/{gone}/")]:
+                    self._publishers.pop(key).undeclare()
+            for name in set(names) - set(self._queryables):
+                board = names[name]
+                self._queryables[name] = [
+                    self.session.declare_queryable(latest_key(name, "*"), lambda q, b=board: self._answer_latest(b, q)),
+                    self.session.declare_queryable(sensors_key(name), lambda q, b=board: self._answer_sensors(b, q))]
 
-    def _publisher(self, sensor: int) -> zenoh.Publisher:
-        key = frame_key(self.board, sensor)
+    def _publisher(self, board: str, sensor: int) -> zenoh.Publisher:
+        key = frame_key(board, sensor)
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self._publishers[key] = self.session.declare_publisher(
@@ -176,62 +182,69 @@ class ZenohPublisher:
         while True:
             frames = self.queue.take()
             if frames:
-                self._use_board(self._board_key())
+                if any(frame.sensor.board not in self._queryables for frame in frames):
+                    self._declare_boards()
                 self._send(frames)
             if self._closing.is_set() and not len(self.queue):
                 return
 
     def _send(self, frames: list) -> None:
-        by_sensor: dict[int, list] = {}
+        by_sensor: dict[tuple[str, int], list] = {}
         for frame in frames:
-            by_sensor.setdefault(frame.sensor.id, []).append(frame)
-        for sensor, group in by_sensor.items():
+            by_sensor.setdefault((frame.sensor.board, frame.sensor.id), []).append(frame)
+        for (board, sensor), group in by_sensor.items():
             for start in range(0, len(group), MAX_RECORDS):
                 sample = group[start:start + MAX_RECORDS]
                 try:
-                    self._publisher(sensor).put(encode(sample))
+                    self._publisher(board, sensor).put(encode(sample))
                 except zenoh.ZError as exc:
                     self.put_errors += 1
                     if self.put_errors == 1:
-                        log.warning("zenoh put of sensor %d's frames failed: %s", sensor, exc)
+                        log.warning("zenoh put of sensor %s/%d's frames failed: %s", board, sensor, exc)
                     continue
                 self.sent_latency.add(time.time() - sample[0].t_host)
                 self.frames_published += len(sample)
                 self.samples_published += 1
 
     def _health_loop(self) -> None:
-        """Now, then every period until closed."""
-        publisher, key = None, None
+        """Each board's health document now, then every period until closed."""
+        publishers: dict[str, zenoh.Publisher] = {}
         while not self._closing.is_set():
             service = self._service
             if service is None:
                 return
-            if health_key(self.board) != key:
-                if publisher is not None:
-                    publisher.undeclare()
-                key = health_key(self.board)
-                publisher = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                           priority=zenoh.Priority.DATA,
-                                                           reliability=zenoh.Reliability.RELIABLE)
-            publisher.put(orjson.dumps(service.health(), option=orjson.OPT_SERIALIZE_NUMPY))
-            self.health_published += 1
+            self._declare_boards()
+            report = service.health()
+            for name in list(report["boards"]):
+                publisher = publishers.get(name)
+                if publisher is None:
+                    publisher = publishers[name] = self.session.declare_publisher(
+                        health_key(name), congestion_control=zenoh.CongestionControl.BLOCK,
+                        priority=zenoh.Priority.DATA, reliability=zenoh.Reliability.RELIABLE)
+                publisher.put(orjson.dumps(board_document(report, name), option=orjson.OPT_SERIALIZE_NUMPY))
+                self.health_published += 1
+            for gone in set(publishers) - set(report["boards"]):
+                publishers.pop(gone).undeclare()
             self._closing.wait(self.health_period_s)
 
-    def _answer_latest(self, query: zenoh.Query) -> None:
-        service, board = self._service, self.board
-        if service is None or board is None:
-            return
-        for sensor, frame in list(service.pipeline.latest.items()):
-            key = latest_key(board, sensor)
+    def _answer_latest(self, board, query: zenoh.Query) -> None:
+        for sensor, frame in list(board.pipeline.latest.items()):
+            key = latest_key(board.name, sensor)
             if query.key_expr.intersects(key):
                 query.reply(key, encode([frame]))
 
-    def _answer_sensors(self, query: zenoh.Query) -> None:
-        service, board = self._service, self.board
-        if service is None or board is None:
-            return
-        interpreter = service.pipeline.interpreter
-        document = {"board": board, "info": {k: v for k, v in interpreter.board.items() if k != "sensors"},
+    def _answer_sensors(self, board, query: zenoh.Query) -> None:
+        interpreter = board.pipeline.interpreter
+        document = {"board": board.name, "info": {k: v for k, v in interpreter.board.items() if k != "sensors"},
                     "sensors": [{"id": s.id, "kind": s.kind, "rows": s.rows, "cols": s.cols}
                                 for s in sorted(interpreter.sensors.values(), key=lambda s: s.id)]}
-        query.reply(sensors_key(board), orjson.dumps(document))
+        query.reply(sensors_key(board.name), orjson.dumps(document))
+
+
+def board_document(report: dict, name: str) -> dict:
+    """The service's /health ``report`` as one board's health: that board's
+    part (status, problems, link, sensors by id, …) with what the service
+    shares (latency, recording, zenoh)."""
+    shared = {k: v for k, v in report.items() if k not in ("boards", "sensors", "status", "problems")}
+    zenoh_status = {**(report.get("zenoh") or {}), "board": name}
+    return {**shared, **report["boards"][name], "board": name, "zenoh": zenoh_status}

@@ -8,18 +8,19 @@ import orjson
 from .mcap_reader import iter_messages
 
 
-def recorded_calibrations(path: str | Path) -> tuple[dict[int, dict], dict[int, tuple[str, list[int]]]]:
-    """({sensor id: document}, {sensor id: (calibration id, load cycles)}) of
+def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
+    """({sensor: document}, {sensor: (calibration id, load cycles)}) of
     the first calibration each sensor used in the recording (the recorder
     writes one before the first frame that uses it) and the load-cycle
-    counts the sensor started with; built-in calibrations (no document) are
+    counts the sensor started with, each sensor by its address (board/id),
+    or by its id in a recording made before boards were named; built-in calibrations (no document) are
     left out of the first, as a replay without a document uses the built-in
     one anyway."""
     found: dict[int, dict] = {}
     cycles: dict[int, tuple[str, list[int]]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
-        sensor = int(doc["sensor"])
+        sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
         if doc.get("document") is not None:
             found.setdefault(sensor, doc["document"])
         if doc.get("cycles_at_start") is not None:

@@ -92,6 +92,7 @@ def _text(read: Callable[[ForceFrame], str]) -> Column:
 
 
 COLUMNS: dict[str, Column] = {
+    "board": _text(lambda f: f.sensor.board),
     "sensor": _ints(lambda f: f.sensor.id),
     "seq": _ints(lambda f: f.seq),
     "t_us": _ints(lambda f: f.t_us),

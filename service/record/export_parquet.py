@@ -31,7 +31,7 @@ ROW_GROUP = 65_536
 CONTACT = pa.struct([("total_N", pa.float64()), ("cop_x_mm", pa.float64()), ("cop_y_mm", pa.float64()),
                      ("area_mm2", pa.float64()), ("contacts", pa.int32())])
 SCHEMA = pa.schema([
-    ("sensor", pa.uint8()), ("seq", pa.uint16()), ("t_us", pa.uint32()), ("kind", pa.string()),
+    ("board", pa.string()), ("sensor", pa.uint8()), ("seq", pa.uint16()), ("t_us", pa.uint32()), ("kind", pa.string()),
     ("taxels_N", pa.list_(pa.float64())), ("fxyz_N", pa.list_(pa.float64(), 3)),
     ("flags", pa.list_(pa.string())), ("taxel_flags", pa.map_(pa.string(), pa.list_(pa.int32()))),
     ("contact", CONTACT), ("calibration", pa.string()), ("sigma_N", pa.list_(pa.float32())),
@@ -83,6 +83,7 @@ def table(frames: list[ForceFrame]) -> pa.Table:
     """The rows of a batch of frames."""
     grid = [f.sensor.kind == "grid" for f in frames]
     columns = [
+        pa.array([f.sensor.board for f in frames], pa.string()),
         pa.array(np.array([f.sensor.id for f in frames], np.uint8)),
         pa.array(np.array([f.seq for f in frames], np.uint16)),
         pa.array(np.array([f.t_us for f in frames], np.uint32)),

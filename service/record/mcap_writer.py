@@ -1,6 +1,9 @@
 """MCAP recordings, written: the log the recorder's thread writes.
 
-Channels: ``/raw`` (tactile.RawBytes, every read of the port), per sensor
+Channels (a recording of several boards has each board's under ``/{board}``,
+``/{board}/raw``, ``/{board}/sensor/{id}/forces``, …; one board's are as
+below and name the board in their messages): ``/raw`` (tactile.RawBytes,
+every read of the port), per sensor
 ``/sensor/{id}/raw`` (tactile.RawFrame), ``/sensor/{id}/forces``
 (tactile.Forces), ``/sensor/{id}/grid`` (foxglove.Grid, grids only), and
 ``/diagnostics``, ``/calibrations`` (tactile.Calibration: each sensor's
@@ -64,29 +67,31 @@ class McapLog:
         log_ns = _ns(t_host)
         self._writer.add_message(channel, log_ns, orjson.dumps(payload, option=_JSON), publish_ns or log_ns, sequence)
 
-    def raw(self, data: bytes, t_host: float) -> None:
-        self._add("/raw", "raw", t_host, {"t_host": t_host, "data": base64.b64encode(data).decode()})
+    def raw(self, data: bytes, t_host: float, prefix: str = "") -> None:
+        self._add(f"{prefix}/raw", "raw", t_host, {"t_host": t_host, "data": base64.b64encode(data).decode()})
 
-    def frame(self, frame: ForceFrame) -> int:
+    def frame(self, frame: ForceFrame, prefix: str = "") -> int:
         """Write one frame's messages; returns how many (a grid has a foxglove.Grid too)."""
         sid = frame.sensor.id
         publish = frame.t_us * 1000
-        self._add(f"/sensor/{sid}/raw", "frame", frame.t_host,
+        self._add(f"{prefix}/sensor/{sid}/raw", "frame", frame.t_host,
                   {"sensor": sid, "seq": frame.seq, "t_us": frame.t_us, "capacitance_pF": frame.capacitance_pF}, publish)
-        self._add(f"/sensor/{sid}/forces", "forces", frame.t_host, to_export_dict(frame), publish)
+        self._add(f"{prefix}/sensor/{sid}/forces", "forces", frame.t_host, to_export_dict(frame), publish)
         if frame.sensor.kind == "grid":
-            self._add(f"/sensor/{sid}/grid", "grid", frame.t_host, foxglove_grid(frame), publish)
+            self._add(f"{prefix}/sensor/{sid}/grid", "grid", frame.t_host, foxglove_grid(frame), publish)
             return 3
         return 2
 
-    def calibration(self, sensor_id: int, calibration_id: str, document: dict | None, cycles: list | None,
+    def calibration(self, sensor, calibration_id: str, document: dict | None, cycles: list | None,
                     t_host: float) -> None:
-        self._add("/calibrations", "calibration", t_host, {"sensor": sensor_id, "id": calibration_id,
-                                                           "document": document, "cycles_at_start": cycles})
+        """``sensor``: the SensorInfo (its board and id name it)."""
+        self._add("/calibrations", "calibration", t_host, {"board": sensor.board, "sensor": sensor.id,
+                                                           "id": calibration_id, "document": document,
+                                                           "cycles_at_start": cycles})
 
-    def diagnostics(self, t_host: float, diagnostics: dict) -> None:
+    def diagnostics(self, t_host: float, diagnostics: dict, prefix: str = "") -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""
-        self._add("/diagnostics", "diag", t_host, diagnostics)
+        self._add(f"{prefix}/diagnostics", "diag", t_host, diagnostics)
 
     def close(self) -> None:
         self._writer.finish()
@@ -98,7 +103,7 @@ def foxglove_grid(frame: ForceFrame) -> dict:
     sec, frac = divmod(frame.t_host, 1.0)
     return {
         "timestamp": {"sec": int(sec), "nsec": int(frac * 1e9)},
-        "frame_id": f"tactile_sensor_{info.id}",
+        "frame_id": f"tactile_{info.board}_{info.id}" if info.board else f"tactile_sensor_{info.id}",
         "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
         "column_count": info.cols,
         "cell_size": {"x": GRID_CELL_M, "y": GRID_CELL_M},

@@ -15,7 +15,6 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Callable
 
 from ..reconstruct import ForceFrame
 from .mcap_writer import McapLog
@@ -52,11 +51,9 @@ class Recorder:
                 self.path.unlink(missing_ok=True)
             raise
         self._log = McapLog(self._stream)
-        self._diagnostics: Callable[[], dict] | None = None
-        self._pipeline = None
+        self._pipelines: list[_Listeners] = []
+        self._several = False  # boards' topics under /{board}: decided by what was attached, kept after detach
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._last_diag = 0.0
-        self._calibrations_written: set[tuple[int, str]] = set()
         self.error: str | None = None
         self.messages = 0
         self.bytes_in = 0
@@ -69,54 +66,25 @@ class Recorder:
 
     def attach(self, pipeline) -> None:
         """Listen to ``pipeline``'s bytes and frames, with its diagnostics
-        (``pipeline.diagnostics()``) once per second of frames."""
-        self._pipeline = pipeline
-        self._diagnostics = pipeline.diagnostics
+        (``pipeline.diagnostics()``) once per second of frames; a service
+        with several boards attaches each board's pipeline."""
+        listeners = _Listeners(self, pipeline)
+        self._pipelines.append(listeners)
+        self._several = self._several or len(self._pipelines) > 1
         # New lists, not appends: the pipeline may be iterating the old ones on another thread.
-        pipeline.byte_listeners = [*pipeline.byte_listeners, self.on_bytes]
-        pipeline.listeners = [*pipeline.listeners, self.on_frames]
+        pipeline.byte_listeners = [*pipeline.byte_listeners, listeners.on_bytes]
+        pipeline.listeners = [*pipeline.listeners, listeners.on_frames]
 
     def detach(self) -> None:
-        pipeline, self._pipeline = self._pipeline, None
-        if pipeline is None:
-            return
-        pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != self.on_bytes]
-        pipeline.listeners = [f for f in pipeline.listeners if f != self.on_frames]
+        attached, self._pipelines = self._pipelines, []
+        for listeners in attached:
+            pipeline = listeners.pipeline
+            pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != listeners.on_bytes]
+            pipeline.listeners = [f for f in pipeline.listeners if f != listeners.on_frames]
 
     @property
     def active(self) -> bool:
         return self.stopped_at is None and self.error is None
-
-    def on_bytes(self, data: bytes, t_host: float) -> None:
-        if self.active:
-            self._queue.put(("raw", data, t_host))
-
-    def on_frames(self, frames: list[ForceFrame]) -> None:
-        if not self.active:
-            return
-        calibrations = self._new_calibrations(frames)
-        if calibrations:
-            self._queue.put(("calibrations", calibrations, frames[0].t_host))
-        self._queue.put(("frames", frames, None))
-        t_host = frames[-1].t_host
-        if self._diagnostics and t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
-            self._last_diag = t_host
-            self._queue.put(("diag", self._diagnostics(), t_host))
-
-    def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple[int, str, dict | None, list | None]]:
-        """(sensor, id, document, load cycles it started with) of calibrations
-        these frames are the first to use."""
-        new = []
-        for frame in frames:
-            key = (frame.sensor.id, frame.calibration)
-            if key not in self._calibrations_written:
-                self._calibrations_written.add(key)
-                reconstructor = self._pipeline.reconstructor if self._pipeline else None
-                calibration = reconstructor.calibration(frame.sensor.id) if reconstructor else None
-                same = calibration is not None and calibration.id == frame.calibration
-                new.append((frame.sensor.id, frame.calibration, calibration.document if same else None,
-                            reconstructor.cycles_at_start(frame.sensor.id) if same else None))
-        return new
 
     def stop(self, timeout: float = 10.0) -> dict:
         """Detach, write what is queued, finish the file, return the status."""
@@ -146,10 +114,10 @@ class Recorder:
         last_flush = last_sync = time.monotonic()
         try:
             while True:
-                kind, payload, t_host = self._queue.get()
+                kind, item, t_host = self._queue.get()
                 if kind is _STOP:
                     break
-                self._write(kind, payload, t_host)
+                self._write(kind, item, t_host)
                 now = time.monotonic()
                 if now - last_flush >= FLUSH_PERIOD_S:
                     sync = now - last_sync >= FSYNC_PERIOD_S
@@ -170,22 +138,30 @@ class Recorder:
                     except OSError as exc:
                         self.error = self.error or f"closing {stream.name} failed: {exc}"
 
-    def _write(self, kind: str, payload, t_host: float | None) -> None:
+    def _prefix(self, pipeline) -> str:
+        """Topics of a one-board recording are as they always were (/raw,
+        /sensor/{id}/…; the board is named in the messages); with several
+        boards each board's topics are under /{board}."""
+        return f"/{pipeline.interpreter.name}" if self._several else ""
+
+    def _write(self, kind: str, item, t_host: float | None) -> None:
+        pipeline, payload = item
+        prefix = self._prefix(pipeline)
         if kind == "raw":
-            self._log.raw(payload, t_host)
+            self._log.raw(payload, t_host, prefix)
             if self._raw is not None:
                 self._raw.write(payload)
             self.bytes_in += len(payload)
             self.messages += 1
         elif kind == "frames":
             for frame in payload:
-                self.messages += self._log.frame(frame)
+                self.messages += self._log.frame(frame, prefix)
         elif kind == "calibrations":
-            for sensor_id, calibration_id, document, cycles in payload:
-                self._log.calibration(sensor_id, calibration_id, document, cycles, t_host)
+            for sensor, calibration_id, document, cycles in payload:
+                self._log.calibration(sensor, calibration_id, document, cycles, t_host)
                 self.messages += 1
         else:
-            self._log.diagnostics(t_host, payload)
+            self._log.diagnostics(t_host, payload, prefix)
             self.messages += 1
 
     def _flush(self, sync: bool = False) -> None:
@@ -199,3 +175,46 @@ class Recorder:
                 os.fsync(stream.fileno())
             self.fsync_s += time.monotonic() - started
             self.fsyncs += 1
+
+
+class _Listeners:
+    """A recorder's listeners on one pipeline: they only queue references
+    (with the pipeline, which names the board when it is written)."""
+
+    def __init__(self, recorder: Recorder, pipeline) -> None:
+        self.recorder = recorder
+        self.pipeline = pipeline
+        self._last_diag = 0.0
+        self._calibrations_written: set[tuple[int, str]] = set()
+
+    def on_bytes(self, data: bytes, t_host: float) -> None:
+        if self.recorder.active:
+            self.recorder._queue.put(("raw", (self.pipeline, data), t_host))
+
+    def on_frames(self, frames: list[ForceFrame]) -> None:
+        recorder = self.recorder
+        if not recorder.active:
+            return
+        calibrations = self._new_calibrations(frames)
+        if calibrations:
+            recorder._queue.put(("calibrations", (self.pipeline, calibrations), frames[0].t_host))
+        recorder._queue.put(("frames", (self.pipeline, frames), None))
+        t_host = frames[-1].t_host
+        if t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
+            self._last_diag = t_host
+            recorder._queue.put(("diag", (self.pipeline, self.pipeline.diagnostics()), t_host))
+
+    def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple]:
+        """(sensor, id, document, load cycles it started with) of calibrations
+        these frames are the first to use."""
+        new = []
+        reconstructor = self.pipeline.reconstructor
+        for frame in frames:
+            key = (frame.sensor.id, frame.calibration)
+            if key not in self._calibrations_written:
+                self._calibrations_written.add(key)
+                calibration = reconstructor.calibration(frame.sensor.id)
+                same = calibration is not None and calibration.id == frame.calibration
+                new.append((frame.sensor, frame.calibration, calibration.document if same else None,
+                            reconstructor.cycles_at_start(frame.sensor.id) if same else None))
+        return new

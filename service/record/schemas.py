@@ -36,6 +36,7 @@ CALIBRATION = {
                    "is its id alone), written when the recording first uses it",
     "type": "object",
     "properties": {
+        "board": {"type": "string", "description": "the board's name (recordings before boards were named: absent)"},
         "sensor": {"type": "integer"},
         "id": {"type": "string"},
         "document": {"type": ["object", "null"]},

@@ -1,0 +1,104 @@
+"""One board's data path in the live service: its source, readout and pipeline.
+
+A service reads one or several boards (``--source NAME=URL``, robot.toml).
+Each ``Board`` has its own readout (its own thread or descriptor), its own
+pipeline (decoder, interpreter, clock map, reconstruction, history, rates)
+and its own link state, so a board that vanishes, stalls or floods touches
+no other board's state; what they share is the event loop, the fan-out hub,
+the recorder and the calibration book.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+from dataclasses import dataclass
+
+from .calibration.registry import sensor_identity
+from .handover import LoopHandover
+from .history import Histories
+from .pipeline import Pipeline
+from .readings import UNNAMED_BOARD
+from .readout import DEFAULT_SILENCE_S, Readout
+from .reconstruct import DEFAULT_LEVEL, Reconstructor
+
+log = logging.getLogger(__name__)
+
+BOARD_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")
+
+
+def check_board_name(name: str) -> str:
+    """``name`` if it can name a board in addresses (board/sensor), URLs and
+    Zenoh keys: a letter, then letters, digits, '_' or '-', at most 32;
+    ValueError naming it otherwise."""
+    if not isinstance(name, str) or not BOARD_NAME.fullmatch(name):
+        raise ValueError(f"board name {name!r} must start with a letter and hold only letters, digits, '_' "
+                         f"and '-' (at most 32)")
+    return name
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """What a board is, as the command line or robot.toml says: ``name``
+    None names it from its INFO (a bare ``--source URL``); ``calibration``:
+    registry ids or files pinned for this board's sensors."""
+
+    source: str
+    name: str | None = None
+    level: str = DEFAULT_LEVEL
+    mounting: str = "flat"
+    calibration: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.name is not None:
+            check_board_name(self.name)
+
+
+class Board:
+    """One board of the service. ``name`` is its given name, or the one its
+    first INFO settled (``board`` until then)."""
+
+    def __init__(self, spec: BoardSpec, calibrations, histories: Histories, name_board=None,
+                 silence_s: float = DEFAULT_SILENCE_S) -> None:
+        self.spec = spec
+        self.source = spec.source
+        self.silence_s = silence_s
+        self.calibrations = calibrations
+        self.pipeline = Pipeline(Reconstructor(level=spec.level, mounting=spec.mounting), histories=histories,
+                                 calibrations=calibrations, board_name=spec.name, name_board=name_board)
+        self.handover: LoopHandover | None = None
+        self.readout: Readout | None = None
+
+    @property
+    def name(self) -> str:
+        return self.pipeline.interpreter.board_name or UNNAMED_BOARD
+
+    @property
+    def sensors(self) -> dict:
+        return self.pipeline.interpreter.sensors
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Start reading; the pipeline's listeners are wired by the service."""
+        self.handover = LoopHandover(self.pipeline.feed_reads, self.pipeline.link_lost, loop)
+        self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
+        self.readout.start(loop)
+
+    def stop(self) -> None:
+        if self.readout is not None:
+            self.readout.stop()
+        self.save_cycles()
+
+    def save_cycles(self) -> None:
+        """Keep every sensor's load-cycle counts in the registry (a failure is logged, never raised)."""
+        try:
+            self.calibrations.save_cycles(self.pipeline.interpreter.board, self.pipeline.reconstructor.cycle_counts())
+        except Exception as exc:  # noqa: BLE001 — counts are kept again at the next period
+            log.warning("load-cycle counts of board %s not kept: %s", self.name, exc)
+
+    def set_calibration(self, info, upload: dict) -> dict:
+        """Validate an upload (ValueError naming the field), store it in the
+        registry and make it the sensor's active calibration there, then
+        reconstruct with it from the next frame; returns the document."""
+        sensor = sensor_identity(self.pipeline.interpreter.board, info)
+        store = self.calibrations.store if self.calibrations.use_registry else None
+        return self.pipeline.set_calibration(info, upload, sensor, store)
