@@ -1,0 +1,201 @@
+"""Several boards in one service: addressing board/sensor everywhere, and
+boards that cannot disturb each other (one vanishes, stalls or floods)."""
+import socket
+import threading
+import time
+
+import numpy as np
+import orjson
+import pytest
+from fastapi.testclient import TestClient
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.sensors import SimGrid, SimQuad
+from service.api.app import create_app
+from service.board import BoardSpec
+from service.cli import build_parser
+from service.cli_serve import board_specs
+from service.fanout.encoding import decode_binary
+from service.live_service import TactileService
+from service.robot_config import load_robot
+
+
+def wait_until(condition, seconds=5.0):
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and not condition():
+        time.sleep(0.01)
+    return condition()
+
+
+@pytest.fixture(scope="module")
+def two():
+    """left: a grid and a quad; right: a quad only (its id 0 collides with left's grid)."""
+    service = TactileService(boards=[BoardSpec("sim://?scene=press&sensors=grid,quad", "left"),
+                                     BoardSpec("sim://?scene=press&sensors=quad&seed=3", "right")])
+    with TestClient(create_app(service), base_url="http://localhost") as client:
+        wait_until(lambda: len(service.board("left").pipeline.latest) == 2 and len(service.board("right").pipeline.latest) == 1)
+        yield service, client
+
+
+def test_sensors_are_listed_and_read_by_board_and_id(two):
+    _, client = two
+    listed = client.get("/sensors").json()
+    assert [(s["address"], s["kind"]) for s in listed["sensors"]] == [("left/0", "grid"), ("left/1", "quad"),
+                                                                        ("right/0", "quad")]
+    assert [b["name"] for b in listed["boards"]] == ["left", "right"] and listed["board"] is None
+    right = client.get("/sensors/right/0/latest").json()
+    assert right["header"]["board"] == "right" and right["header"]["kind"] == "quad"
+    assert client.get("/sensors/left/0/latest").json()["header"]["kind"] == "grid"
+    assert client.get("/sensors/1/latest").json()["header"]["board"] == "left"  # one board has a sensor 1
+    ambiguous = client.get("/sensors/0/latest")
+    assert ambiguous.status_code == 409 and "left, right" in ambiguous.json()["detail"]
+    missing = client.get("/sensors/middle/0/latest")
+    assert missing.status_code == 404 and "'middle'" in missing.json()["detail"] and "left, right" in missing.json()["detail"]
+    assert client.get("/sensors/right/1/latest").status_code == 404
+    history = client.get("/sensors/right/0/history?seconds=0.5&max_points=10").json()
+    assert len(history) == 10 and {f["header"]["board"] for f in history} == {"right"}
+    assert client.get("/sensors/right/0/calibration").json()["id"].startswith("builtin")
+
+
+def test_a_stream_subscribes_by_address_and_binary_names_the_board(two):
+    _, client = two
+    with client.websocket_connect("ws://localhost/ws?sensors=right/0,1&encoding=binary") as ws:
+        records = [r for _ in range(40) for r in decode_binary(ws.receive_bytes())]
+    assert {(r["board"], r["sensor_id"]) for r in records} == {("right", 0), ("left", 1)}
+    with client.websocket_connect("ws://localhost/ws?sensors=right/7") as ws:
+        notice = orjson.loads(ws.receive_text())
+    assert notice["type"] == "notice" and "right/7" in notice["detail"] and "left/0" in notice["detail"]
+
+
+def test_health_has_each_board_and_keys_sensors_by_address(two):
+    _, client = two
+    time.sleep(1.1)  # a full rate window
+    health = client.get("/health").json()
+    assert set(health["boards"]) == {"left", "right"} and health["status"] == "ok", health["problems"]
+    assert set(health["sensors"]) == {"left/0", "left/1", "right/0"}
+    for address, sensor in health["sensors"].items():
+        assert f"{sensor['board']}/{sensor['id']}" == address and 800 <= sensor["rate_hz"] <= 1200
+    assert "link" not in health  # a link per board: under boards
+    assert all(part["link"]["up"] for part in health["boards"].values())
+
+
+def test_tare_one_board(two):
+    _, client = two
+    answer = client.post("/tare?board=right&force=true").json()
+    assert answer["tared"] == ["right/0"]
+    assert client.post("/sensors/right/0/tare?force=true").json()["tared"] == ["right/0"]
+    assert client.post("/tare?board=middle").status_code == 404
+
+
+def test_several_sources_on_the_command_line_and_in_a_robot_file(tmp_path):
+    parse = build_parser().parse_args
+    specs = board_specs(parse(["serve", "--source", "left=sim://?sensors=quad", "--source", "sim://?seed=2"]))
+    assert [(s.name, s.source) for s in specs] == [("left", "sim://?sensors=quad"), (None, "sim://?seed=2")]
+    with pytest.raises(ValueError, match="given twice"):
+        board_specs(parse(["serve", "--source", "a=sim://", "--source", "a=sim://?seed=1"]))
+    robot = tmp_path / "robot.toml"
+    robot.write_text('[[board]]\nname = "palm"\nsource = "sim://?sensors=grid"\nlevel = "table"\nmounting = "curved"\n'
+                     '[[board]]\nname = "thumb"\nsource = "sim://?sensors=quad"\n')
+    specs = board_specs(parse(["serve", "--config", str(robot)]))
+    assert [(s.name, s.level, s.mounting) for s in specs] == [("palm", "table", "curved"), ("thumb", "full", "flat")]
+    robot.write_text('[[board]]\nname = "palm"\nsource = "sim://"\nspeed = 3\n')
+    with pytest.raises(ValueError, match=r"board 1 \('palm'\): unknown key\(s\) \['speed'\]"):
+        load_robot(robot, "full", "flat")
+    robot.write_text('[[board]]\nname = "9palm"\nsource = "sim://"\n')
+    with pytest.raises(ValueError, match="must start with a letter"):
+        load_robot(robot, "full", "flat")
+
+
+def test_a_bare_source_is_named_from_its_info():
+    service = TactileService("sim://?sensors=quad")
+    with TestClient(create_app(service), base_url="http://localhost") as client:
+        assert wait_until(lambda: service.pipeline.latest)
+        name = service.primary.name
+        assert name not in ("", "board")  # the simulator's INFO names it
+        assert client.get(f"/sensors/{name}/0/latest").json()["header"]["board"] == name
+        assert client.get("/sensors/0/latest").status_code == 200  # one board: a bare id still works
+
+
+class MisbehavingBoard:
+    """A TCP 'board' for the service's second source: it streams a real
+    capture, then goes silent, then floods junk and frames as fast as the
+    socket takes them, then disappears."""
+
+    def __init__(self) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.phase = "stream"  # then "silent", "flood", "gone"
+        self.stop = threading.Event()
+        data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="press", seed=9), 20.0)
+        self.data = data
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        """One connection at a time; the service reconnecting (after the
+        silence) gets a new one, served in the phase of the moment."""
+        self.server.settimeout(0.05)
+        pos, started = 0, time.monotonic()
+        conn = None
+        try:
+            while not self.stop.is_set():
+                try:
+                    new, _ = self.server.accept()
+                    if conn is not None:
+                        conn.close()
+                    conn = new
+                except TimeoutError:
+                    pass
+                if conn is None or self.phase == "silent":
+                    continue
+                try:
+                    if self.phase == "stream":  # the capture at its own rate
+                        due = int((time.monotonic() - started) * len(self.data) / 20.0)
+                        conn.sendall(self.data[pos:due])
+                        pos = due
+                    else:  # flood: 64 KiB of frames and 8 KiB of junk every 5 ms, ~50x a board's rate
+                        junk = np.random.default_rng(pos).integers(0, 256, 8192, np.uint8).tobytes()
+                        conn.sendall(self.data[pos % 65536:pos % 65536 + 65536] + junk)
+                        pos += 65536
+                        time.sleep(0.005)
+                except OSError:
+                    conn.close()
+                    conn = None
+        finally:
+            if conn is not None:
+                conn.close()
+            self.server.close()
+
+
+def test_a_board_that_stalls_floods_or_vanishes_does_not_disturb_another():
+    bad = MisbehavingBoard()
+    service = TactileService(boards=[BoardSpec("sim://?scene=press&sensors=grid,quad", "good"),
+                                     BoardSpec(f"socket://127.0.0.1:{bad.port}", "bad")], silence_s=1.0)
+    good_frames: list = []
+    with TestClient(create_app(service), base_url="http://localhost") as client:
+        good = service.board("good").pipeline
+        good.listeners = [*good.listeners, lambda frames: good_frames.extend((f.sensor.id, f.seq, f.t_host, f.flags)
+                                                                               for f in frames)]
+        assert wait_until(lambda: len(service.board("bad").pipeline.latest) == 2)
+        phases, bytes_in = {}, {}
+        for phase in ("stream", "silent", "flood", "gone"):
+            bad.phase = phase
+            if phase == "gone":
+                bad.stop.set()  # connection and listening socket closed: reconnects are refused
+            start = time.time()
+            time.sleep(0.8)
+            if phase == "silent":  # stale after 0.5 s; asked INFO? at 1 s, reconnecting at 1.5 s
+                health = client.get("/health").json()
+                assert health["boards"]["bad"]["link"]["state"] == "stale" and health["boards"]["good"]["status"] == "ok"
+            time.sleep(0.7)
+            phases[phase] = (start + 0.3, time.time())  # after the phase settled
+            bytes_in[phase] = client.get("/health").json()["boards"]["bad"]["stream"]["bytes_in"]
+        bad_part = client.get("/health").json()["boards"]["bad"]
+    for phase, (start, end) in phases.items():
+        quad = [(seq, t) for sid, seq, t, _ in good_frames if sid == 1 and start <= t < end]
+        assert 0.85 * 1000 <= len(quad) / (end - start) <= 1.15 * 1000, (phase, len(quad))
+    assert not [f for f in good_frames if "seq_gap" in f[3] or "overrun" in f[3]]  # nothing of the good board lost
+    seqs = np.array([seq for sid, seq, _, _ in good_frames if sid == 1])
+    assert np.all(np.diff(seqs) % 65536 == 1)
+    # It did flood: > 1.2 MB in 1.5 s, 3x what this board sends at 1 kHz and 4x what a 2 Mbaud link can carry.
+    assert bytes_in["flood"] - bytes_in["silent"] > 1.2e6
+    assert bad_part["link"]["state"] != "up"
