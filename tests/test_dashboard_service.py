@@ -127,3 +127,26 @@ def test_each_panel_says_which_calibration_its_forces_rest_on(browser, tmp_path)
 
     with Registry(registry) as kept:  # the upload outlives the service
         assert kept.get(stored["id"])["taxels"]["sensitivity_pct_per_N"] == [1.3] * 64
+
+
+def test_two_boards_with_the_same_sensor_ids_get_a_panel_each_and_a_lost_one_is_named(browser, tmp_path):
+    """Both boards have a sensor 0: two panels, each under its board's heading;
+    the board whose device is not there is named in the banner."""
+    absent = f"socket://127.0.0.1:{free_port()}"  # nothing listens there
+    with tactile("serve", "--source", "left=sim://?scene=press&rate=250&sensors=grid,quad",
+                 "--source", "right=sim://?scene=press&rate=250&sensors=quad&seed=3", cwd=tmp_path) as url:
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(url)
+        page.wait_for_function("() => document.querySelectorAll('.panel[data-frames]').length === 3", timeout=10_000)
+        groups = page.eval_on_selector_all(
+            "section.board", "els => els.map(g => [g.querySelector('.board-title').innerText, "
+                             "[...g.querySelectorAll('.panel')].map(p => p.querySelector('h3').innerText)])")
+        assert sorted(groups) == [["board left", ["grid0 · grid 8×8", "quad1 · quad"]], ["board right", ["quad0 · quad"]]]
+        page.wait_for_selector('#status[data-state="ok"]', timeout=5000)
+    with tactile("serve", "--source", "left=sim://?scene=press&rate=250", "--source", f"arm={absent}",
+                 cwd=tmp_path) as url:
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(url)
+        page.wait_for_selector('#status[data-state="down"]', timeout=10_000)
+        assert page.text_content("#status").startswith("board arm: Link down")
+        page.wait_for_function("() => document.querySelectorAll('.panel[data-frames]').length === 2", timeout=10_000)

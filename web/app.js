@@ -20,8 +20,7 @@ const FLAG_SEVERITY = {
 const token = new URLSearchParams(location.search).get("token");
 const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
 
-const panels = new Map();         // sensor id → panel
-const sensorInfo = new Map();     // sensor id → what /sensors said about it
+const panels = new Map();         // sensor address (board/id) → panel
 let streamOpen = false;
 let dirty = false;
 
@@ -111,9 +110,15 @@ function colourScale() {
   return scale;
 }
 
+// A sensor's key: its address, board/id (a service before boards were named sends no board).
+function sensorKey(board, id) {
+  return `${board ?? ""}/${id}`;
+}
+
 function createPanel(id, info) {
   const el = element("section", "panel");
   el.dataset.sensor = id;
+  el.dataset.board = info.board ?? "";
   const title = element("h3");
   const flags = element("span", "flags");
   const live = makeCanvas("live");
@@ -140,20 +145,16 @@ function describePanel(panel, info) {
   panel.live.style.setProperty("--aspect", aspect);
 }
 
-// One panel per sensor id; a board learnt later moves the panel to its group.
+// One panel per sensor address, in its board's group.
 function ensurePanel(id, info) {
-  const panel = panels.get(id);
-  if (!panel) { panels.set(id, createPanel(id, info)); return panels.get(id); }
-  const board = info.board ?? panel.board;
-  if (board !== panel.board) { panel.board = board; placePanel(panel); }
-  return panel;
+  const key = sensorKey(info.board, id);
+  if (!panels.has(key)) panels.set(key, createPanel(id, info));
+  return panels.get(key);
 }
 
 function infoFromFrame(frame) {
   const h = frame.header;
-  const known = sensorInfo.get(h.sensor_id) || {};
-  return { name: h.sensor_name, kind: h.kind, rows: frame.rows, cols: frame.cols,
-           board: h.board ?? known.board ?? null };
+  return { name: h.sensor_name, kind: h.kind, rows: frame.rows, cols: frame.cols, board: h.board ?? null };
 }
 
 async function loadSensors() {
@@ -161,7 +162,6 @@ async function loadSensors() {
     const answer = await (await fetch("/sensors")).json();
     const list = Array.isArray(answer) ? answer : answer.sensors || [];
     for (const s of [...list].sort((a, b) => a.id - b.id)) {
-      sensorInfo.set(s.id, s);
       ensurePanel(s.id, s);
     }
   } catch (err) {
@@ -473,17 +473,29 @@ function linkState(link) {
   return link.last_data_age_s > STALE_AFTER_S ? "stale" : "up";
 }
 
+// The board whose link is in the worst state (every board's part is under
+// health.boards; a service before boards were named has one link at the top).
+const LINK_RANK = { down: 0, stale: 1, finished: 2, up: 3 };
+
+function worstLink(health) {
+  const boards = Object.entries(health.boards || {});
+  if (!boards.length) return ["", health.link || {}];
+  const ranked = boards.map(([name, part]) => [name, part.link || {}]);
+  ranked.sort((a, b) => (LINK_RANK[linkState(a[1])] ?? 3) - (LINK_RANK[linkState(b[1])] ?? 3));
+  return [boards.length > 1 ? `board ${ranked[0][0]}: ` : "", ranked[0][1]];
+}
+
 function describeStatus(health) {
-  const link = health.link || {};
-  const source = link.source ? ` · ${link.source}` : "";
+  const [which, link] = worstLink(health);
+  const source = link.source ? ` · ${which}${link.source}` : "";
   const age = link.last_data_age_s == null ? "" : ` for ${link.last_data_age_s.toFixed(1)} s`;
   const state = linkState(link);
   if (state === "finished") return ["finished", `Replay finished: the recording has ended, showing its last frames${source}`];
   if (state === "down") {
     const reconnects = link.reconnects ? ` · ${link.reconnects} reconnects` : "";
-    return ["down", `Link down · last error: ${link.last_error || "none reported"}${reconnects}${source}`];
+    return ["down", `${which}Link down · last error: ${link.last_error || "none reported"}${reconnects}${source}`];
   }
-  if (state === "stale") return ["stale", `Stale: no data${age}${source}`];
+  if (state === "stale") return ["stale", `${which}Stale: no data${age}${source}`];
   if (!streamOpen) return ["stale", `Live stream disconnected, reconnecting…${source}`];
   const degraded = health.status === "degraded" ? " (service degraded)" : "";
   return health.replay ? ["replay", `Replay${degraded}${source}`] : ["ok", `Live${degraded}${source}`];
@@ -497,7 +509,11 @@ function showStatus(state, text) {
 
 function statsText(health) {
   const sensors = Object.entries(health.sensors || {});
-  const stream = health.stream || {};
+  const parts = Object.values(health.boards || {});
+  const stream = parts.length ? parts.reduce((sum, part) => {
+    for (const [k, v] of Object.entries(part.stream || {})) if (typeof v === "number") sum[k] = (sum[k] || 0) + v;
+    return sum;
+  }, {}) : health.stream || {};
   const p99 = health.latency && health.latency.published ? health.latency.published.p99_ms : null;
   return [
     ...sensors.map(([id, s]) => `#${id} ${s.rate_hz} Hz`),
@@ -582,7 +598,7 @@ async function pollHealth() {
   showStatus(...describeStatus(health));
   document.getElementById("stats").textContent = statsText(health);
   for (const [id, sensor] of Object.entries(health.sensors || {})) {
-    const panel = panels.get(Number(id));
+    const panel = panels.get(sensorKey(sensor.board, sensor.id ?? Number(id)));
     if (panel) showCalibration(panel, sensor.calibration, sensor.fatigue);
   }
   const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();
