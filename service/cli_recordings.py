@@ -128,10 +128,20 @@ def _mcap_span(path: Path) -> tuple[float, float] | None:
         return None
 
 
+def _summary(pipeline) -> dict:
+    """What a replay of one board dropped and how it reconstructed (printed on stderr)."""
+    counters = pipeline.decoder.counters.as_dict()
+    reconstructor = pipeline.reconstructor
+    return {"stream": {k: v for k, v in counters.items() if k != "sensors"}, "sensors": counters["sensors"],
+            "rejected": pipeline.interpreter.rejected, "level": reconstructor.level,
+            "level_reason": reconstructor.level_reason}
+
+
 def cmd_replay(args) -> int:
     from .calibration.book import book_from_options
     from .record.pacing import Pacer
-    from .replay import replay
+    from .record.mcap_reader import boards_in
+    from .replay import replay_boards
 
     path = args.file or args.raw
     if path is None:
@@ -141,7 +151,10 @@ def cmd_replay(args) -> int:
         import urllib.parse
 
         speed = 1.0 if args.speed is None else args.speed
-        args.source = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if math.isinf(speed) else speed}"
+        url = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if math.isinf(speed) else speed}"
+        boards = boards_in(path) if Path(path).suffix == ".mcap" and Path(path).is_file() else [None]
+        # A recording of several boards: a replay:// source per board, named as they were.
+        args.source = [url if b is None else f"{b}={url}&board={urllib.parse.quote(b)}" for b in boards]
         args.recording = path
         return cmd_serve(args)
     if not Path(path).is_file():
@@ -159,8 +172,8 @@ def cmd_replay(args) -> int:
             from .record.export_parquet import Parquet
 
             writer = Parquet(args.export)
-        pipeline = replay(path, out, level=args.level, mounting=args.mounting,
-                          pacer=_ProgressPacer(Pacer(speed), bar, Path(path)), writer=writer, calibrations=book)
+        pipelines = replay_boards(path, out, level=args.level, mounting=args.mounting,
+                                  pacer=_ProgressPacer(Pacer(speed), bar, Path(path)), writer=writer, calibrations=book)
     except BrokenPipeError:
         if not to_stdout:
             raise
@@ -176,14 +189,16 @@ def cmd_replay(args) -> int:
     finally:
         bar.close()
         _close(None if to_stdout else out, writer)
-    counters = pipeline.decoder.counters.as_dict()
-    reconstructor = pipeline.reconstructor
-    summary = {"stream": {k: v for k, v in counters.items() if k != "sensors"}, "sensors": counters["sensors"],
-               "rejected": pipeline.interpreter.rejected,
-               "level": reconstructor.level, "level_reason": reconstructor.level_reason}
-    print(json.dumps(summary, indent=1), file=sys.stderr)
-    if args.level == "auto":
-        print(f"tactile replay: level auto chose {reconstructor.level}: {reconstructor.level_reason}", file=sys.stderr)
+    summaries = {name: _summary(pipeline) for name, pipeline in pipelines.items()}
+    print(json.dumps(next(iter(summaries.values())) if len(summaries) == 1 else {"boards": summaries}, indent=1),
+          file=sys.stderr)
+    for name, pipeline in pipelines.items():
+        if args.level == "auto":
+            which = f" for board {name}" if len(pipelines) > 1 else ""
+            print(f"tactile replay: level auto chose {pipeline.reconstructor.level}{which}: "
+                  f"{pipeline.reconstructor.level_reason}", file=sys.stderr)
+    counters = {"frames": sum(p.decoder.counters.as_dict()["frames"] for p in pipelines.values()),
+                "bytes_in": sum(p.decoder.counters.as_dict()["bytes_in"] for p in pipelines.values())}
     if counters["frames"] == 0:
         removed = export_is_new and _unlink(Path(args.export))
         print(f"tactile replay: {path}: no valid frame in {counters['bytes_in']} bytes (is it a capture of the "

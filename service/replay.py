@@ -21,9 +21,10 @@ from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
+from .record.mcap_reader import read_boards
 from .record.readers import is_timed_by_host, timed_chunks
 
-__all__ = ["Pacer", "Writer", "export_line", "replay"]
+__all__ = ["Pacer", "Writer", "export_line", "replay", "replay_boards"]
 
 
 class Writer(Protocol):
@@ -32,22 +33,51 @@ class Writer(Protocol):
 
 def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat",
            pacer: Pacer | None = None, writer: Writer | None = None, calibrations=None) -> Pipeline:
-    """Replay a recording (.mcap) or raw capture (any other suffix); write
-    one JSON line per data frame to ``export``, or each batch of frames to
-    ``writer`` (record.export_parquet.Parquet, say). ``calibrations``: a
-    calibration/book.py CalibrationBook (None: built-in calibrations).
-    Returns the pipeline, whose counters tell what was dropped."""
+    """Replay a one-board recording (.mcap) or raw capture (any other suffix)
+    (``replay_boards`` for any number of boards); returns its pipeline,
+    whose counters tell what was dropped."""
+    pipelines = replay_boards(path, export, level, mounting, pacer, writer, calibrations)
+    if len(pipelines) > 1:
+        raise ValueError(f"{path} holds boards {', '.join(pipelines)}: replay_boards replays them all")
+    return next(iter(pipelines.values()))
+
+
+def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL,
+                  mounting: str = "flat", pacer: Pacer | None = None, writer: Writer | None = None,
+                  calibrations=None) -> dict[str, Pipeline]:
+    """Replay a recording (.mcap, of one board or several) or raw capture
+    (any other suffix); write one JSON line per data frame to ``export``,
+    or each batch of frames to ``writer`` (record.export_parquet.Parquet,
+    say), every board's in the order its reads were received.
+    ``calibrations``: a calibration/book.py CalibrationBook (None: built-in
+    calibrations). Returns each board's pipeline by its name."""
     pacer = pacer or Pacer(math.inf)
     hold = not is_timed_by_host(path)
-    pipeline = Pipeline(Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0,
-                        keep_history=False, calibrations=calibrations, map_clock=not hold)
     writer = writer or (JsonLines(export) if export is not None else None)
-    if writer is not None:
-        pipeline.listeners.append(writer.write)
+    pipelines: dict[str | None, Pipeline] = {}
+    # A one-board recording's topics do not name its board; its calibrations do.
+    named = {key.split("/")[0] for key in getattr(calibrations, "recorded_cycles", {}) if isinstance(key, str)}
+    only = next(iter(named)) if len(named) == 1 else None
+
+    def pipeline_of(board: str | None) -> Pipeline:
+        pipeline = pipelines.get(board)
+        if pipeline is None:
+            pipeline = pipelines[board] = Pipeline(
+                Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0,
+                keep_history=False, calibrations=calibrations, map_clock=not hold, board_name=board or only)
+            if writer is not None:
+                pipeline.listeners.append(writer.write)
+        return pipeline
+
+    paced = not math.isinf(pacer.speed)
+    chunks = read_boards(path) if not hold else ((None, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
+    if hold:
+        pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     t_last = 0.0
-    for t_recorded, chunk in timed_chunks(path, paced=not math.isinf(pacer.speed)):
+    for board, t_recorded, chunk in chunks:
         pacer.wait(t_recorded)
-        pipeline.feed(chunk, t_recorded)
+        pipeline_of(board).feed(chunk, t_recorded)
         t_last = t_recorded
-    pipeline.finish(t_last)
-    return pipeline
+    for pipeline in pipelines.values():
+        pipeline.finish(t_last)
+    return {pipeline.interpreter.name: pipeline for pipeline in pipelines.values()}

@@ -204,8 +204,11 @@ def test_a_recording_is_synced_to_disk_when_it_stops_and_every_few_seconds(tmp_p
     monkeypatch.setattr(recorder_module, "FLUSH_PERIOD_S", 0.0)
     monkeypatch.setattr(recorder_module, "FSYNC_PERIOD_S", 0.2)
     recorder = Recorder(tmp_path / "run.mcap", tmp_path / "run.bin")
+    pipeline = Pipeline(Reconstructor())
+    recorder.attach(pipeline)
     for i in range(30):
-        recorder.on_bytes(b"x", float(i))
+        for listener in pipeline.byte_listeners:
+            listener(b"x", float(i))
         time.sleep(0.02)
     status = recorder.stop()
     assert status["fsyncs"] >= 3  # ~0.6 s of writing at one sync per 0.2 s, and one at the stop

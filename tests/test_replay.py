@@ -45,7 +45,7 @@ def test_clean_capture_exports_every_frame_with_forces_near_truth(press_capture)
     assert all(l["flags"] == [] for l in lines)
     assert grid[1500]["contact"]["contacts"] in (0, 1)
     quad = [l for l in lines if l["kind"] == "quad"]
-    assert set(quad[0]) == {"sensor", "seq", "t_us", "kind", "fxyz_N", "sigma_N", "calibration", "flags"}
+    assert set(quad[0]) == {"board", "sensor", "seq", "t_us", "kind", "fxyz_N", "sigma_N", "calibration", "flags"}
     # Neither sensor has a calibration of its own: the papers' built-ins, named in every line.
     assert {l["calibration"] for l in grid} == {"builtin-table1"}
     assert {l["calibration"] for l in quad} == {"builtin-fits34-35"}

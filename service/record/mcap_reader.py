@@ -53,9 +53,50 @@ def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, 
                         path, stream.tell(), Path(path).stat().st_size, str(exc) or type(exc).__name__)
 
 
-def read_raw(path: str | Path) -> Iterator[tuple[float, bytes]]:
-    """(host receive time s, bytes) of every read the recording holds."""
-    return (_raw_chunk(message) for _, message in iter_messages(path, {"/raw"}))
+def raw_board(topic: str) -> str | None | bool:
+    """The board a raw-bytes topic belongs to: None for ``/raw`` (a one-board
+    recording), NAME for ``/NAME/raw``; False for any other topic."""
+    if topic == "/raw":
+        return None
+    parts = topic.split("/")
+    return parts[1] if len(parts) == 3 and parts[0] == "" and parts[2] == "raw" else False
+
+
+def read_raw(path: str | Path, board: str | None = None) -> Iterator[tuple[float, bytes]]:
+    """(host receive time s, bytes) of every read of one board the recording
+    holds: ``board`` None, the only board's; ValueError naming the boards
+    when there are several and none was chosen, or the chosen one is not there."""
+    check_mcap(path)
+    boards = boards_in(path)
+    if board is None and len(boards) > 1:
+        raise ValueError(f"{path} holds boards {', '.join(map(str, boards))}: choose one")
+    if board is not None and board not in boards:
+        raise ValueError(f"{path} holds no board {board!r}; it holds {', '.join(map(str, boards)) or 'none'}")
+    return ((t, chunk) for name, t, chunk in read_boards(path) if board is None or name == board)
+
+
+def read_boards(path: str | Path) -> Iterator[tuple[str | None, float, bytes]]:
+    """(board, host receive time s, bytes) of every read of every board, in
+    file order (the order they were received); board None for a one-board
+    recording's ``/raw``."""
+    for topic, message in iter_messages(path):
+        board = raw_board(topic)
+        if board is not False:
+            yield (board, *_raw_chunk(message))
+
+
+def boards_in(path: str | Path) -> list[str | None]:
+    """The boards with raw bytes in a recording, from its summary (a file
+    cut short has none: then by reading it)."""
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        topics = [c.topic for c in summary.channels.values()] if summary is not None else None
+    except Exception:  # noqa: BLE001 — no usable summary: read the records themselves
+        topics = None
+    if topics is None:
+        topics = list(dict.fromkeys(topic for topic, _ in iter_messages(path)))
+    return [board for board in map(raw_board, topics) if board is not False]
 
 
 def _raw_chunk(message: Message) -> tuple[float, bytes]:

@@ -44,7 +44,7 @@ def bulk_chunks(path: str | Path, size: int = BULK_BYTES) -> Iterator[tuple[floa
 READERS = {".mcap": read_raw}  # by suffix; any other file is a raw capture
 
 
-def timed_chunks(path: str | Path, paced: bool = True) -> Iterator[tuple[float, bytes]]:
+def timed_chunks(path: str | Path, paced: bool = True, board: str | None = None) -> Iterator[tuple[float, bytes]]:
     """(time s, bytes) of a recording; FileNotFoundError or ValueError (not
     the format its suffix says) at once, before the first chunk is asked for.
     ``paced=False`` (nothing waits for the times): a raw capture in large
@@ -55,7 +55,9 @@ def timed_chunks(path: str | Path, paced: bool = True) -> Iterator[tuple[float, 
     if not path.is_file():
         raise FileNotFoundError(f"no such recording: {path}")
     if path.suffix in READERS:
-        return READERS[path.suffix](path)
+        return READERS[path.suffix](path, board)
+    if board is not None:
+        raise ValueError(f"{path} is a raw capture of one board: it has no board {board!r} to choose")
     return raw_chunks(path) if paced else bulk_chunks(path)
 
 

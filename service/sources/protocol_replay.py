@@ -1,4 +1,5 @@
-"""pyserial handler for ``replay://PATH[?speed=1|2|max]``: a recording as a port.
+"""pyserial handler for ``replay://PATH[?speed=1|2|max][&board=NAME]``: a recording as a port
+(``board``: one board of a recording of several).
 
 ``tactile replay FILE --serve`` serves the API and dashboard from a
 recording through exactly the live code path: the readout thread opens
@@ -18,28 +19,28 @@ from ..record.pacing import Pacer, parse_speed
 from ..record.readers import timed_chunks
 
 
-def parse_replay_url(url: str) -> tuple[str, float]:
+def parse_replay_url(url: str) -> tuple[str, float, str | None]:
     parts = urllib.parse.urlsplit(url)
     if parts.scheme != "replay":
         raise ValueError(f"expected a replay:// URL, got {url!r}")
     path = urllib.parse.unquote(parts.netloc + parts.path)
     options = urllib.parse.parse_qs(parts.query)
-    unknown = set(options) - {"speed"}
+    unknown = set(options) - {"speed", "board"}
     if unknown:
-        raise ValueError(f"replay:// takes only 'speed', not {sorted(unknown)}")
+        raise ValueError(f"replay:// takes only 'speed' and 'board', not {sorted(unknown)}")
     try:
         speed = parse_speed(options.get("speed", ["1"])[-1])
     except ValueError as exc:
         raise ValueError(f"replay:// {exc}") from None
-    return path, speed
+    return path, speed, options.get("board", [None])[-1]
 
 
 def check_url(url: str) -> None:
     """ValueError for a bad option, a missing recording or one that is not
     what its suffix says."""
-    path, _ = parse_replay_url(url)
+    path, _, board = parse_replay_url(url)
     try:
-        timed_chunks(path)
+        timed_chunks(path, board=board)
     except FileNotFoundError:
         raise ValueError(f"{url!r}: no such recording: {path}") from None
 
@@ -58,8 +59,8 @@ class Serial(SerialBase):
         if self._port is None:
             raise SerialException("Port must be configured before it can be used.")
         try:
-            path, speed = parse_replay_url(self.portstr)
-            self._chunks = iter(timed_chunks(path))
+            path, speed, board = parse_replay_url(self.portstr)
+            self._chunks = iter(timed_chunks(path, board=board))
         except (ValueError, OSError) as exc:
             raise SerialException(str(exc)) from None
         self._pacer = Pacer(speed)
