@@ -12,7 +12,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
+import time
 from dataclasses import dataclass
+from datetime import datetime
 
 from .calibration.registry import sensor_identity
 from .handover import LoopHandover
@@ -37,6 +39,10 @@ def check_board_name(name: str) -> str:
     return name
 
 
+class RemoteBoardError(RuntimeError):
+    """A change asked of a board that another host's service reads (a gateway's board)."""
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """What a board is, as the command line or robot.toml says: ``name``
@@ -52,6 +58,39 @@ class BoardSpec:
     def __post_init__(self) -> None:
         if self.name is not None:
             check_board_name(self.name)
+
+
+def _age_s(created: str | None, now: float) -> float | None:
+    if not created:
+        return None
+    try:
+        return round(now - datetime.fromisoformat(created).timestamp(), 1)
+    except ValueError:
+        return None
+
+
+def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
+    """Which calibration sensor ``sid`` uses: its id, whether it is a
+    built-in (the papers', not measured on this sensor), when it was made
+    and its age, when it was activated in the registry, why the sensor's own
+    could not be used, and the taxels loaded at the last tare."""
+    reconstructor = pipeline.reconstructor
+    calibration = reconstructor.calibration(sid)
+    if calibration is None:
+        return None
+    info = pipeline.interpreter.sensors.get(sid)
+    document = calibration.document or {}
+    return {
+        "id": calibration.id,
+        "builtin": calibration.builtin,
+        "note": document.get("note") or ("the papers' calibration, not measured on this sensor" if calibration.builtin else None),
+        "created": calibration.created,
+        "age_s": _age_s(calibration.created, now),
+        "activated": None if book is None or info is None else book.activated_at(pipeline.interpreter.board, info,
+                                                                                            calibration.id),
+        "problem": reconstructor.calibration_problems.get(sid),
+        "loaded_at_tare": reconstructor.loaded_at_tare(sid),
+    }
 
 
 class Board:
@@ -102,3 +141,35 @@ class Board:
         sensor = sensor_identity(self.pipeline.interpreter.board, info)
         store = self.calibrations.store if self.calibrations.use_registry else None
         return self.pipeline.set_calibration(info, upload, sensor, store)
+
+    # What the API asks of a board (a gateway's remote boards answer the same).
+
+    @property
+    def info(self) -> dict:
+        """The board's INFO (top-level fields)."""
+        return self.pipeline.interpreter.board
+
+    @property
+    def latest(self) -> dict:
+        return self.pipeline.latest
+
+    @property
+    def history(self):
+        return self.pipeline.history
+
+    def tared(self, sensor_id: int) -> bool:
+        return self.pipeline.reconstructor.baseline(sensor_id) is not None
+
+    def loaded(self, sensor_id: int | None = None) -> dict[int, list[int]]:
+        return self.pipeline.loaded(sensor_id)
+
+    def tare(self, sensor_id: int | None = None, force: bool = False) -> tuple[list[int], int]:
+        """(sensors tared, frames a tare takes); pipeline.tare's errors."""
+        return self.pipeline.tare(sensor_id, force=force), self.pipeline.reconstructor.tare_frames
+
+    def calibration(self, sensor_id: int) -> dict | None:
+        """The sensor's calibration as /health shows it, with its document (None before its first frame)."""
+        state = calibration_state(self.pipeline, sensor_id, time.time(), self.calibrations)
+        if state is None:
+            return None
+        return {**state, "document": self.pipeline.reconstructor.calibration(sensor_id).document}

@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import time
-from datetime import datetime
 
+from .board import Board, calibration_state
 from .readout import MIN_STALE_S, LinkState
 
 STALE_SCAN_PERIODS = 20
@@ -16,39 +16,6 @@ def stale_after_s(board: dict) -> float:
     if isinstance(rate, (int, float)) and not isinstance(rate, bool) and rate > 0:
         return max(MIN_STALE_S, STALE_SCAN_PERIODS / rate)
     return MIN_STALE_S
-
-
-def _age_s(created: str | None, now: float) -> float | None:
-    if not created:
-        return None
-    try:
-        return round(now - datetime.fromisoformat(created).timestamp(), 1)
-    except ValueError:
-        return None
-
-
-def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
-    """Which calibration sensor ``sid`` uses: its id, whether it is a
-    built-in (the papers', not measured on this sensor), when it was made
-    and its age, when it was activated in the registry, why the sensor's own
-    could not be used, and the taxels loaded at the last tare."""
-    reconstructor = pipeline.reconstructor
-    calibration = reconstructor.calibration(sid)
-    if calibration is None:
-        return None
-    info = pipeline.interpreter.sensors.get(sid)
-    document = calibration.document or {}
-    return {
-        "id": calibration.id,
-        "builtin": calibration.builtin,
-        "note": document.get("note") or ("the papers' calibration, not measured on this sensor" if calibration.builtin else None),
-        "created": calibration.created,
-        "age_s": _age_s(calibration.created, now),
-        "activated": None if book is None or info is None else book.activated_at(pipeline.interpreter.board, info,
-                                                                                            calibration.id),
-        "problem": reconstructor.calibration_problems.get(sid),
-        "loaded_at_tare": reconstructor.loaded_at_tare(sid),
-    }
 
 
 def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None) -> dict:
@@ -128,13 +95,15 @@ def board_health(board, now: float, book=None) -> dict:
 
 
 def health_report(service) -> dict:
-    """``service``: a live_service.TactileService. Each board's part is under
+    """``service``: a live_service.TactileService (or a gateway's, whose
+    remote boards say their own part). Each board's part is under
     ``boards``; a one-board service also has it at the top level, as before
     boards were named; with several, the top level's ``sensors`` are keyed
     by address (board/id) and each problem names its board."""
     now = time.time()
     book = getattr(service, "calibrations", None)
-    boards = {board.name: board_health(board, now, book) for board in service.all_boards}
+    boards = {board.name: board_health(board, now, book) if isinstance(board, Board) else board.health_part(now)
+              for board in service.all_boards}
     several = len(boards) > 1
     problems = [(f"board {name}: " if several else "") + problem
                 for name, part in boards.items() for problem in part["problems"]]

@@ -102,7 +102,7 @@ def known_sensor(sensor_id: int, board: str | None = None,
 
 
 def latest_frame(found: Addressed = Depends(known_sensor)) -> ForceFrame:
-    frame = found.board.pipeline.latest.get(found.info.id)
+    frame = found.board.latest.get(found.info.id)
     if frame is None:
         raise HTTPException(404, f"sensor {found.info.address} has not delivered a frame yet")
     return frame

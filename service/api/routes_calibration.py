@@ -6,11 +6,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import time
-
 from fastapi import APIRouter, Depends, HTTPException, Query
 
-from ..health import calibration_state
+from ..board import RemoteBoardError
 from ..pipeline import LoadedAtTare
 from .deps import Addressed, JSONResponse, authorised, find_sensor, get_service, known_sensor
 from .schemas import GridCalibrationUpload, QuadCalibrationUpload
@@ -37,18 +35,20 @@ def _tared(service: TactileService, boards, force: bool, sensor_id: int | None =
     """Tare on each of ``boards``; a LoadedAtTare on any is a 409 and tares none
     (the boards are judged first, then tared)."""
     several = len(service.all_boards) > 1
-    for board in boards if not force else ():
-        loaded = board.pipeline.loaded(sensor_id)
-        if loaded:
-            raise _loaded(LoadedAtTare(loaded), board.name if several else None)
-    tared, frames = [], 0
-    for board in boards:
-        try:
-            done = board.pipeline.tare(sensor_id, force=force)
-        except LoadedAtTare as exc:  # loaded between the look and the tare
-            raise _loaded(exc, board.name if several else None) from None
-        tared += [f"{board.name}/{sid}" for sid in done] if several else done
-        frames = board.pipeline.reconstructor.tare_frames
+    try:
+        for board in boards if not force else ():
+            loaded = board.loaded(sensor_id)
+            if loaded:
+                raise _loaded(LoadedAtTare(loaded), board.name if several else None)
+        tared, frames = [], 0
+        for board in boards:
+            try:
+                done, frames = board.tare(sensor_id, force=force)
+            except LoadedAtTare as exc:  # loaded between the look and the tare
+                raise _loaded(exc, board.name if several else None) from None
+            tared += [f"{board.name}/{sid}" for sid in done] if several else done
+    except RemoteBoardError as exc:
+        raise HTTPException(409, str(exc)) from None
     return JSONResponse({"tared": tared, "frames": frames})
 
 
@@ -82,16 +82,16 @@ def upload_calibration(sensor_id: int, body: GridCalibrationUpload | QuadCalibra
         document = found.board.set_calibration(found.info, body.model_dump(exclude_none=True))
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
-    return JSONResponse({**document, "active": True, "stored": service.calibrations.use_registry})
+    except RemoteBoardError as exc:
+        raise HTTPException(409, str(exc)) from None
+    return JSONResponse({**document, "active": True, "stored": found.board.calibrations.use_registry})
 
 
 @router.get("/sensors/{sensor_id}/calibration")
 @router.get("/sensors/{board}/{sensor_id}/calibration")
-def sensor_calibration(found: Addressed = Depends(known_sensor),
-                       service: TactileService = Depends(get_service)) -> JSONResponse:
+def sensor_calibration(found: Addressed = Depends(known_sensor)) -> JSONResponse:
     """The calibration the sensor's forces rest on (as /health shows it) and its document."""
-    pipeline, sid = found.board.pipeline, found.info.id
-    state = calibration_state(pipeline, sid, time.time(), service.calibrations)
+    state = found.board.calibration(found.info.id)
     if state is None:
         raise HTTPException(409, f"sensor {found.info.address} has no frames yet")
-    return JSONResponse({**state, "document": pipeline.reconstructor.calibration(sid).document})
+    return JSONResponse(state)

@@ -50,11 +50,11 @@ def sensors(service: TactileService = Depends(get_service)) -> JSONResponse:
     service's board, as before boards were named."""
     boards = service.all_boards
     listed = [{**info.as_dict(), "board": board.name, "address": f"{board.name}/{sid}", "name": f"{info.kind}{sid}",
-               "tared": board.pipeline.reconstructor.baseline(sid) is not None}
+               "tared": board.tared(sid)}
               for board in boards for sid, info in sorted(board.sensors.items())]
     return JSONResponse({
-        "board": boards[0].pipeline.interpreter.board if len(boards) == 1 else None,
-        "boards": [{"name": b.name, "source": b.source, "info": b.pipeline.interpreter.board} for b in boards],
+        "board": boards[0].info if len(boards) == 1 else None,
+        "boards": [{"name": b.name, "source": b.source, "info": b.info} for b in boards],
         "sensors": listed,
     })
 
@@ -118,7 +118,7 @@ async def encoded_history(recent, found, seconds: float, max_points: int, wanted
     key = (found.info.address, seconds, max_points, wanted)
     body = recent.get(key)
     if body is None:
-        history = found.board.pipeline.history.get(found.info.id)
+        history = found.board.history.get(found.info.id)
         body = b"[]" if history is None else await encode_history(history, seconds, max_points, wanted)
         recent.put(key, body)
     return body
