@@ -13,7 +13,7 @@ import sys
 from . import cli_commands as commands
 from .calibration.cli import add_parsers as add_calibration_parsers
 from .cli_recordings import cmd_record, cmd_replay
-from .cli_serve import cmd_serve
+from .cli_serve import cmd_gateway, cmd_serve
 from .cli_signals import interrupted, watchdog_for
 from .physics.mountings import MOUNTINGS
 from .reconstruct.levels import DEFAULT_LEVEL, LEVELS
@@ -79,8 +79,8 @@ def _add_reconstruction_options(parser: argparse.ArgumentParser) -> None:
                              "made for, over the registry's active one (repeatable; a recording's own come first)")
 
 
-def _add_serving_options(parser: argparse.ArgumentParser) -> None:
-    """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
+def _add_http_options(parser: argparse.ArgumentParser) -> None:
+    """Where and to whom the API is served (serve, replay --serve, gateway)."""
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s; beyond localhost "
                                                                 "a token is required, see --token)")
     parser.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
@@ -94,6 +94,11 @@ def _add_serving_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
                         help="a web origin (e.g. http://lab-pc:3000) whose pages may change state or stream "
                              "(repeatable; default: only the service's own dashboard)")
+
+
+def _add_serving_options(parser: argparse.ArgumentParser) -> None:
+    """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
+    _add_http_options(parser)
     parser.add_argument("--recordings-dir", default="recordings", metavar="DIR",
                         help="where POST /record/start and the dashboard's Record write (default: %(default)s, "
                              "created on demand)")
@@ -109,7 +114,7 @@ def _add_serving_options(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tactile", description="Capacitive tactile sensor service")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_serve, _add_sim, _add_record, _add_replay, _add_tables, _add_model, _add_bench,
+    for add in (_add_serve, _add_gateway, _add_sim, _add_record, _add_replay, _add_tables, _add_model, _add_bench,
                 add_calibration_parsers):
         add(sub)
     return parser
@@ -131,6 +136,22 @@ def _add_serve(sub) -> None:
     _add_serving_options(serve)
     _add_zenoh_options(serve)
     serve.set_defaults(func=cmd_serve)
+
+
+def _add_gateway(sub) -> None:
+    gateway = sub.add_parser("gateway", help="serve the API and dashboard for every board that services publish on "
+                                             "Zenoh (tactile serve --zenoh on this or other hosts)")
+    _add_http_options(gateway)
+    zenoh = gateway.add_argument_group("zenoh", "where the services are (docs/scale.md)")
+    zenoh.add_argument("--zenoh", metavar="CONFIG", help="a Zenoh JSON5 configuration file")
+    zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
+                       help="connect to this Zenoh endpoint (repeatable; default without CONFIG: tcp/127.0.0.1:7447, "
+                            "a service's default, multicast scouting off)")
+    zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
+                       help="listen on this Zenoh endpoint for services that connect to the gateway (repeatable)")
+    zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
+    zenoh.add_argument("--no-multicast", action="store_true", help="turn Zenoh's multicast scouting off")
+    gateway.set_defaults(func=cmd_gateway)
 
 
 def _add_zenoh_options(parser: argparse.ArgumentParser) -> None:

@@ -126,8 +126,6 @@ def check_port_free(host: str, port: int) -> None:
 
 
 def cmd_serve(args) -> int:
-    import uvicorn
-
     from .api.app import create_app
     from .calibration.book import book_from_options
     from .health import stale_after_s
@@ -137,9 +135,7 @@ def cmd_serve(args) -> int:
     for spec in specs:
         check_source(spec.source)
     check_port_free(args.host, args.port)  # before anything is printed: not a URL that points at another instance
-    token = args.token or os.environ.get("TACTILE_TOKEN")
-    if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
-        token = secrets.token_urlsafe(16)
+    token = _token(args)
     publisher = zenoh_publisher(args)
     book = book_from_options(args.registry, args.calibration, args.mounting, getattr(args, "recording", None))
     service = TactileService(sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
@@ -147,23 +143,69 @@ def cmd_serve(args) -> int:
     service.zenoh = publisher
     app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
                      allow_origins=tuple(args.allow_origin))
+    reading = ", ".join(spec.source if spec.name is None else f"{spec.name}={spec.source}" for spec in specs)
+    quiet_readout_transitions()
+    watchers = [LinkWatcher(lambda b=board: b.readout.link if b.readout is not None else None,
+                            lambda b=board: stale_after_s(b.pipeline.interpreter.board)).start()
+                for board in service.all_boards]
+    try:
+        return _run_http(app, args, token, f"reading {reading}")
+    finally:
+        for watcher in watchers:
+            watcher.stop(final_look=False)
+
+
+def cmd_gateway(args) -> int:
+    from .api.app import create_app
+    from .gateway import GatewayService
+    from .net.zenoh_config import open_session
+
+    check_port_free(args.host, args.port)
+    token = _token(args)
+    config, note = gateway_zenoh_config(args)
+    open_session(config).close()  # a listen port in use or a bad endpoint fails here, before anything is printed
+    if note:
+        print(f"tactile: {note}", file=sys.stderr)
+    app = create_app(GatewayService(config), token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
+                     allow_origins=tuple(args.allow_origin))
+    return _run_http(app, args, token, "gateway for every board on Zenoh")
+
+
+def gateway_zenoh_config(args):
+    """(zenoh.Config, what to tell the user) of the gateway's options: by
+    default it connects to a service's default endpoint on this host."""
+    from .net.zenoh_config import DEFAULT_PORT, session_config
+
+    connect, multicast, note = args.zenoh_endpoint, False if args.no_multicast else None, None
+    if not args.zenoh and not connect and not args.zenoh_listen:
+        connect, multicast = [f"tcp/127.0.0.1:{DEFAULT_PORT}"], False
+        note = (f"gateway connects to tcp/127.0.0.1:{DEFAULT_PORT} only, multicast scouting off; "
+                "--zenoh-endpoint (repeatable) or a CONFIG for services on other hosts")
+    return session_config(args.zenoh or None, connect, args.zenoh_listen, args.zenoh_mode, multicast), note
+
+
+def _token(args) -> str | None:
+    """--token, else $TACTILE_TOKEN, else a random one when bound beyond localhost."""
+    token = args.token or os.environ.get("TACTILE_TOKEN")
+    if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
+        token = secrets.token_urlsafe(16)
+    return token
+
+
+def _run_http(app, args, token: str | None, what: str) -> int:
+    """Serve ``app`` with uvicorn until Ctrl-C; say where once it listens."""
+    import uvicorn
+
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
-    listening = threading.Event()
     done = threading.Event()
 
     def announce() -> None:
         """Say where once uvicorn listens (the port was free: whoever answers on it now is us)."""
         if _wait_until_listening(args.host, args.port, done):
-            listening.set()
-            reading = ", ".join(spec.source if spec.name is None else f"{spec.name}={spec.source}" for spec in specs)
-            print(f"tactile: reading {reading}; dashboard at {url}", flush=True)
+            print(f"tactile: {what}; dashboard at {url}", flush=True)
             if token:
                 print(f"tactile: mutating endpoints need 'Authorization: Bearer {token}'", flush=True)
 
-    quiet_readout_transitions()
-    watchers = [LinkWatcher(lambda b=board: b.readout.link if b.readout is not None else None,
-                            lambda b=board: stale_after_s(b.pipeline.interpreter.board)).start()
-                for board in service.all_boards]
     threading.Thread(target=announce, name="tactile-announce", daemon=True).start()
     interrupted = []
     try:
@@ -174,8 +216,6 @@ def cmd_serve(args) -> int:
                         timeout_graceful_shutdown=1)
     finally:
         done.set()
-        for watcher in watchers:
-            watcher.stop(final_look=False)
     if interrupted:
         raise KeyboardInterrupt  # uvicorn stopped on Ctrl-C and swallowed it: end as every command does (130)
     return 0

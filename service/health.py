@@ -80,6 +80,7 @@ def board_health(board, now: float, book=None) -> dict:
     problems = _problems(link_state, sensors, reconstruction["errors"])
     return {
         "source": board.source,
+        "info": pipeline.interpreter.board,
         "status": "ok" if not problems else "degraded",
         "problems": problems,
         "link": link_state,
@@ -120,13 +121,15 @@ def health_report(service) -> dict:
         },
         "scheduling": service.scheduling.as_dict(),
         "frames_published": service.hub.frames_published,
-        "replay": all(part["replay"] for part in boards.values()),
+        "replay": bool(boards) and all(part["replay"] for part in boards.values()),
         "recording": None if service.recorder is None else service.recorder.status(),
         "zenoh": None if getattr(service, "zenoh", None) is None else service.zenoh.status(),
     }
     if several:
         report["sensors"] = {f"{name}/{sid}": sensor for name, part in boards.items()
                              for sid, sensor in part["sensors"].items()}
-    else:
+    elif boards:
         report.update({key: next(iter(boards.values()))[key] for key in BOARD_FIELDS})
+    else:
+        report["sensors"] = {}  # a gateway that has heard of no board yet
     return report

@@ -611,6 +611,7 @@ async function tare() {
   const answer = await fetch("/tare", { method: "POST", headers: authHeaders });
   if (answer.status !== 409) return;
   const detail = (await answer.json()).detail || {};
+  if (typeof detail === "string") { window.alert(detail); return; }  // e.g. a gateway's board: tare it on its service
   const loaded = Object.entries(detail.loaded_taxels || {}).map(([s, t]) => `sensor ${s}: taxels ${t.join(", ")}`);
   if (window.confirm(`These taxels read loaded, so a tare would make the load their zero:\n${loaded.join("\n")}\n\nTare anyway?`))
     await fetch("/tare?force=true", { method: "POST", headers: authHeaders });

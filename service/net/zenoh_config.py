@@ -7,6 +7,7 @@ Keys (docs/scale.md):
     tactile/<board>/<sensor>/latest   queryable: the latest frame, same encoding
     tactile/<board>/sensors           queryable: the board's INFO and sensor shapes (JSON)
     tactile/<board>/health            the /health document (JSON), once per second
+    tactile/<board>/alive             liveliness token: present while the board's service runs
 """
 from __future__ import annotations
 
@@ -35,6 +36,10 @@ def sensors_key(board: str) -> str:
 
 def health_key(board: str) -> str:
     return f"{PREFIX}/{board}/health"
+
+
+def alive_key(board: str) -> str:
+    return f"{PREFIX}/{board}/alive"
 
 
 def session_config(file: str | Path | None = None, connect: Iterable[str] = (), listen: Iterable[str] = (),

@@ -26,7 +26,7 @@ import zenoh
 
 from ..fanout.encoding import DEFAULT_FIELDS, to_binary
 from ..latency import LatencyMeter
-from .zenoh_config import PREFIX, frame_key, health_key, latest_key, open_session, sensors_key
+from .zenoh_config import PREFIX, alive_key, frame_key, health_key, latest_key, open_session, sensors_key
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,8 @@ class FrameQueue:
 
 class ZenohPublisher:
     """Publishes a service's frames and health, per board under
-    ``tactile/<board>/``; answers each board's latest frames and sensors."""
+    ``tactile/<board>/``; answers each board's latest frames and sensors;
+    holds a liveliness token per board while the session lives."""
 
     def __init__(self, config: zenoh.Config, queue_frames: int = QUEUE_FRAMES,
                  health_period_s: float = HEALTH_PERIOD_S) -> None:
@@ -164,9 +165,12 @@ class ZenohPublisher:
                     self._publishers.pop(key).undeclare()
             for name in set(names) - set(self._queryables):
                 board = names[name]
+                # The token vanishes for its subscribers the moment this session ends (a crash
+                # closes its sockets): a gateway says the board is lost without waiting for health.
                 self._queryables[name] = [
                     self.session.declare_queryable(latest_key(name, "*"), lambda q, b=board: self._answer_latest(b, q)),
-                    self.session.declare_queryable(sensors_key(name), lambda q, b=board: self._answer_sensors(b, q))]
+                    self.session.declare_queryable(sensors_key(name), lambda q, b=board: self._answer_sensors(b, q)),
+                    self.session.liveliness().declare_token(alive_key(name))]
 
     def _publisher(self, board: str, sensor: int) -> zenoh.Publisher:
         key = frame_key(board, sensor)

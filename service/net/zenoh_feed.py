@@ -1,0 +1,168 @@
+"""A gateway's view of Zenoh: every board's frames, health and liveliness
+under ``tactile/``.
+
+Zenoh calls back on its own threads; those callbacks only queue the
+sample. One thread (``run``) decodes frames (the binary encoding), asks a
+board's sensor shapes once (``tactile/<board>/sensors``, again when an
+unknown sensor appears), rebuilds ForceFrames and hands each board's batch
+to ``deliver(board, frames)``; health documents go to
+``on_health(board, document)``, liveliness to ``on_alive(board, alive)``.
+A sample larger than ``MAX_SAMPLE_BYTES`` is dropped and counted unparsed:
+what comes from the network is never parsed at any size.
+"""
+from __future__ import annotations
+
+import logging
+import struct
+import threading
+import time
+from collections import deque
+from typing import Callable
+
+import numpy as np
+import orjson
+import zenoh
+
+from ..fanout.encoding import decode_binary
+from ..readings import SensorInfo
+from ..reconstruct import ForceFrame
+from .zenoh_config import PREFIX, open_session, sensors_key
+
+log = logging.getLogger(__name__)
+
+MAX_SAMPLE_BYTES = 1 << 20  # a sample holds at most 32 frames of a 256-channel grid (~70 KiB)
+QUEUE_SAMPLES = 8192  # ~4 s of two boards' grid and quad at 1 kHz, one frame a sample
+SHAPES_RETRY_S = 1.0
+REMOTE_LEVEL = "remote"  # a gateway's frames: reconstructed elsewhere, the level is the remote service's
+
+
+def _board_of(key) -> str:
+    return str(key).split("/")[1]
+
+
+class ZenohFeed:
+    """Subscribes on start, closes the session on ``close``."""
+
+    def __init__(self, config: zenoh.Config, deliver: Callable[[str, list[ForceFrame]], None],
+                 on_health: Callable[[str, dict], None], on_alive: Callable[[str, bool], None],
+                 queue_samples: int = QUEUE_SAMPLES) -> None:
+        self.session = open_session(config)
+        self._deliver, self._on_health, self._on_alive = deliver, on_health, on_alive
+        self._samples: deque = deque(maxlen=queue_samples)
+        self._ready = threading.Event()
+        self._closing = threading.Event()
+        self._shapes: dict[str, dict[int, SensorInfo]] = {}
+        self._asked: dict[str, float] = {}
+        self.frames_received = 0
+        self.samples_received = 0
+        self.samples_dropped = 0  # the queue overflowed: the decoding thread fell behind
+        self.oversized = 0
+        self.undecodable = 0
+        self.unshaped_frames = 0  # frames of sensors whose shape the board's service did not tell
+        self._subscriptions: list = []
+        self._thread = threading.Thread(target=self._run, name="tactile-gateway-feed", daemon=True)
+
+    def start(self) -> "ZenohFeed":
+        self._subscriptions = [
+            self.session.declare_subscriber(f"{PREFIX}/*/*/frame", lambda s: self._queue("frame", s)),
+            self.session.declare_subscriber(f"{PREFIX}/*/health", lambda s: self._queue("health", s)),
+            self.session.liveliness().declare_subscriber(f"{PREFIX}/*/alive", lambda s: self._queue("alive", s),
+                                                         history=True),
+        ]
+        self._thread.start()
+        return self
+
+    def close(self, timeout: float = 2.0) -> None:
+        self._closing.set()
+        self._ready.set()
+        self._thread.join(timeout)
+        self.session.close()
+
+    def status(self) -> dict:
+        """What the gateway's /health shows under "zenoh"."""
+        info = self.session.info
+        return {"zid": str(info.zid()), "peers": len(info.peers_zid()), "routers": len(info.routers_zid()),
+                "frames_received": self.frames_received, "samples_received": self.samples_received,
+                "samples_dropped": self.samples_dropped, "oversized": self.oversized,
+                "undecodable": self.undecodable, "unshaped_frames": self.unshaped_frames}
+
+    def _queue(self, kind: str, sample: zenoh.Sample) -> None:
+        """On Zenoh's thread: only queue (the oldest sample goes when full, counted)."""
+        if len(self._samples) == self._samples.maxlen:
+            self.samples_dropped += 1
+        self._samples.append((kind, sample, time.time()))
+        self._ready.set()
+
+    def _run(self) -> None:
+        while not self._closing.is_set():
+            self._ready.wait()
+            self._ready.clear()
+            batches: dict[str, list[ForceFrame]] = {}
+            while self._samples:
+                kind, sample, _ = self._samples.popleft()
+                try:
+                    self._take(kind, sample, batches)
+                except Exception as exc:  # noqa: BLE001 — one bad sample never stops the feed
+                    self.undecodable += 1
+                    log.warning("gateway: a %s sample on %s not taken: %r", kind, sample.key_expr, exc)
+            for board, frames in batches.items():
+                self._deliver(board, frames)
+
+    def _take(self, kind: str, sample: zenoh.Sample, batches: dict) -> None:
+        board = _board_of(sample.key_expr)
+        if kind == "alive":
+            self._on_alive(board, sample.kind == zenoh.SampleKind.PUT)
+            return
+        payload = sample.payload
+        if len(payload) > MAX_SAMPLE_BYTES:
+            self.oversized += 1
+            return
+        if kind == "health":
+            document = orjson.loads(payload.to_bytes())
+            if isinstance(document, dict):
+                self._on_health(board, document)
+            return
+        self.samples_received += 1
+        try:
+            records = decode_binary(payload.to_bytes())
+        except (ValueError, IndexError, UnicodeDecodeError, struct.error):
+            self.undecodable += 1
+            return
+        frames = batches.setdefault(board, [])
+        for record in records:
+            info = self._sensor(board, record["sensor_id"], record["kind"])
+            if info is None:
+                self.unshaped_frames += 1
+                continue
+            frames.append(_frame(info, record))
+        self.frames_received += len(records)
+
+    def _sensor(self, board: str, sensor_id: int, kind: str) -> SensorInfo | None:
+        """The sensor's shape as its board's service announced it (asked once,
+        again at most every SHAPES_RETRY_S while a sensor is missing)."""
+        info = self._shapes.get(board, {}).get(sensor_id)
+        if info is not None and info.kind == kind:
+            return info
+        if time.monotonic() - self._asked.get(board, -SHAPES_RETRY_S) < SHAPES_RETRY_S:
+            return None
+        self._asked[board] = time.monotonic()
+        for reply in self.session.get(sensors_key(board), timeout=1.0):
+            if reply.ok is not None and len(reply.ok.payload) <= MAX_SAMPLE_BYTES:
+                document = orjson.loads(reply.ok.payload.to_bytes())
+                self._shapes[board] = {
+                    int(s["id"]): SensorInfo(int(s["id"]), str(s["kind"]), int(s["rows"]), int(s["cols"]), board=board)
+                    for s in document.get("sensors", []) if s.get("kind") in ("grid", "quad")}
+        info = self._shapes.get(board, {}).get(sensor_id)
+        return info if info is not None and info.kind == kind else None
+
+
+def _frame(info: SensorInfo, record: dict) -> ForceFrame:
+    """A decoded binary record as the ForceFrame the service published
+    (raw channels and per-taxel flags are not in the published encoding)."""
+    forces = np.array(record["force_N"], dtype=np.float64)
+    sigma = record.get("sigma_N")
+    return ForceFrame(info, record["seq"], record["board_time_us"], record["stamp"], forces,
+                      np.full(info.channels, np.nan), record["flags"], REMOTE_LEVEL,
+                      calibration=record["calibration"],
+                      sigma_N=None if sigma is None else np.array(sigma, dtype=np.float64),
+                      t_host_scan=record["scan_stamp"])

@@ -1,0 +1,126 @@
+"""A board another host's service reads, as a gateway holds it: its frames as
+they arrive over Zenoh, its last health document, and whether it is alive.
+
+It answers the API's questions of a board (board.py) from what came over the
+network; changes (tare, calibration) belong to the service that reads it and
+are refused naming it. A board is ``lost`` when its service's liveliness
+token goes (the session ended: a stopped or killed service is seen at once),
+or when neither frames nor health came for ``LOST_AFTER_S`` (a network that
+went silent, before Zenoh's lease expires).
+"""
+from __future__ import annotations
+
+import time
+
+from .board import RemoteBoardError
+from .history import Histories
+from .pipeline import RateMeter
+from .reconstruct import ForceFrame
+
+LOST_AFTER_S = 2.5  # health comes every second: two missed and a half
+BOARD_FIELDS = ("link", "level", "stream", "rejected", "board_errors", "reconstruction", "clock", "replay")
+
+
+class RemoteBoard:
+    def __init__(self, name: str, histories: Histories) -> None:
+        self.name = name
+        self.source = f"zenoh:tactile/{name}"
+        self.sensors: dict = {}
+        self.latest: dict[int, ForceFrame] = {}
+        self.history = histories
+        self.rates: dict[int, RateMeter] = {}
+        self.health_document: dict | None = None
+        self.health_at: float | None = None
+        self.frame_at: float | None = None
+        self.alive: bool | None = None  # None: no liveliness heard yet
+        self.lost_at: float | None = None
+
+    @property
+    def info(self) -> dict:
+        return (self.health_document or {}).get("info") or {}
+
+    def receive(self, frames: list[ForceFrame], now: float) -> None:
+        """A batch of this board's frames (on the event loop)."""
+        counts: dict[int, int] = {}
+        for frame in frames:
+            sid = frame.sensor.id
+            self.sensors[sid] = frame.sensor
+            history = self.history.get(sid)
+            if history is None or history.info is not frame.sensor:
+                history = self.history.for_frame(frame)
+            history.append(frame)
+            self.latest[sid] = frame
+            counts[sid] = counts.get(sid, 0) + 1
+        for sid, count in counts.items():
+            self.rates.setdefault(sid, RateMeter()).tick(now, count)
+        self.frame_at = now
+        if self.alive is not False:
+            self.lost_at = None
+
+    def on_health(self, document: dict, now: float) -> None:
+        self.health_document, self.health_at = document, now
+
+    def on_alive(self, alive: bool, now: float) -> None:
+        self.alive = alive
+        self.lost_at = None if alive else now
+
+    def lost(self, now: float) -> bool:
+        if self.alive is False:
+            return True
+        heard = max(t for t in (self.health_at, self.frame_at, 0.0) if t is not None)
+        return now - heard > LOST_AFTER_S
+
+    def tared(self, sensor_id: int) -> bool:
+        frame = self.latest.get(sensor_id)
+        return frame is not None and "taring" not in frame.flags
+
+    def _elsewhere(self, what: str) -> RemoteBoardError:
+        return RemoteBoardError(f"board {self.name} is read by another host's service ({self.source}): "
+                                f"{what} it there")
+
+    def loaded(self, sensor_id: int | None = None) -> dict:
+        raise self._elsewhere("tare")
+
+    def tare(self, sensor_id: int | None = None, force: bool = False):
+        raise self._elsewhere("tare")
+
+    def set_calibration(self, info, upload: dict) -> dict:
+        raise self._elsewhere("upload calibrations to")
+
+    def calibration(self, sensor_id: int) -> dict | None:
+        sensor = ((self.health_document or {}).get("sensors") or {}).get(str(sensor_id))
+        if sensor is None or sensor.get("calibration") is None:
+            return None
+        return {**sensor["calibration"], "document": None, "note_gateway": "the document is on the board's service"}
+
+    def health_part(self, now: float) -> dict:
+        """This board's part of the gateway's /health: the remote service's
+        own (as of its last health document), with what the gateway sees."""
+        document = self.health_document or {}
+        lost = self.lost(now)
+        sensors = {}
+        for sid, info in sorted(self.sensors.items()):
+            remote = (document.get("sensors") or {}).get(str(sid), {})
+            latest = self.latest.get(sid)
+            age = None if latest is None else now - latest.t_host
+            meter = self.rates.get(sid)
+            stale = lost or age is None or age > LOST_AFTER_S or bool(remote.get("stale"))
+            sensors[str(sid)] = {**remote, "board": self.name, "id": sid, "kind": info.kind,
+                                 "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
+                                 "stale": stale, "last_frame_age_s": None if age is None else round(age, 3)}
+        problems = list(document.get("problems") or [])
+        if lost:
+            why = "its service's liveliness token is gone" if self.alive is False else \
+                f"nothing heard for {LOST_AFTER_S} s"
+            problems.insert(0, f"lost: {why}")
+        return {
+            "source": self.source,
+            "status": "degraded" if lost or problems else "ok",
+            "problems": problems,
+            **{key: document.get(key) for key in BOARD_FIELDS},
+            "sensors": sensors,
+            "remote": {"lost": lost, "alive": self.alive,
+                       "lost_for_s": None if self.lost_at is None else round(now - self.lost_at, 3),
+                       "last_health_age_s": None if self.health_at is None else round(now - self.health_at, 3),
+                       "last_frame_age_s": None if self.frame_at is None else round(now - self.frame_at, 3)},
+        }
