@@ -10,7 +10,6 @@ went silent, before Zenoh's lease expires).
 """
 from __future__ import annotations
 
-import time
 
 from .board import RemoteBoardError
 from .history import Histories

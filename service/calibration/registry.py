@@ -30,7 +30,7 @@ import sqlite3
 from pathlib import Path
 
 from ..physics.paper_data import BUILTIN_GRID_ID, grid_calibration
-from ..readings import SensorInfo
+from ..readings import SensorInfo, name_from_info
 from ..reconstruct.sensor_calibration import SCHEMA, calibration_id, canonical
 
 BUILTIN_ID = BUILTIN_GRID_ID
@@ -62,8 +62,14 @@ def default_path() -> Path:
 
 
 def sensor_identity(board: dict, info: SensorInfo) -> dict:
-    """``key`` (what the registry indexes) and what it was made of."""
+    """``key`` (what the registry indexes) and what it was made of: the
+    sensor's serial, else its board's serial and its id, else the board's
+    model and its id — with the name the user gave the board
+    (``--source NAME=URL``) when that is not the one its INFO gives, since
+    two boards of one model without serials are told apart only by it."""
     board_name = board.get("serial") or board.get("board") or "unknown-board"
+    if not board.get("serial") and info.board and info.board != name_from_info(board):
+        board_name = f"{board_name}@{info.board}"
     key = f"sensor:{info.serial}" if info.serial else f"board:{board_name}/sensor:{info.id}"
     return {"key": key, "sensor_serial": info.serial, "board_serial": board.get("serial"),
             "board": board.get("board"), "sensor_id": info.id}
