@@ -100,15 +100,6 @@ class TactileService:
         """The first board's pipeline (one-board set-ups and tests)."""
         return self.primary.pipeline
 
-    @property
-    def readout(self):
-        """The first board's readout (one-board set-ups and tests)."""
-        return self.primary.readout
-
-    @property
-    def source(self) -> str:
-        return self.primary.source
-
     def _name_board(self, info: dict) -> str:
         """A bare source's name from its first INFO, made unique among the boards."""
         name = name_from_info(info)
