@@ -161,7 +161,7 @@ class ZenohPublisher:
             for gone in set(self._queryables) - set(names):
                 for entity in self._queryables.pop(gone):
                     entity.undeclare()
-                for key in [k for k in self._publishers if k.startswith(f"{PREFIX}/{gone}/")]:
+                for key in [k for k in list(self._publishers) if k.startswith(f"{PREFIX}/{gone}/")]:
                     self._publishers.pop(key).undeclare()
             for name in set(names) - set(self._queryables):
                 board = names[name]
