@@ -112,11 +112,15 @@ class RemoteBoard:
             why = "its service's liveliness token is gone" if self.alive is False else \
                 f"nothing heard for {LOST_AFTER_S} s"
             problems.insert(0, f"lost: {why}")
+        part = {key: document.get(key) for key in BOARD_FIELDS}
+        if lost:  # the remote service's last word on its link no longer holds
+            part["link"] = {**(part["link"] or {}), "source": self.source, "state": "down", "up": False,
+                            "last_error": f"the service of board {self.name} is lost ({problems[0][6:]})"}
         return {
             "source": self.source,
             "status": "degraded" if lost or problems else "ok",
             "problems": problems,
-            **{key: document.get(key) for key in BOARD_FIELDS},
+            **part,
             "sensors": sensors,
             "remote": {"lost": lost, "alive": self.alive,
                        "lost_for_s": None if self.lost_at is None else round(now - self.lost_at, 3),

@@ -150,3 +150,27 @@ def test_two_boards_with_the_same_sensor_ids_get_a_panel_each_and_a_lost_one_is_
         page.wait_for_selector('#status[data-state="down"]', timeout=10_000)
         assert page.text_content("#status").startswith("board arm: Link down")
         page.wait_for_function("() => document.querySelectorAll('.panel[data-frames]').length === 2", timeout=10_000)
+
+
+def test_a_gateways_dashboard_shows_every_board_and_names_a_lost_one(browser, tmp_path):
+    """Two `tactile serve --zenoh` and a `tactile gateway`: the gateway's
+    dashboard has both boards' panels under their headings; one service
+    stopped, the banner names its board as down."""
+    endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(2)]
+    zenoh = ("--zenoh", "--no-multicast", "--zenoh-listen")
+    with contextlib.ExitStack() as stays, contextlib.ExitStack() as goes:
+        stays.enter_context(tactile("serve", "--source", "arm-a=sim://?scene=press&rate=250&sensors=grid,quad",
+                                    *zenoh, endpoints[0], cwd=tmp_path))
+        goes.enter_context(tactile("serve", "--source", "arm-b=sim://?scene=press&rate=250&sensors=quad",
+                                   *zenoh, endpoints[1], cwd=tmp_path))
+        gateway = stays.enter_context(tactile("gateway", "--no-multicast", "--zenoh-endpoint", endpoints[0],
+                                              "--zenoh-endpoint", endpoints[1], cwd=tmp_path))
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(gateway)
+        page.wait_for_function("() => document.querySelectorAll('.panel[data-frames]').length === 3", timeout=15_000)
+        titles = sorted(page.eval_on_selector_all(".board-title", "els => els.map(e => e.innerText)"))
+        assert titles == ["board arm-a", "board arm-b"]
+        page.wait_for_selector('#status[data-state="ok"]', timeout=5000)
+        goes.close()  # arm-b's service stops
+        page.wait_for_selector('#status[data-state="down"]', timeout=5000)
+        assert page.text_content("#status").startswith("board arm-b: Link down")
