@@ -267,3 +267,26 @@ def test_boards_of_one_model_without_serials_keep_their_calibrations_apart():
     assert len({bare, left, right}) == 3 and left == "board:tactile-sim-8x8-quad@left/sensor:0"
     with_serial = sensor_identity({**info, "serial": "TMX-1"}, SensorInfo(0, "quad", 2, 2, board="left"))["key"]
     assert with_serial == "board:TMX-1/sensor:0"  # a serial says which board it is, whatever it is called
+
+
+def test_a_calibration_made_for_a_named_board_is_found_by_that_board_only(tmp_path):
+    """`tactile calibrate --board left` keys a serial-less board's sensor as
+    the service reading `--source left=…` does; the other board does not get it."""
+    from firmware_sim.calibration_session import session
+    from service.calibration import registry as reg
+    from service.calibration.book import CalibrationBook
+    from service.calibration.calibrate import calibrate, document
+    from service.readings import SensorInfo
+
+    sim = session(rate_hz=200.0, seed=3)
+    (tmp_path / "session.bin").write_bytes(sim.raw)
+    (tmp_path / "reference.csv").write_text(sim.reference_csv)
+    result = calibrate(tmp_path / "session.bin", tmp_path / "reference.csv", board="left")
+    key = reg.sensor_identity(result.session.board, result.session.info)["key"]
+    assert key.endswith("@left/sensor:0") and not result.session.board.get("serial")
+    path = tmp_path / "registry.sqlite3"
+    with reg.Registry(path) as registry:
+        cid = registry.add(document(result, None), activate=True)
+    book = CalibrationBook(path)
+    assert book.for_sensor(result.session.board, SensorInfo(0, "grid", 8, 8, board="left")).id == cid
+    assert book.for_sensor(result.session.board, SensorInfo(0, "grid", 8, 8, board="right")) is None

@@ -50,9 +50,10 @@ class Calibration:
 
 
 def calibrate(session_path, reference_path, sensor_id: int | None = None, full_scale_N: float = FULL_SCALE_N,
-              mounting: str = "flat", allow_partial: bool = False) -> Calibration:
+              mounting: str = "flat", allow_partial: bool = False, board: str | None = None) -> Calibration:
     """Calibrate one grid; ValueError naming every bad taxel unless
-    ``allow_partial`` (then they keep their previous calibration)."""
+    ``allow_partial`` (then they keep their previous calibration).
+    ``board``: the board's name in the service (session.load_session)."""
     clock, timings = time.perf_counter(), {}
 
     def lap(name: str) -> None:
@@ -60,7 +61,7 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         now = time.perf_counter()
         timings[name], clock = now - clock, now
 
-    session = load_session(session_path, sensor_id)
+    session = load_session(session_path, sensor_id, board=board)
     reference = read_reference(reference_path)
     lap("read")
     rows, cols = session.info.rows, session.info.cols

@@ -23,11 +23,13 @@ class QuadCalibration:
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
-def calibrate_quad(session_path, reference_path, sensor_id: int | None = None) -> QuadCalibration:
+def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
+                   board: str | None = None) -> QuadCalibration:
     """Align the clocks on the normal force (the electrodes' summed response
-    is the normal curve: shear cancels in it), then fit (quad_fit.py)."""
+    is the normal curve: shear cancels in it), then fit (quad_fit.py).
+    ``board``: the board's name in the service (session.load_session)."""
     started = time.perf_counter()
-    session = load_session(session_path, sensor_id, kind="quad")
+    session = load_session(session_path, sensor_id, kind="quad", board=board)
     reference = read_reference(reference_path)
     if reference.fxyz_N is None:
         raise ValueError(f"{reference.path}: a quad calibration needs a 3-axis reference 't_s,fx_N,fy_N,fz_N'")

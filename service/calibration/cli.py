@@ -29,6 +29,9 @@ def add_parsers(subparsers) -> None:
     cal.add_argument("--sensor", type=int, metavar="ID", help="sensor id on the board (default: the only grid, "
                                                               "or the only quad for a 3-axis reference)")
     _registry_option(cal)
+    cal.add_argument("--board", metavar="NAME",
+                     help="the board's name in the service (--source NAME=URL): a board without a serial keys its "
+                          "sensors' calibrations by it; also picks that board's bytes from a recording of several")
     cal.add_argument("--report", metavar="DIR", help="write calibration.md, response.png, residuals.png here")
     cal.add_argument("--full-scale", type=float, default=10.0, metavar="N", help="full scale in N (default: %(default)s)")
     cal.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
@@ -77,7 +80,8 @@ def cmd_calibrate(args) -> int:
     started = time.perf_counter()
     if _three_axis(args.reference):
         return _calibrate_quad(args, started)
-    result = calibrate(args.session, args.reference, args.sensor, args.full_scale, args.mounting, args.partial)
+    result = calibrate(args.session, args.reference, args.sensor, args.full_scale, args.mounting, args.partial,
+                       board=args.board)
     with Registry(args.registry) as registry:
         key = registry_key(result)
         previous = registry.active(key, result.session.info.rows, result.session.info.cols)
@@ -108,7 +112,7 @@ def _three_axis(path: str) -> bool:
 def _calibrate_quad(args, started: float) -> int:
     from .calibrate_quad import calibrate_quad, quad_document, quad_summary
 
-    result = calibrate_quad(args.session, args.reference, args.sensor)
+    result = calibrate_quad(args.session, args.reference, args.sensor, board=args.board)
     with Registry(args.registry) as registry:
         cid = registry.add(quad_document(result), activate=not args.no_activate)
     print("\n".join(quad_summary(result)))

@@ -61,12 +61,13 @@ def _pick(sensors: dict[int, SensorInfo], sensor_id: int | None, path: str, kind
     return next(iter(mine.values()))
 
 
-def _chunks(path: str):
-    """The file's bytes in order: a recording's reads, or a raw capture read
-    straight (its reader would decode every chunk once more to time it, and
-    the calibration needs no receive times)."""
+def _chunks(path: str, board: str | None = None):
+    """The file's bytes in order: a recording's reads (``board``'s, in a
+    recording of several), or a raw capture read straight (its reader would
+    decode every chunk once more to time it, and the calibration needs no
+    receive times)."""
     if is_timed_by_host(path):
-        yield from (chunk for _, chunk in timed_chunks(path))
+        yield from (chunk for _, chunk in timed_chunks(path, board=board))
         return
     if not Path(path).is_file():
         raise FileNotFoundError(f"no such recording: {path}")
@@ -78,14 +79,14 @@ def _chunks(path: str):
 DATA = (FrameType.GRID, FrameType.QUAD)
 
 
-def _frames(path: str) -> tuple[Interpreter, list]:
+def _frames(path: str, board: str | None = None) -> tuple[Interpreter, list]:
     """Every data frame as (sensor, t_us, flags, payload, board_restart, type);
     INFO and ERROR frames go to the interpreter (the board's description).
     Data frames skip the interpreter (one array per frame would cost as much
     as decoding); their payloads become one array at the end."""
-    decoder, interpreter = Decoder(), Interpreter(clock=lambda: 0.0)
+    decoder, interpreter = Decoder(), Interpreter(clock=lambda: 0.0, board_name=board)
     frames = []
-    for chunk in _chunks(path):
+    for chunk in _chunks(path, board):
         for frame in decoder.feed(chunk):
             if frame.type in DATA:
                 frames.append((frame.sensor, frame.t_us, frame.flags, frame.payload, frame.board_restart, frame.type))
@@ -97,16 +98,20 @@ def _frames(path: str) -> tuple[Interpreter, list]:
     return interpreter, frames
 
 
-def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "grid") -> BoardSession:
+def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "grid",
+                 board: str | None = None) -> BoardSession:
     """The frames of one ``kind`` sensor (``sensor_id``, or the only one of
     that kind); a sensor announced by no INFO is taken from its frames (a
-    grid as 8x8 when its payload is 256 bytes)."""
+    grid as 8x8 when its payload is 256 bytes). ``board``: the board's name
+    in the service (its sensors' registry keys carry it: docs/scale.md), and
+    which board's bytes to take from a recording of several."""
     path = str(path)
-    interpreter, frames = _frames(path)
+    interpreter, frames = _frames(path, board)
     sensors = dict(interpreter.sensors)
     seen = {f[0]: f[5] for f in frames}  # each sensor's frame type
     for sid in set(seen) - set(sensors):
-        sensors[sid] = SensorInfo(sid, "quad", 2, 2) if seen[sid] == FrameType.QUAD else SensorInfo(sid, "grid", 8, 8)
+        shape = ("quad", 2, 2) if seen[sid] == FrameType.QUAD else ("grid", 8, 8)
+        sensors[sid] = SensorInfo(sid, *shape, board=interpreter.name)
     info = _pick(sensors, sensor_id, path, kind)
     mine = [f for f in frames if f[0] == info.id and len(f[3]) == 4 * info.channels]
     if len(mine) < 100:
