@@ -9,7 +9,7 @@ import pytest
 from service.api.routes_sensors import encode_history
 from service.fanout import history_json
 from service.fanout.encoding import FIELDS, to_json_dict
-from service.fanout.history_json import RecentRings, frame_texts
+from service.fanout.history_json import RecentRings, RingTexts, frame_texts
 from service.history import History
 from service.readings import SensorInfo
 from service.reconstruct import ForceFrame
@@ -116,13 +116,20 @@ def test_a_large_answer_is_joined_alike(monkeypatch):
     assert read(history, 0.0, 1, fields) == reference(history.frames_at(one), fields)
 
 
-def test_only_the_last_rings_read_are_kept():
-    rings = RecentRings(2)
-    a, b, c = (History(GRID, 4, 6) for _ in range(3))
+def test_the_rings_read_last_are_kept_within_a_size():
     fields = frozenset({"force"})
-    first = rings.get(a, fields)
-    rings.get(b, fields)
-    assert rings.get(a, fields) is first  # a used again: b is now the oldest
-    rings.get(c, fields)
-    assert rings.get(a, fields) is first
-    assert rings.get(b, fields) is not first and len(rings._rings) == 2
+    rings = [ring(GRID, 10, capacity=10)[0] for _ in range(3)]
+    one = sum(map(len, frame_texts(rings[0].columns(rings[0].window_slots(10.0, 100)), fields)))
+    recent = RecentRings(max_bytes=2 * one)  # room for two rings' texts
+
+    def read(history: History) -> RingTexts:
+        texts = recent.get(history, fields)
+        texts.encode(history.window_slots(10.0, 100))
+        return texts
+
+    first, second = read(rings[0]), read(rings[1])
+    assert first.bytes == second.bytes == one
+    assert read(rings[0]) is first  # used again: rings[1] is now the oldest
+    read(rings[2])  # three rings' texts now, more than the size
+    assert read(rings[0]) is first  # this read forgot the oldest
+    assert recent.get(rings[1], fields) is not second

@@ -33,7 +33,7 @@ MAX_HEAVY_READS = 2
 SEND_PIECE_BYTES = 1 << 16
 HISTORY_STEP_BYTES = 1 << 15  # JSON encoded between two turns of the event loop (~0.25 ms)
 JOIN_IN_THREAD_BYTES = 1 << 20  # CPython's bytes.join releases the GIL from this size on
-RECENT_RINGS = RecentRings(4)  # encoded frames kept for the last 4 (sensor, fields) read: ≤ 4 × 16 MB
+RECENT_RINGS = RecentRings(64 << 20)  # frames' JSON kept for the (sensor, fields) read last, about this much
 
 
 @router.get("/clients")
@@ -162,6 +162,7 @@ async def encode_history(history, seconds: float, max_points: int, wanted: froze
     texts, missing = ring.kept(slots)
     step, done = 16, 0
     while done < len(missing):
+        await asyncio.sleep(0)  # first after the framework's own work on the request, then between two steps
         if history.capacity != capacity:  # a new sensor shrank the ring meanwhile: the slots mean other frames
             raise HTTPException(503, "the history was resized while it was read (a sensor appeared); retry",
                                 headers={"Retry-After": "1"})
@@ -171,7 +172,6 @@ async def encode_history(history, seconds: float, max_points: int, wanted: froze
             texts[i] = text
         done += len(chunk)
         step = max(1, HISTORY_STEP_BYTES * len(chunk) // sum(map(len, encoded)))  # frames of this size per step
-        await asyncio.sleep(0)
     texts[0] = b"[" + texts[0]
     texts[-1] += b"]"
     if sum(map(len, texts)) < JOIN_IN_THREAD_BYTES:

@@ -135,8 +135,8 @@ class RingTexts:
     """The JSON of one ring's frames for one set of fields, kept by slot
     across reads: clients polling the last seconds ask, read after read,
     for nearly the same frames, so only those appended since the last read
-    need encoding. As large as the ring's frames in JSON (~1.2 KB per 8×8
-    grid frame; ~3.2 KB with raw and σ)."""
+    need encoding. At most as large as the ring's frames in JSON (5000 frames
+    of an 8×8 grid: ~6 MB; with raw and σ ~16 MB)."""
 
     def __init__(self, history: History, fields: frozenset[str]) -> None:
         self.history, self.fields = history, fields
@@ -146,6 +146,7 @@ class RingTexts:
         self._capacity = self.history.capacity
         self._numbers = np.full(self._capacity, -1, dtype=np.int64)
         self._texts = np.full(self._capacity, b"", dtype=object)  # an array: a window's texts in one indexing
+        self.bytes = 0
 
     def kept(self, slots: np.ndarray) -> tuple[list[bytes | None], np.ndarray]:
         """The text of each slot's frame (None where it was not encoded yet),
@@ -165,23 +166,24 @@ class RingTexts:
         texts = frame_texts(self.history.columns(slots), self.fields)
         self._numbers[slots] = numbers
         for slot, text in zip(slots.tolist(), texts):
+            self.bytes += len(text) - len(self._texts[slot])
             self._texts[slot] = text
         return texts
 
 
 class RecentRings:
-    """``RingTexts`` of the last ``size`` (ring, fields) read: a bound on
-    the memory kept for answers (a few dashboards read one or two sensors
-    each with the same fields)."""
+    """``RingTexts`` of the rings (and fields) read last, the oldest
+    forgotten while all of them hold more than ``max_bytes`` of text (the
+    one asked for is always kept)."""
 
-    def __init__(self, size: int) -> None:
-        self.size = size
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
         self._rings: dict[tuple[History, frozenset[str]], RingTexts] = {}  # oldest first
 
     def get(self, history: History, fields: frozenset[str]) -> RingTexts:
         key = (history, fields)
         texts = self._rings.pop(key, None) or RingTexts(history, fields)
-        self._rings[key] = texts
-        while len(self._rings) > self.size:
+        while self._rings and sum(kept.bytes for kept in self._rings.values()) + texts.bytes > self.max_bytes:
             del self._rings[next(iter(self._rings))]
+        self._rings[key] = texts
         return texts
