@@ -81,7 +81,7 @@ def read(history: History, seconds: float, max_points: int, fields: frozenset[st
 def test_reads_reuse_what_earlier_reads_encoded_and_stay_exact(monkeypatch):
     encoded = []
     real = history_json.frame_texts
-    monkeypatch.setattr(history_json, "frame_texts", lambda c, fields: encoded.append(len(c)) or real(c, fields))
+    monkeypatch.setattr(history_json, "frame_texts", lambda c, *rest: encoded.append(len(c)) or real(c, *rest))
     fields = frozenset({"force", "contact", "flags"})
     history = History(GRID, 50, 6)
     frames = [varied(GRID, seq) for seq in range(200)]

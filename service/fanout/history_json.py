@@ -1,16 +1,18 @@
-"""A history answer's JSON, column by column from the ring's arrays.
+"""A history answer's JSON, frame by frame, built column by column from the ring's arrays.
 
-Equal byte for byte to ``orjson.dumps([to_json_dict(frame, fields) …])``
-without its brackets, but each number column (stamps, forces, σ, raw,
-contact summaries) is formatted for all the frames in one orjson call on
-an array and the objects are assembled from a template, so the Python work
-per frame is a few list items instead of a ForceFrame, its dicts and a
-contact summary: a 5 s window of an 8×8 grid costs the event loop ~10× less.
+Each frame's text is byte for byte ``orjson.dumps(to_json_dict(frame, fields))``,
+but each number column (stamps, forces, σ, raw) is formatted for all the
+frames of a step in one orjson call on an array, and the objects are filled
+into a template with the sensor's constants written in, so the Python work
+per frame is a few list items and its contact summary instead of a
+ForceFrame's dicts.
 
 The template's keys and their order are those ``to_json_dict`` gives the
 first frame; a key this module does not know, or a column whose first value
 differs from ``to_json_dict``'s, sends the frames through ``to_json_dict``
 one by one: a new key is answered as that function defines it, only slower.
+Encoded frames are kept per ring slot (``RingTexts``), so that the next read
+of an overlapping window encodes only the frames that arrived since.
 """
 from __future__ import annotations
 
@@ -20,7 +22,6 @@ import numpy as np
 import orjson
 
 from ..history import Columns, History
-from ..record.contact_batch import columns as contact_columns
 from .encoding import to_json_dict
 
 OPTIONS = orjson.OPT_SERIALIZE_NUMPY
@@ -47,16 +48,9 @@ def _shared(values: list) -> list[bytes]:
     return [known.get(v) or known.setdefault(v, _dumps(list(v) if isinstance(v, tuple) else v)) for v in values]
 
 
-def _objects(keys: tuple[str, ...], columns: list[list[bytes]]) -> list[bytes]:
-    template = b"{" + b",".join(_dumps(key).replace(b"%", b"%%") + b":%b" for key in keys) + b"}"
-    return [template % values for values in zip(*columns)]
-
-
 def _contact(c: Columns) -> list[bytes]:
-    none, *numbers = contact_columns(c.forces, c.info.rows, c.info.cols)
-    names = ("total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts")
-    summaries = _objects(names, [_numbers(column) for column in numbers])
-    return [b"null" if empty else text for empty, text in zip(none.tolist(), summaries)]
+    """Frame by frame: in the few frames of a step, cheaper than contact_batch's grouping."""
+    return [_dumps(c.frame(j).contact) for j in range(len(c))]
 
 
 def _taxel_flags(c: Columns) -> list[bytes]:
@@ -105,30 +99,51 @@ KEYS: dict[str, Column | dict | None] = {  # a dict: a nested object's keys
 }
 
 
-def _fill(known: dict, sample: dict, c: Columns) -> list[bytes] | None:
-    """Each frame's object with the sample's keys, or None when a key is
-    unknown or its first value differs from the sample's."""
-    columns = []
+Layout = tuple[bytes, list[Column]]  # a frame's template (one %b per column) and its columns
+
+
+def layout(c: Columns, fields: frozenset[str]) -> Layout | None:
+    """How ``to_json_dict`` lays out these frames (those of one sensor, for
+    ``fields``), checked on the first frame; None when it cannot be built
+    from columns."""
+    columns: list[Column] = []
+    template = _template(KEYS, to_json_dict(c.frame(0), fields), c, columns)
+    return None if template is None else (template, columns)
+
+
+def _template(known: dict, sample: dict, c: Columns, columns: list[Column]) -> bytes | None:
+    """An object with the sample's keys: the sensor's constants written in,
+    a %b for each column (appended to ``columns``); None when a key is
+    unknown or a column's first value differs from the sample's."""
+    parts = []
     for key, value in sample.items():
         if key not in known:
             return None
         encode = known[key]
         if isinstance(encode, dict):
-            column = _fill(encode, value, c)
+            text = _template(encode, value, c, columns)
+            if text is None:
+                return None
+        elif encode is None:
+            text = _dumps(value).replace(b"%", b"%%")
+        elif encode(c)[0] == _dumps(value):
+            columns.append(encode)
+            text = b"%b"
         else:
-            column = [_dumps(value)] * len(c) if encode is None else encode(c)
-        if column is None or column[0] != _dumps(value):
             return None
-        columns.append(column)
-    return _objects(tuple(sample), columns)
+        parts.append(_dumps(key).replace(b"%", b"%%") + b":" + text)
+    return b"{" + b",".join(parts) + b"}"
 
 
-def frame_texts(c: Columns, fields: frozenset[str]) -> list[bytes]:
-    """Each frame's JSON object."""
+def frame_texts(c: Columns, fields: frozenset[str], plan: Layout | None = None) -> list[bytes]:
+    """Each frame's JSON object, by ``plan`` (checked on these frames if not given)."""
     if not len(c):
         return []
-    objects = _fill(KEYS, to_json_dict(c.frame(0), fields), c)
-    return objects if objects is not None else [_dumps(to_json_dict(c.frame(j), fields)) for j in range(len(c))]
+    plan = plan or layout(c, fields)
+    if plan is None:
+        return [_dumps(to_json_dict(c.frame(j), fields)) for j in range(len(c))]
+    template, columns = plan
+    return [template % values for values in zip(*(encode(c) for encode in columns))]
 
 
 class RingTexts:
@@ -143,6 +158,7 @@ class RingTexts:
         self._forget()
 
     def _forget(self) -> None:
+        self._plan: Layout | None = None  # checked once, on the first frames encoded
         self._capacity = self.history.capacity
         self._numbers = np.full(self._capacity, -1, dtype=np.int64)
         self._texts = np.full(self._capacity, b"", dtype=object)  # an array: a window's texts in one indexing
@@ -163,7 +179,10 @@ class RingTexts:
         if self.history.capacity != self._capacity:
             self._forget()
         numbers = self.history.numbers(slots)
-        texts = frame_texts(self.history.columns(slots), self.fields)
+        c = self.history.columns(slots)
+        if self._plan is None:
+            self._plan = layout(c, self.fields)
+        texts = frame_texts(c, self.fields, self._plan)
         self._numbers[slots] = numbers
         for slot, text in zip(slots.tolist(), texts):
             self.bytes += len(text) - len(self._texts[slot])
