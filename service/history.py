@@ -10,8 +10,6 @@ a history request returns.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from .readings import SensorInfo
@@ -21,37 +19,6 @@ from .reconstruct import ForceFrame
 _FLAG_SETS: dict[tuple[str, ...], tuple[str, ...]] = {}
 DEFAULT_BUDGET_BYTES = 256 << 20
 DEFAULT_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5.5 MB for an 8x8 grid)
-
-
-@dataclass(frozen=True, slots=True)
-class Columns:
-    """Some frames of one sensor column by column (copies: the ring goes on),
-    for encoders that turn whole columns into text at once."""
-
-    info: SensorInfo
-    seq: np.ndarray  # (k,) int64
-    t_us: np.ndarray  # (k,) int64
-    t_host: np.ndarray  # (k,)
-    t_scan: np.ndarray  # (k,) NaN: not mapped
-    forces: np.ndarray  # (k, outputs)
-    sigma: np.ndarray  # (k, outputs) float64, as ForceFrame.sigma_N; NaN: none
-    raw: np.ndarray  # (k, channels)
-    taxel_flags: np.ndarray | None  # (k, outputs) uint8 for a grid
-    flags: list[tuple[str, ...]]  # one shared tuple per distinct set
-    calibrations: list[str]
-    levels: list[str]
-
-    def __len__(self) -> int:
-        return len(self.seq)
-
-    def frame(self, j: int) -> ForceFrame:
-        """The ``j``-th frame rebuilt (its arrays are rows of these copies)."""
-        return ForceFrame(
-            self.info, int(self.seq[j]), int(self.t_us[j]), float(self.t_host[j]), self.forces[j],
-            self.raw[j], list(self.flags[j]), self.levels[j],
-            None if self.taxel_flags is None else self.taxel_flags[j], self.calibrations[j],
-            self.sigma[j], float(self.t_scan[j]),
-        )
 
 
 class History:
@@ -153,18 +120,14 @@ class History:
 
     def frames_at(self, slots: np.ndarray) -> list[ForceFrame]:
         """Frames rebuilt from ring slots (copies: the ring goes on)."""
-        columns = self.columns(slots)
-        return [columns.frame(j) for j in range(len(columns))]
+        return [self._frame(int(i)) for i in slots]
 
-    def columns(self, slots: np.ndarray) -> Columns:
-        """The frames at ring slots, column by column."""
-        picked = slots.tolist()
-        return Columns(
-            self.info, self._seq[slots], self._t_us[slots], self._t_host[slots], self._t_scan[slots],
-            self._forces[slots], self._sigma[slots].astype(float), self._raw[slots],
-            None if self._taxel_flags is None else self._taxel_flags[slots],
-            [self._flags[i] for i in picked], [self._calibrations[i] for i in picked],
-            [self._levels[i] for i in picked],
+    def _frame(self, i: int) -> ForceFrame:
+        return ForceFrame(
+            self.info, int(self._seq[i]), int(self._t_us[i]), float(self._t_host[i]), self._forces[i].copy(),
+            self._raw[i].copy(), list(self._flags[i]), self._levels[i],
+            None if self._taxel_flags is None else self._taxel_flags[i].copy(), self._calibrations[i],
+            self._sigma[i].astype(float), float(self._t_scan[i]),
         )
 
 

@@ -1,4 +1,4 @@
-"""History answers encoded column by column equal to_json_dict frame by frame, byte for byte."""
+"""History answers: frames' JSON kept across reads, the answers byte for byte to_json_dict's."""
 import asyncio
 from itertools import combinations
 
@@ -9,7 +9,7 @@ import pytest
 from service.api.routes_sensors import encode_history
 from service.fanout import history_json
 from service.fanout.encoding import FIELDS, to_json_dict
-from service.fanout.history_json import RecentRings, RingTexts, frame_texts
+from service.fanout.history_json import RecentRings, RingTexts
 from service.history import History
 from service.readings import SensorInfo
 from service.reconstruct import ForceFrame
@@ -52,48 +52,33 @@ def ring(info: SensorInfo, count: int, capacity: int = 64) -> tuple[History, lis
     return history, frames[-capacity:]
 
 
-@pytest.mark.parametrize("info", [GRID, QUAD])
-def test_every_set_of_fields_is_encoded_as_to_json_dict_encodes_it(info, monkeypatch):
-    samples = []
-    monkeypatch.setattr(history_json, "to_json_dict", lambda f, fields: samples.append(f) or to_json_dict(f, fields))
-    history, kept = ring(info, 100)
-    slots = history.window_slots(10.0, 1000)
-    for fields in EVERY_FIELDS:
-        samples.clear()
-        texts = frame_texts(history.columns(slots), fields)
-        assert b"[" + b",".join(texts) + b"]" == reference(kept, fields), sorted(fields)
-        assert len(samples) == 1  # by columns: to_json_dict only gave the first frame's keys
-
-
-def test_an_unknown_key_is_encoded_frame_by_frame(monkeypatch):
-    """A key to_json_dict gives that the column encoder does not know."""
-    history, kept = ring(GRID, 30)
-    monkeypatch.delitem(history_json.KEYS, "contact")
-    fields = frozenset(FIELDS)
-    assert b"[" + b",".join(frame_texts(history.columns(history.window_slots(10.0, 100)), fields)) + b"]" == \
-        reference(kept, fields)
-
-
 def read(history: History, seconds: float, max_points: int, fields: frozenset[str]) -> bytes:
     return asyncio.run(encode_history(history, seconds, max_points, fields))
 
 
+@pytest.mark.parametrize("info", [GRID, QUAD])
+def test_every_set_of_fields_is_answered_as_to_json_dict_encodes_it(info):
+    history, kept = ring(info, 100)
+    for fields in EVERY_FIELDS:
+        assert read(history, 10.0, 1000, fields) == reference(kept, fields), sorted(fields)
+        assert read(history, 10.0, 1000, fields) == reference(kept, fields)  # from the kept texts
+
+
 def test_reads_reuse_what_earlier_reads_encoded_and_stay_exact(monkeypatch):
     encoded = []
-    real = history_json.frame_texts
-    monkeypatch.setattr(history_json, "frame_texts", lambda c, *rest: encoded.append(len(c)) or real(c, *rest))
+    monkeypatch.setattr(history_json, "to_json_dict", lambda f, fields: encoded.append(f) or to_json_dict(f, fields))
     fields = frozenset({"force", "contact", "flags"})
     history = History(GRID, 50, 6)
     frames = [varied(GRID, seq) for seq in range(200)]
     for f in frames[:80]:
         history.append(f)
     assert read(history, 10.0, 1000, fields) == reference(frames[30:80], fields)
-    assert sum(encoded) == 50
+    assert len(encoded) == 50
     for f in frames[80:90]:  # ten new frames overwrite the ten oldest slots
         history.append(f)
     encoded.clear()
     assert read(history, 10.0, 1000, fields) == reference(frames[40:90], fields)
-    assert sum(encoded) == 10
+    assert len(encoded) == 10
     encoded.clear()
     assert read(history, 0.0095, 1000, fields) == reference(frames[80:90], fields)  # a shorter window: all kept
     assert encoded == []
@@ -119,7 +104,7 @@ def test_a_large_answer_is_joined_alike(monkeypatch):
 def test_the_rings_read_last_are_kept_within_a_size():
     fields = frozenset({"force"})
     rings = [ring(GRID, 10, capacity=10)[0] for _ in range(3)]
-    one = sum(map(len, frame_texts(rings[0].columns(rings[0].window_slots(10.0, 100)), fields)))
+    one = len(reference(rings[0].window(10.0, 100), fields)) - 2 - 9  # the texts, without brackets and commas
     recent = RecentRings(max_bytes=2 * one)  # room for two rings' texts
 
     def read(history: History) -> RingTexts:
