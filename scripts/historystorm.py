@@ -3,17 +3,22 @@
     python scripts/historystorm.py --clients 20 --hz 5 --seconds 20 [--nice -10]
 
 Starts `tactile serve` on loopback (built-in simulator: one 8x8 grid and one
-quad at 1 kHz), lets it settle, then runs ``--clients`` threads each asking
-``GET /sensors/0/history?seconds=5&max_points=5000`` ``--hz`` times a second
-for ``--seconds``. Reports the service's own published latency (receive
-stamp → reconstructed and handed to the listeners; /health, its last 2 000
-frames) before and at the end of the storm, and how the reads were answered.
+quad at 1 kHz) from the current directory's ``service`` package (run it from
+another checkout to measure that code), lets it settle, then runs
+``--clients`` threads each asking ``GET /sensors/0/history?seconds=5&max_points=5000``
+``--hz`` times a second for ``--seconds``. Reports the service's own
+published latency (receive stamp → reconstructed and handed to the
+listeners; /health, its last 10 000 published reads, ~10 s) before the storm
+(start-up included) and 2 s before its end, how the reads were answered, and
+the niceness the service really runs at (``nice_running``: ``--nice`` below 0
+needs root or CAP_SYS_NICE, and without it ``nice`` runs the service at 0).
 Only loopback is used; every loop is bounded in time.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -58,7 +63,7 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=20)
     parser.add_argument("--hz", type=float, default=5.0)
     parser.add_argument("--seconds", type=float, default=20.0)
-    parser.add_argument("--max-points", type=int, default=5000, help="frames per answer (5000: 5 s of an 8x8 grid, ~3.5 MB)")
+    parser.add_argument("--max-points", type=int, default=5000, help="frames per answer (5000: 5 s of an 8x8 grid, ~6 MB)")
     parser.add_argument("--nice", type=int, default=0, help="the service's niceness (the deployed set-up: -10; needs root)")
     args = parser.parse_args()
     port = free_port()
@@ -66,6 +71,8 @@ def main() -> int:
     server = subprocess.Popen(["nice", "-n", str(args.nice), sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
+        time.sleep(0.5)  # nice has made itself the service by then
+        running = os.getpriority(os.PRIO_PROCESS, server.pid)
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:
             try:
@@ -90,7 +97,7 @@ def main() -> int:
         server.terminate()
         server.wait(10)
     print(json.dumps({"quiet_published": quiet, "storm_published": storm, "answers": dict(answers),
-                      "clients": args.clients, "hz": args.hz, "seconds": args.seconds, "nice": args.nice}, indent=1))
+                      "clients": args.clients, "hz": args.hz, "max_points": args.max_points, "seconds": args.seconds, "nice": args.nice, "nice_running": running}, indent=1))
     return 0
 
 

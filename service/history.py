@@ -107,8 +107,16 @@ class History:
         stamps = self._t_host[order]
         first = int(np.searchsorted(stamps, stamps[-1] - seconds, side="left"))
         kept = order[first:]
-        picks = np.unique(np.linspace(0, len(kept) - 1, min(max_points, len(kept))).round().astype(int))
+        if len(kept) <= max_points:  # the usual 5000-point read of a full ring: no decimation to compute
+            return kept
+        picks = np.unique(np.linspace(0, len(kept) - 1, max_points).round().astype(int))
         return kept[picks]
+
+    def numbers(self, slots: np.ndarray) -> np.ndarray:
+        """Which frame each written slot holds, counted from the ring's first
+        (a shrink renumbers them, changing ``capacity``): a slot that holds
+        the same number holds the same frame."""
+        return self._count - 1 - (self._count - 1 - slots) % self.capacity
 
     def frames_at(self, slots: np.ndarray) -> list[ForceFrame]:
         """Frames rebuilt from ring slots (copies: the ring goes on)."""
