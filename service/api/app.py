@@ -22,6 +22,7 @@ from . import (
     routes_sensors,
     routes_stream,
 )
+from ..fanout.history_json import RecentRings
 from .admission import Admission
 from .deps import JSONResponse
 from .guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
@@ -51,6 +52,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     app.state.token = token
     app.state.heavy_reads = threading.BoundedSemaphore(routes_sensors.MAX_HEAVY_READS)
     app.state.recent_reads = routes_sensors.RecentReads()
+    app.state.recent_rings = RecentRings(routes_sensors.RECENT_RING_BYTES)
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
         app.include_router(routes.router)
     dashboard.add_dashboard(app)

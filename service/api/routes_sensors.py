@@ -33,7 +33,7 @@ MAX_HEAVY_READS = 2
 SEND_PIECE_BYTES = 1 << 16
 HISTORY_STEP_BYTES = 1 << 13  # JSON encoded between two turns of the event loop (7 frames of an 8x8 grid, ~0.2 ms)
 JOIN_IN_THREAD_BYTES = 1 << 20  # CPython's bytes.join releases the GIL from this size on
-RECENT_RINGS = RecentRings(64 << 20)  # frames' JSON kept for the (sensor, fields) read last, about this much
+RECENT_RING_BYTES = 64 << 20  # frames' JSON kept for the (sensor, fields) read last, about this much
 
 
 @router.get("/clients")
@@ -91,12 +91,12 @@ async def history(
     """A heavy read, bounded three ways so that it never holds up the 1 kHz
     path for long: admitted at a bounded rate (admission.py), at most
     ``MAX_HEAVY_READS`` encoded or sent at once (429 beyond), and encoded on
-    the event loop ``HISTORY_CHUNK`` frames at a time and sent in pieces,
-    so that the live stream's callbacks run between two steps (encoding in
-    a worker thread was worse: the thread held the interpreter for
-    milliseconds at a time whatever the switch interval). The same read
-    asked again within ``RecentReads.max_age_s`` (dashboards polling) is
-    not encoded again."""
+    the event loop about ``HISTORY_STEP_BYTES`` at a time (frames encoded
+    by a recent read are reused) and sent in pieces, so that the live
+    stream's callbacks run between two steps (encoding in a worker thread
+    was worse: the thread held the interpreter for milliseconds at a time
+    whatever the switch interval). The same read asked again within
+    ``RecentReads.max_age_s`` (dashboards polling) is not encoded again."""
     found = find_sensor(service, sensor_id, board)  # after the query is validated: a bad query is 422 for any sensor
     try:
         wanted = parse_fields(fields)
@@ -108,7 +108,7 @@ async def history(
                             headers={"Retry-After": "1"})
     permit = Permit(gate)
     try:
-        body = await encoded_history(request.app.state.recent_reads, found, seconds, max_points, wanted)
+        body = await encoded_history(request.app.state, found, seconds, max_points, wanted)
     except BaseException:
         permit.release()
         raise
@@ -116,13 +116,15 @@ async def history(
                              headers={"Content-Length": str(len(body))}, background=BackgroundTask(permit.release))
 
 
-async def encoded_history(recent, found, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
+async def encoded_history(state, found, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
+    """``state``: the app's, with its RecentReads and RecentRings."""
     key = (found.info.address, seconds, max_points, wanted)
-    body = recent.get(key)
+    body = state.recent_reads.get(key)
     if body is None:
         history = found.board.history.get(found.info.id)
-        body = b"[]" if history is None else await encode_history(history, seconds, max_points, wanted)
-        recent.put(key, body)
+        body = b"[]" if history is None else await encode_history(history, seconds, max_points, wanted,
+                                                                   state.recent_rings)
+        state.recent_reads.put(key, body)
     return body
 
 
@@ -142,17 +144,19 @@ class Permit:
 
 async def pieces(body: bytes, permit: Permit):
     """An answer in 64 KiB pieces: the event loop sends one, serves the live
-    stream, then sends the next."""
+    stream, then sends the next (a send does not give the loop up by itself)."""
     try:
         for start in range(0, len(body), SEND_PIECE_BYTES):
             yield body[start:start + SEND_PIECE_BYTES]
+            await asyncio.sleep(0)
     finally:
         permit.release()
 
 
-async def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
+async def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str],
+                         recent_rings: RecentRings) -> bytes:
     """A JSON list of frames. Frames a recent read encoded are taken as
-    they were (``RECENT_RINGS``); the others are encoded on the event loop
+    they were (``recent_rings``); the others are encoded on the event loop
     about ``HISTORY_STEP_BYTES`` of JSON at a time, so it runs whatever else
     is due between two steps; a large answer's bytes are joined in a worker
     thread, since copying megabytes into fresh memory takes milliseconds
@@ -162,7 +166,7 @@ async def encode_history(history, seconds: float, max_points: int, wanted: froze
     if not len(slots):
         return b"[]"
     capacity = history.capacity
-    ring = RECENT_RINGS.get(history, wanted)
+    ring = recent_rings.get(history, wanted)
     texts, missing = ring.kept(slots)
     step, done = 8, 0
     while done < len(missing):
