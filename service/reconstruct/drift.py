@@ -66,15 +66,13 @@ class DriftTracker:
     def reset(self) -> None:
         self.drift, self._last_t, self._frozen_since = 0.0, None, None
 
-    def follow(self, t_s: np.ndarray, enough: np.ndarray, medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Advance through frames at times (N,) given their quiet medians and
-        whether those were enough (from ``quiet_medians``); return the drift
-        after each frame (N,) and which frames are drift-suspect (N,)."""
-        out = np.empty(len(t_s))
-        suspect = np.empty(len(t_s), dtype=bool)
-        for i, (t, ok, median) in enumerate(zip(t_s.tolist(), enough.tolist(), medians.tolist())):
-            out[i], suspect[i] = self._step(t, ok, median)
-        return out, suspect
+    def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
+        """Advance through frames at times ``t_s`` given their quiet medians
+        and whether those were enough (``quiet_medians``, as lists: the
+        recurrence is scalar, and a live read holds a frame or two per
+        sensor); return each frame's drift and whether it is drift-suspect."""
+        step = self._step
+        return [step(t, ok, median) for t, ok, median in zip(t_s, enough, medians)]
 
     def _step(self, t: float, enough: bool, median: float) -> tuple[float, bool]:
         """Advance the exponential average to board time ``t``."""

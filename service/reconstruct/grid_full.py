@@ -17,6 +17,7 @@ import numpy as np
 from . import level0
 from .drift import quiet_medians
 from .sigma import empirical_forces, table_sigma
+from .stuck import stale_rows
 from .grid import (CROSSTALK_CORRECTED, DRIFT_SUSPECT, NO_READING, OUT_OF_RANGE, SATURATED, STALE, GridProcessor,
                    GridResult)
 
@@ -78,9 +79,7 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     flags = _reading_flags(pieces, rows, capacitance)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags)
     medians, enough = quiet_medians(ratio - 1.0, band)
-    drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
-    for (p, _, _), r in zip(pieces, rows):
-        drift[r], suspect[r] = p.drift.follow(t_s[r], enough[r], medians[r])
+    drift, suspect = _drift(pieces, rows, t_s, enough, medians)
     scale = 1.0 + drift[:, None]
     relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
     for (p, job, _), r, (_, n, *_) in zip(pieces, rows, params):
@@ -100,6 +99,18 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]
 
 
+def _drift(pieces: list[Piece], rows: list[slice], t_s: np.ndarray, enough: np.ndarray,
+           medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(drift, drift-suspect) (R,) of the stacked rows, each sensor's tracker
+    stepped through its own rows."""
+    t_s, enough, medians = t_s.tolist(), enough.tolist(), medians.tolist()
+    steps = []
+    for (p, _, _), r in zip(pieces, rows):
+        steps += p.drift.follow(t_s[r], enough[r], medians[r])
+    steps = np.array(steps, dtype=float).reshape(-1, 2)
+    return steps[:, 0], steps[:, 1] != 0.0
+
+
 def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -> tuple:
     """(capacitance (R, n), times (R,), row parameters): the pieces' frames
     one after the other, and (baseline, noise, reference, band, gain) per row."""
@@ -115,9 +126,9 @@ def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -
 def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> np.ndarray:
     """No-reading and stale bits of the stacked rows."""
     flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
-    for (p, job, sl), r in zip(pieces, rows):
-        if p._noisy_board(job.baseline_std):
-            np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
+    stale = stale_rows(pieces, rows, capacitance)
+    if stale is not None:
+        np.bitwise_or(flags, STALE, out=flags, where=stale)
     return flags
 
 
