@@ -143,6 +143,26 @@ def update_many(counters: list[CycleCounter], forces: np.ndarray, counts: list[i
     above = judged > HIGH_N
     if not np.count_nonzero(above) and not any(counter._any_armed for counter in counters):
         return
+    hits = above.any(axis=1).tolist()
+    single = []  # counters with one judged frame (a live read) that is loaded or pending: stepped together
     for counter, a, b in spans:
-        if a < b:
+        if b - a == 1:
+            if counter._any_armed or hits[a]:
+                single.append((counter, a))
+        elif a < b:
             counter._count(judged[a:b], above[a:b])
+    if single:
+        _step_together(single, judged, above)
+
+
+def _step_together(single: list[tuple[CycleCounter, int]], judged: np.ndarray, above: np.ndarray) -> None:
+    """``CycleCounter._step`` of one frame for each (counter, row of ``judged``)."""
+    rows = [a for _, a in single]
+    armed = np.array([counter._armed for counter, _ in single])
+    fell = armed & (judged[rows] < LOW_N)
+    if np.count_nonzero(fell):
+        for i in np.flatnonzero(fell.any(axis=1)).tolist():
+            single[i][0].counts += fell[i]
+    armed = (armed ^ fell) | above[rows]
+    for (counter, _), row, any_armed in zip(single, armed, armed.any(axis=1).tolist()):
+        counter._armed, counter._any_armed = row, any_armed

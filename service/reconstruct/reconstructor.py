@@ -76,9 +76,12 @@ class Reconstructor(SensorStates):
         """Reconstruct a batch of readings (e.g. one read from the port), each
         sensor's frames together; returns ForceFrames in arrival order."""
         pending: list[tuple[SensorState | Exception, Reading]] = []
+        sensors = self._sensors
         for reading in readings:
             try:
-                state = self._state(reading.sensor)
+                state = sensors.get(reading.sensor.id)
+                if state is None or state.info is not reading.sensor:  # the usual reading skips the call
+                    state = self._state(reading.sensor)
                 if state.baseline.update(reading.capacitance_pF) and not state.tare_judged:
                     self._judge_tare(state)
             except Exception as exc:  # noqa: BLE001 — isolated: this reading goes out null and flagged
@@ -100,13 +103,17 @@ class Reconstructor(SensorStates):
         return frames
 
     def _reconstruct(self, items: list[tuple[SensorState | Exception, Reading]]) -> list[ForceFrame]:
-        groups: dict[int, tuple[SensorState, list[int]]] = {}
+        groups: dict[int, tuple[SensorState, list[int], list[Reading]]] = {}
         out: list[ForceFrame | None] = [None] * len(items)
         for index, (state, reading) in enumerate(items):
             if isinstance(state, Exception):  # its baseline or state failed already
                 out[index] = self._isolation.error_frames(reading.sensor, [reading], state)[0]
-            else:
-                groups.setdefault(id(state), (state, []))[1].append(index)
+                continue
+            group = groups.get(id(state))
+            if group is None:
+                group = groups[id(state)] = (state, [], [])
+            group[1].append(index)
+            group[2].append(reading)
 
         def place(indices, frames):
             for i, frame in zip(indices, frames):
@@ -116,23 +123,27 @@ class Reconstructor(SensorStates):
         # frames together: at 1 kHz the per-call cost, not the per-frame
         # arithmetic, dominates. Quads are batched by model, grids by level;
         # a sensor that failed last time runs alone until it succeeds.
-        quads: dict[tuple, list[tuple[SensorState, list[int]]]] = {}
-        grids: list[tuple[SensorState, list[int]]] = []
-        for state, indices in groups.values():
+        quads: dict[tuple, list[tuple[SensorState, list[int], list[Reading]]]] = {}
+        grids: list[tuple[SensorState, list[int], list[Reading]]] = []
+        failing = self._isolation.failing
+        for group in groups.values():
+            state = group[0]
             if not state.baseline.ready:
-                place(indices, self._null_frames(state.info, [items[i][1] for i in indices], "taring"))
+                place(group[1], self._null_frames(state.info, group[2], "taring"))
             elif state.info.kind == "quad":
-                key = state.processor.batch_key if state.info.id not in self._isolation.failing else ("alone", state.info.id)
-                quads.setdefault(key, []).append((state, indices))
+                key = state.processor.batch_key if state.info.id not in failing else ("alone", state.info.id)
+                batch = quads.get(key)
+                if batch is None:
+                    batch = quads[key] = []
+                batch.append(group)
             else:
-                grids.append((state, indices))
+                grids.append(group)
         if grids:
-            members = [(state, [items[i][1] for i in indices]) for state, indices in grids]
-            for (_, indices), frames in zip(grids, self._isolated_grids(members)):
+            for (_, indices, _), frames in zip(grids, self._isolated_grids([(state, rs) for state, _, rs in grids])):
                 place(indices, frames)
         for batch in quads.values():
-            members = [(state, [items[i][1] for i in indices]) for state, indices in batch]
-            place((i for _, indices in batch for i in indices), self._isolation.without_state(members, self._reconstruct_quads))
+            frames = self._isolation.without_state([(state, rs) for state, _, rs in batch], self._reconstruct_quads)
+            place((i for _, indices, _ in batch for i in indices), frames)
         return out
 
     def _isolated_grids(self, members: list[tuple[SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
@@ -179,7 +190,7 @@ class Reconstructor(SensorStates):
             reading = readings[0]
             return GridJob(state.processor, reading.capacitance_pF[None], state.baseline.value, state.baseline.std,
                            np.array([reading.t_us * 1e-6]))
-        return GridJob(state.processor, np.stack([r.capacitance_pF for r in readings]), state.baseline.value,
+        return GridJob(state.processor, np.array([r.capacitance_pF for r in readings]), state.baseline.value,
                        state.baseline.std, np.array([r.t_us * 1e-6 for r in readings]))
 
     def _process_grid(self, state: SensorState, readings: list[Reading]):
