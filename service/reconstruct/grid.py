@@ -60,8 +60,9 @@ ADOPT_PERIOD_FRAMES = 64  # estimates are adopted only at multiples of this fram
 ESTIMATE_EVERY = 4
 
 
-def flag_names(bits: int) -> list[str]:
-    return [name for bit, name in TAXEL_FLAG_NAMES.items() if bits & bit]
+# The names of every combination of taxel flags, looked up per frame rather than built.
+FLAG_NAMES_BY_BITS = tuple(tuple(name for bit, name in TAXEL_FLAG_NAMES.items() if bits & bit)
+                           for bits in range(2 ** len(TAXEL_FLAG_NAMES)))
 
 
 @dataclass
@@ -129,7 +130,8 @@ class GridProcessor:
                  self.adopted_events, drift.drift, drift._last_t, drift._frozen_since)
         if estimator is None:
             return state
-        slopes = tuple((s, s.xy, s.xx, s.events, s.yy) for s in (estimator.mechanical, estimator.electrical))
+        m, e = estimator.mechanical, estimator.electrical
+        slopes = ((m, m.xy, m.xx, m.events, m.yy), (e, e.xy, e.xx, e.events, e.yy))
         return state + (slopes, crosstalk.electrical, crosstalk.mechanical, crosstalk._unmix)
 
     def rollback(self, checkpoint: tuple) -> None:

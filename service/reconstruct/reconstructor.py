@@ -20,7 +20,7 @@ from ..physics.mountings import MOUNTINGS
 from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES
 from .force_frame import ForceFrame
-from .grid import LOADED_AT_TARE, NO_READING, flag_names
+from .grid import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING
 from .grid_full import GridJob, process_full
 from .fatigue import update_many
 from .isolation import Isolation
@@ -168,7 +168,7 @@ class Reconstructor(SensorStates):
         ``full`` each sensor is processed on its own; ``isolated`` then turns
         a sensor's exception into its null, flagged frames."""
         if self.level == "full":
-            return self._grids_frames(members, process_full([self._job(state, rs) for state, rs in members]))
+            return self._grids_frames(members, process_full(self._jobs(members)))
         out = []
         for state, rs in members:
             if not isolated:
@@ -185,16 +185,21 @@ class Reconstructor(SensorStates):
         return out
 
     @staticmethod
-    def _job(state: SensorState, readings: list[Reading]) -> GridJob:
-        if len(readings) == 1:  # the live path's usual share: a view, not a copy
-            reading = readings[0]
-            return GridJob(state.processor, reading.capacitance_pF[None], state.baseline.value, state.baseline.std,
-                           np.array([reading.t_us * 1e-6]))
-        return GridJob(state.processor, np.array([r.capacitance_pF for r in readings]), state.baseline.value,
-                       state.baseline.std, np.array([r.t_us * 1e-6 for r in readings]))
+    def _jobs(members: list[tuple[SensorState, list[Reading]]]) -> list[GridJob]:
+        """Each grid's job, its frames and times rows of arrays made once for all."""
+        readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
+        capacitance = np.array([r.capacitance_pF for r in readings])
+        t_s = np.array([r.t_us for r in readings]) * 1e-6
+        jobs, start = [], 0
+        for state, rs in members:
+            end = start + len(rs)
+            jobs.append(GridJob(state.processor, capacitance[start:end], state.baseline.value, state.baseline.std,
+                                t_s[start:end]))
+            start = end
+        return jobs
 
     def _process_grid(self, state: SensorState, readings: list[Reading]):
-        job = self._job(state, readings)
+        job = self._jobs([(state, readings)])[0]
         return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s)
 
     def _grid_frames(self, state: SensorState, readings: list[Reading], result) -> list[ForceFrame]:
@@ -214,14 +219,14 @@ class Reconstructor(SensorStates):
         update_many([state.cycles for state, _ in members], forces, [len(rs) for _, rs in members])
         union = np.bitwise_or.reduce(taxel_flags, axis=1) & ~np.uint8(NO_READING)
         union = union.tolist() if np.count_nonzero(union) else None
-        out, i, level = [], 0, self.level
+        out, i, level, names = [], 0, self.level, FLAG_NAMES_BY_BITS
         for state, readings in members:
             calibration = state.calibration.id
             frames = []
             for r in readings:
                 flags = r.frame_flags()
                 if union is not None and union[i]:
-                    flags.extend(flag_names(union[i]))
+                    flags.extend(names[union[i]])
                 frames.append(ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, forces[i], r.capacitance_pF, flags, level,
                                          taxel_flags[i], calibration, sigma[i], r.t_host_scan))
                 i += 1
