@@ -129,28 +129,28 @@ def update_many(counters: list[CycleCounter], forces: np.ndarray, counts: list[i
     """``update`` of each counter with its rows of ``forces`` (R, n): counter
     k's are the next ``counts[k]`` rows. The same counts; the usual read
     (nothing loaded, nothing pending) costs two numpy calls for all."""
-    spans, picks = [], []
+    spans, picks = [], []  # (counter, its judged rows a:b in picks), judged rows of ``forces``
     start = 0
     for counter, count in zip(counters, counts):
         first = counter._judged_from(count)
-        judged = range(start + first, start + count, JUDGE_EVERY)
-        spans.append((counter, len(picks), len(picks) + len(judged)))
-        picks += judged
+        if first < count:
+            a = len(picks)
+            picks += range(start + first, start + count, JUDGE_EVERY)
+            spans.append((counter, a, len(picks)))
         start += count
     if not picks:
         return
     judged = forces[picks]
     above = judged > HIGH_N
-    if not np.count_nonzero(above) and not any(counter._any_armed for counter in counters):
+    if not np.count_nonzero(above) and not any(counter._any_armed for counter, _, _ in spans):
         return
     hits = above.any(axis=1).tolist()
     single = []  # counters with one judged frame (a live read) that is loaded or pending: stepped together
     for counter, a, b in spans:
-        if b - a == 1:
-            if counter._any_armed or hits[a]:
-                single.append((counter, a))
-        elif a < b:
+        if b - a > 1:
             counter._count(judged[a:b], above[a:b])
+        elif counter._any_armed or hits[a]:
+            single.append((counter, a))
     if single:
         _step_together(single, judged, above)
 
