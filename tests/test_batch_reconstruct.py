@@ -16,6 +16,7 @@ from service.physics.paper_data import table1
 from service.protocol import Decoder
 from service.readings import Interpreter, Reading
 from service.reconstruct import Reconstructor
+from service.reconstruct import reconstructor as reconstructor_module
 from service.reconstruct.fatigue import HIGH_N, LOW_N, CycleCounter, update_many
 from service.reconstruct.stuck import run_lengths
 
@@ -171,3 +172,27 @@ def test_update_many_counts_what_each_counter_counts_alone():
     for a, b in zip(alone, together):
         np.testing.assert_array_equal(a.counts, b.counts)
     assert sum(int(a.counts.sum()) for a in alone) > 10
+
+
+def test_grids_of_different_sizes_in_one_read_get_what_they_get_alone(monkeypatch):
+    calls = []
+    monkeypatch.setattr(reconstructor_module, "process_full",
+                        lambda jobs, original=reconstructor_module.process_full: calls.append(len(jobs)) or original(jobs))
+    sensors = [SimGrid(0), SimGrid(1, rows=4, cols=4), SimGrid(2), SimGrid(3, rows=4, cols=6)]
+    data, _ = capture(BoardConfig(sensors=sensors, scene="demo", seed=2), 1.3)
+    interpreter = Interpreter(clock=lambda: 0.0)
+    readings = [r for r in (interpreter.interpret(f, 0.0) for f in Decoder().feed(data)) if r is not None]
+    scans: dict[int, list[Reading]] = {}
+    for r in readings:
+        scans.setdefault(r.t_us, []).append(r)
+    together, alone = Reconstructor(level="full"), {s.id: Reconstructor(level="full") for s in sensors}
+    for scan in scans.values():
+        calls.append("read")
+        frames = {f.sensor.id: f for f in together.process_many(scan)}
+        calls.append("alone")
+        for r in scan:
+            (expected,) = alone[r.sensor.id].process(r)
+            _assert_same(frames[r.sensor.id], expected)
+    batched = [calls[i + 1] for i, c in enumerate(calls) if c == "read" and calls[i + 1] != "alone"]
+    assert batched and set(batched) == {4}  # the four grids of a tared read in one call
+    assert not together.errors() and frames[1].forces_N.shape == (16,) and np.isfinite(frames[1].forces_N).all()

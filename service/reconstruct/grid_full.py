@@ -10,6 +10,7 @@ dominates.
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
 
 from . import level0

@@ -186,7 +186,10 @@ class Reconstructor(SensorStates):
 
     @staticmethod
     def _jobs(members: list[tuple[SensorState, list[Reading]]]) -> list[GridJob]:
-        """Each grid's job, its frames and times rows of arrays made once for all."""
+        """Each grid's job, its frames and times rows of arrays made once for
+        all (once per sensor where the grids differ in size)."""
+        if len({state.info.channels for state, _ in members}) > 1:
+            return [job for member in members for job in Reconstructor._jobs([member])]
         readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
         capacitance = np.array([r.capacitance_pF for r in readings])
         t_s = np.array([r.t_us for r in readings]) * 1e-6
