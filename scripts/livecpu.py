@@ -1,6 +1,7 @@
 """Live CPU per sensor: what `tactile serve` costs with no client, by number of sensors (a script, not a unit test).
 
     python scripts/livecpu.py --seconds 20 --rounds 3 [--before DIR] [--out docs]
+    python scripts/livecpu.py --in-process 1,3 --boards 4+4,32 --seconds 4 --rounds 3 [--before DIR]
 
 For each board — 1 grid; 2 grids + 2 quads; 4 + 4 (the load test's); 8 + 8;
 16 + 16, all 8×8 grids and quads at 1 kHz, scene ``demo`` — the simulator's
@@ -18,6 +19,12 @@ land on one of them. ``--out DIR`` writes DIR/livecpu.png and DIR/livecpu.json (
 CPU %, frames/s); the table printed goes into docs/performance.md. Figures are
 per frame decoded, scaled to the board's full rate, so that a run that
 received less (a service that fell behind, a stalled sender) still counts.
+
+``--in-process`` times the pipeline alone (Pipeline.feed_reads, the
+service's reconstruction and publication without its event loop), reads fed
+one at a time and as they come when several piled up while the service was
+busy (the service feeds whatever waited, so how many go together depends on
+how long the previous batch took: a faster pipeline is fed fewer at a time).
 
 A board of more than ~25 sensors cannot describe itself: its INFO would
 exceed the protocol's 1024-byte payload (16 grids + 16 quads: 1124 bytes).
@@ -137,6 +144,43 @@ def measure(tree: Path, items: list[bytes], seconds: float, port: int, warmup: f
     return 100 * (cpu1 - cpu0) / (t1 - t0), (frames1 - frames0) / (t1 - t0)
 
 
+# The pipeline alone, in a fresh interpreter on a tree (argv: tree, pickled reads, merge): the
+# board's reads fed to Pipeline.feed_reads ``merge`` at a time, grids reconstructed at once;
+# prints the CPU µs per read of the cheapest window of 600 reads after the first 1.2 s.
+IN_PROCESS = """
+import pickle, sys, time
+sys.path.insert(0, sys.argv[1])
+from service.pipeline import Pipeline
+from service.reconstruct import Reconstructor
+items, merge = pickle.loads(open(sys.argv[2], "rb").read()), int(sys.argv[3])
+pipeline = Pipeline(Reconstructor(level="full"))
+def feed(k):
+    pipeline.feed_reads([(c, 1000.0 + (k + j) / 1000) for j, c in enumerate(items[k:k + merge])], lambda f: f())
+for k in range(0, 1200, merge):
+    feed(k)
+windows = []
+for start in range(1200, len(items) - 599, 600):
+    t = time.process_time()
+    for k in range(start, start + 600, merge):
+        feed(k)
+    windows.append(time.process_time() - t)
+print(min(windows) / 600 * 1e6)
+"""
+
+
+def in_process(tree: Path, items: list[bytes], merge: int) -> float:
+    """CPU µs per read of the pipeline alone on ``tree``, reads fed ``merge`` at a time (IN_PROCESS)."""
+    import pickle
+    import tempfile
+
+    with tempfile.NamedTemporaryFile(suffix=".pickle") as file:
+        file.write(pickle.dumps(items))
+        file.flush()
+        out = subprocess.run([sys.executable, "-c", IN_PROCESS, str(tree), file.name, str(merge)], cwd=tree,
+                             capture_output=True, text=True, check=True)
+    return float(out.stdout)
+
+
 def full_rate(name: str, run: tuple[float, float]) -> float:
     """A run's CPU (% of a core) per frame decoded, times the board's rate: what
     its whole stream costs, also where a run received less (a service that
@@ -197,9 +241,14 @@ def main() -> int:
     parser.add_argument("--before", type=Path, help="a second source tree to measure alternately (its service/ is run)")
     parser.add_argument("--port", type=int, default=8775)
     parser.add_argument("--out", type=Path, help="write livecpu.png into this directory")
+    parser.add_argument("--in-process", metavar="MERGES",
+                        help="instead, the pipeline alone (no service), reads fed 1, 2, … at a time, e.g. 1,3: "
+                             "µs per read (the cheapest window of each run; the median of runs)")
     args = parser.parse_args()
     trees = ({"before": args.before.resolve()} if args.before else {}) | {"after" if args.before else "this tree": ROOT}
     boards = [b for b in args.boards.split(",") if b]
+    if args.in_process:
+        return in_process_table(trees, boards, [int(m) for m in args.in_process.split(",")], args)
     results: dict[str, dict[str, list[tuple[float, float]]]] = {t: {} for t in trees}
     streams = {name: scans(spec(*BOARDS[name]), args.warmup + args.seconds + 15) for name in boards}  # 15: start-up
     for round_ in range(args.rounds):
@@ -214,6 +263,27 @@ def main() -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         plot(results, args.out / "livecpu.png")
         (args.out / "livecpu.json").write_text(json.dumps(results, indent=1))
+    return 0
+
+
+def in_process_table(trees: dict[str, Path], boards: list[str], merges: list[int], args) -> int:
+    """``--in-process``: each board, merge and tree alternating for ``--rounds``; prints the medians."""
+    streams = {name: scans(spec(*BOARDS[name]), 1.2 + args.seconds) for name in boards}
+    results: dict[tuple[str, int, str], list[float]] = {}
+    for round_ in range(args.rounds):
+        for name in boards:
+            for merge in merges:
+                for label, tree in trees.items():
+                    us = in_process(tree, streams[name], merge)
+                    results.setdefault((name, merge, label), []).append(us)
+                    print(f"round {round_ + 1}, {name} sensors, reads by {merge}, {label}: {us:.0f} µs per read", flush=True)
+    print("| sensors (grids + quads) | reads fed together | " + " | ".join(f"{t}: µs per read (runs)" for t in trees) + " |")
+    print("|" + "---|" * (len(trees) + 2))
+    for name in boards:
+        for merge in merges:
+            cells = [f"**{statistics.median(results[name, merge, t]):.0f}** "
+                     f"({', '.join(f'{v:.0f}' for v in results[name, merge, t])})" for t in trees]
+            print(f"| {sum(BOARDS[name])} ({' + '.join(map(str, BOARDS[name]))}) | {merge} | " + " | ".join(cells) + " |")
     return 0
 
 

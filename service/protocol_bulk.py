@@ -19,6 +19,15 @@ from .protocol import (_CRC, _HALF_CLOCK, _HEADER, _KNOWN_TYPES, CRC_SIZE, HEADE
 
 _DATA = {int(FrameType.GRID): FrameType.GRID, int(FrameType.QUAD): FrameType.QUAD}
 _PAYLOAD_AT = HEADER_SIZE - 2  # the payload's offset in a frame's body (all but sync and crc)
+# (version, type, length) → whether the header is valid: a live stream repeats a few of them.
+_HEADER_OK: dict[tuple[int, int, int], bool] = {}
+
+
+def _header_ok(version: int, ftype: int, length: int) -> bool:
+    ok = version == VERSION and ftype in _KNOWN_TYPES and _length_is_valid(ftype, length)
+    if len(_HEADER_OK) < 4096:  # a garbage stream's headers must not grow it without bound
+        _HEADER_OK[(version, ftype, length)] = ok
+    return ok
 
 
 class BulkDecoder(Decoder):
@@ -27,7 +36,10 @@ class BulkDecoder(Decoder):
     def _parse(self, final: bool) -> list[Frame]:
         buf = self._buffer
         counters = self.counters
+        per_sensor = counters.sensors
         states = self._states
+        infos = self._infos
+        header_ok = _HEADER_OK
         find, unpack_header, unpack_crc = buf.find, _HEADER.unpack_from, _CRC.unpack_from
         n = len(buf)
         pos = 0
@@ -45,7 +57,10 @@ class BulkDecoder(Decoder):
             pos = start
             if n - pos >= HEADER_SIZE:
                 version, ftype, sensor, flags, seq, t_us, length = unpack_header(buf, pos + 2)
-                if version != VERSION or ftype not in _KNOWN_TYPES or not _length_is_valid(ftype, length):
+                ok = header_ok.get((version, ftype, length))
+                if ok is None:
+                    ok = _header_ok(version, ftype, length)
+                if not ok:
                     counters.header_errors += 1
                     discarded += 1
                     pos += 1
@@ -70,10 +85,21 @@ class BulkDecoder(Decoder):
             state = states.get(sensor)
             frame_type = _DATA.get(ftype)
             step = 0 if state is None else (t_us - state.t_us) % T_US_MODULUS
-            if frame_type is not None and 0 < step <= _HALF_CLOCK and state.infos == self._infos:
-                append(self._next_scan(state, frame_type, sensor, flags, seq, t_us, body))
+            if frame_type is not None and 0 < step <= _HALF_CLOCK and state.infos == infos:
+                # A sensor's next scan: its clock ran forward and no INFO came since its last frame.
+                sensor_counter = per_sensor[sensor]
+                gap = (seq - state.seq - 1) % SEQ_MODULUS
+                if gap:
+                    sensor_counter.seq_gaps += 1
+                    sensor_counter.missed_frames += gap
+                state.seq, state.t_us = seq, t_us
+                state.recent.append(hash(body))
+                sensor_counter.frames += 1
+                counters.frames += 1
+                append(Frame(frame_type, sensor, flags, seq, t_us, body[_PAYLOAD_AT:], gap, False))
             else:
                 frame = self._accept(ftype, sensor, flags, seq, t_us, body)
+                infos = self._infos
                 if frame is None:
                     discarded += end - pos
                 else:
@@ -82,18 +108,3 @@ class BulkDecoder(Decoder):
         counters.bytes_discarded += discarded
         del buf[:pos]
         return frames
-
-    def _next_scan(self, state, frame_type: FrameType, sensor: int, flags: int, seq: int, t_us: int,
-                   body: bytes) -> Frame:
-        """A sensor's next scan: its clock ran forward and no INFO came since its last frame."""
-        counters = self.counters
-        sensor_counter = counters.sensors[sensor]
-        gap = (seq - state.seq - 1) % SEQ_MODULUS
-        if gap:
-            sensor_counter.seq_gaps += 1
-            sensor_counter.missed_frames += gap
-        state.seq, state.t_us = seq, t_us
-        state.recent.append(hash(body))
-        sensor_counter.frames += 1
-        counters.frames += 1
-        return Frame(frame_type, sensor, flags, seq, t_us, body[_PAYLOAD_AT:], gap, False)

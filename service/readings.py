@@ -193,6 +193,7 @@ class Interpreter:
         self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
         self.max_unannounced_sensors = max_unannounced_sensors
         self._unannounced: set[int] = set()  # sensors known only from their data frames
+        self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
 
     @property
@@ -227,11 +228,23 @@ class Interpreter:
         costs. Each reading's ``capacitance_pF`` is a row of its group's array."""
         accepted: list[tuple[SensorInfo, Frame]] = []
         groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
+        sensors, fits = self.sensors, self._fits
         for frame in frames:
-            info = self._sensor_for(frame, t_host)
-            if info is not None:
-                groups.setdefault(len(frame.payload), []).append(len(accepted))
-                accepted.append((info, frame))
+            size = len(frame.payload)
+            # The usual frame: of the same type and size as its sensor's last, which is still announced as it was.
+            fit = fits.get(frame.sensor)
+            if fit is not None and fit[1] == frame.type and fit[2] == size and sensors.get(frame.sensor) is fit[0]:
+                info = fit[0]
+            else:
+                info = self._sensor_for(frame, t_host)
+                if info is None:
+                    continue
+                fits[frame.sensor] = (info, frame.type, size)
+            group = groups.get(size)
+            if group is None:
+                group = groups[size] = []
+            group.append(len(accepted))
+            accepted.append((info, frame))
         out: list[Reading | None] = [None] * len(accepted)
         for size, indices in groups.items():
             raw = np.frombuffer(b"".join([accepted[i][1].payload for i in indices]), dtype="<u4")

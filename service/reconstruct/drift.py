@@ -30,11 +30,16 @@ def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, n
         median, enough = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
         return np.array([median]), np.array([enough])
     rows = np.arange(len(relative))
-    valid = np.sum(relative == relative, axis=1)  # NaN ≠ NaN
     ordered = np.sort(relative, axis=1)  # NaN sorts last
-    centre = (ordered[rows, np.maximum(valid - 1, 0) // 2] + ordered[rows, valid // 2]) / 2
+    n = relative.shape[1]
+    if (ordered[:, -1] == ordered[:, -1]).all():  # no NaN (NaN ≠ NaN): every row's middle is in one column
+        valid = n
+        centre = (ordered[:, (n - 1) // 2] + ordered[:, n // 2]) / 2
+    else:
+        valid = np.sum(relative == relative, axis=1)
+        centre = (ordered[rows, np.maximum(valid - 1, 0) // 2] + ordered[rows, valid // 2]) / 2
     quiet = np.abs(relative - centre[:, None]) < band  # NaN compares False
-    count = np.sum(quiet, axis=1)
+    count = np.count_nonzero(quiet, axis=1)
     ordered = np.sort(np.where(quiet, relative, np.inf), axis=1)
     medians = (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2]) / 2
     return medians, (count * 2 >= valid) & (count > 0)
@@ -66,15 +71,15 @@ class DriftTracker:
     def reset(self) -> None:
         self.drift, self._last_t, self._frozen_since = 0.0, None, None
 
-    def follow(self, t_s: np.ndarray, enough: np.ndarray, medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Advance through frames at times (N,) given their quiet medians and
-        whether those were enough (from ``quiet_medians``); return the drift
-        after each frame (N,) and which frames are drift-suspect (N,)."""
-        out = np.empty(len(t_s))
-        suspect = np.empty(len(t_s), dtype=bool)
-        for i, (t, ok, median) in enumerate(zip(t_s.tolist(), enough.tolist(), medians.tolist())):
-            out[i], suspect[i] = self._step(t, ok, median)
-        return out, suspect
+    def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
+        """Advance through frames at times ``t_s`` given their quiet medians
+        and whether those were enough (``quiet_medians``, as lists: the
+        recurrence is scalar, and a live read holds a frame or two per
+        sensor); return each frame's drift and whether it is drift-suspect."""
+        if len(t_s) == 1:  # the live read
+            return [self._step(t_s[0], enough[0], medians[0])]
+        step = self._step
+        return [step(t, ok, median) for t, ok, median in zip(t_s, enough, medians)]
 
     def _step(self, t: float, enough: bool, median: float) -> tuple[float, bool]:
         """Advance the exponential average to board time ``t``."""

@@ -82,12 +82,20 @@ class CycleCounter:
     def update(self, forces: np.ndarray) -> None:
         """Forces (N, n) in frame order (NaN: no reading, changes nothing);
         every JUDGE_EVERY-th frame of the stream is judged."""
+        first = self._judged_from(len(forces))
+        if first < len(forces):
+            forces = forces[first::JUDGE_EVERY]
+            self._count(forces, forces > HIGH_N)
+
+    def _judged_from(self, frames: int) -> int:
+        """Which of the next ``frames`` is the first judged (``frames`` or
+        more: none); counts them as seen."""
         first = -self._seen % JUDGE_EVERY
-        self._seen += len(forces)
-        if first >= len(forces):
-            return
-        forces = forces[first::JUDGE_EVERY]
-        above = forces > HIGH_N
+        self._seen += frames
+        return first
+
+    def _count(self, forces: np.ndarray, above: np.ndarray) -> None:
+        """The cycles in judged frames ``forces`` (N, n), ``above`` HIGH_N."""
         if not self._any_armed and not np.count_nonzero(above):
             return  # the usual frame: nothing loaded, nothing pending
         if len(forces) <= FEW_FRAMES:
@@ -115,3 +123,46 @@ class CycleCounter:
             armed = armed | up
         self._armed = armed
         self._any_armed = bool(np.count_nonzero(armed))
+
+
+def update_many(counters: list[CycleCounter], forces: np.ndarray, counts: list[int]) -> None:
+    """``update`` of each counter with its rows of ``forces`` (R, n): counter
+    k's are the next ``counts[k]`` rows. The same counts; the usual read
+    (nothing loaded, nothing pending) costs two numpy calls for all."""
+    spans, picks = [], []  # (counter, its judged rows a:b in picks), judged rows of ``forces``
+    start = 0
+    for counter, count in zip(counters, counts):
+        first = counter._judged_from(count)
+        if first < count:
+            a = len(picks)
+            picks += range(start + first, start + count, JUDGE_EVERY)
+            spans.append((counter, a, len(picks)))
+        start += count
+    if not picks:
+        return
+    judged = forces[picks]
+    above = judged > HIGH_N
+    if not np.count_nonzero(above) and not any(counter._any_armed for counter, _, _ in spans):
+        return
+    hits = above.any(axis=1).tolist()
+    single = []  # counters with one judged frame (a live read) that is loaded or pending: stepped together
+    for counter, a, b in spans:
+        if b - a > 1:
+            counter._count(judged[a:b], above[a:b])
+        elif counter._any_armed or hits[a]:
+            single.append((counter, a))
+    if single:
+        _step_together(single, judged, above)
+
+
+def _step_together(single: list[tuple[CycleCounter, int]], judged: np.ndarray, above: np.ndarray) -> None:
+    """``CycleCounter._step`` of one frame for each (counter, row of ``judged``)."""
+    rows = [a for _, a in single]
+    armed = np.array([counter._armed for counter, _ in single])
+    fell = armed & (judged[rows] < LOW_N)
+    if np.count_nonzero(fell):
+        for i in np.flatnonzero(fell.any(axis=1)).tolist():
+            single[i][0].counts += fell[i]
+    armed = (armed ^ fell) | above[rows]
+    for (counter, _), row, any_armed in zip(single, armed, armed.any(axis=1).tolist()):
+        counter._armed, counter._any_armed = row, any_armed

@@ -42,6 +42,7 @@ from .crosstalk import Crosstalk, CrosstalkEstimator
 from .drift import DriftTracker
 from .levels import GRID_LEVELS
 from .sigma import empirical_forces, level0_sigma, table_sigma
+from .stuck import STUCK_FRAMES, run_lengths
 
 NO_READING, SATURATED, OUT_OF_RANGE, CROSSTALK_CORRECTED, DRIFT_SUSPECT, STALE, LOADED_AT_TARE = (1 << i for i in range(7))
 TAXEL_FLAG_NAMES = {
@@ -53,15 +54,15 @@ TAXEL_FLAG_NAMES = {
     STALE: "stale",
     LOADED_AT_TARE: "loaded_at_tare",  # zero from the calibration's C0 (loaded_tare.py)
 }
-STUCK_FRAMES = 50
 ADOPT_AFTER_EVENTS = 10  # isolated loads needed before a detected coefficient replaces the prior (within the first press)
 SIGNIFICANT_SIGMAS = 3.0  # a leakage residual is added only when it stands this far above its own error
 ADOPT_PERIOD_FRAMES = 64  # estimates are adopted only at multiples of this frame count
 ESTIMATE_EVERY = 4
 
 
-def flag_names(bits: int) -> list[str]:
-    return [name for bit, name in TAXEL_FLAG_NAMES.items() if bits & bit]
+# The names of every combination of taxel flags, looked up per frame rather than built.
+FLAG_NAMES_BY_BITS = tuple(tuple(name for bit, name in TAXEL_FLAG_NAMES.items() if bits & bit)
+                           for bits in range(2 ** len(TAXEL_FLAG_NAMES)))
 
 
 @dataclass
@@ -129,7 +130,8 @@ class GridProcessor:
                  self.adopted_events, drift.drift, drift._last_t, drift._frozen_since)
         if estimator is None:
             return state
-        slopes = tuple((s, s.xy, s.xx, s.events, s.yy) for s in (estimator.mechanical, estimator.electrical))
+        m, e = estimator.mechanical, estimator.electrical
+        slopes = ((m, m.xy, m.xx, m.events, m.yy), (e, e.xy, e.xx, e.events, e.yy))
         return state + (slopes, crosstalk.electrical, crosstalk.mechanical, crosstalk._unmix)
 
     def rollback(self, checkpoint: tuple) -> None:
@@ -154,27 +156,23 @@ class GridProcessor:
             self._noise_for = (baseline_std_pF, max(pooled, NOISE_FLOOR_PF) / baseline_pF)
         return self._noise_for[1]
 
-    def _stuck(self, capacitance: np.ndarray) -> np.ndarray:
-        """(N, n) mask of channels that have repeated the same count for
-        STUCK_FRAMES frames in a row (a converter that stopped converting;
-        with real noise two equal counts in a row are already rare)."""
-        previous = self._last_raw if self._last_raw is not None and self._last_raw.shape == capacitance.shape[1:] else None
-        if len(capacitance) == 1 and previous is not None:  # the live path's common case
-            self._same_count = np.where(capacitance[0] == previous, self._same_count + 1, 0)
-            self._last_raw = capacitance[0].copy()
-            return self._same_count[None] >= STUCK_FRAMES
-        prior = self._same_count if previous is not None else np.zeros(capacitance.shape[1], dtype=np.int64)
-        shifted = np.vstack([previous[None] if previous is not None else np.full((1, capacitance.shape[1]), np.nan), capacitance[:-1]])
-        same = capacitance == shifted
-        if not np.count_nonzero(same):  # with converter noise, the usual batch: every run restarts
-            self._last_raw, self._same_count = capacitance[-1].copy(), np.zeros(capacitance.shape[1], dtype=np.int64)
-            return np.zeros(capacitance.shape, dtype=bool)
-        # Run lengths of `same` along the frames, continuing the previous batch's runs.
-        runs = np.cumsum(same, axis=0)
-        resets = np.maximum.accumulate(np.where(same, 0, runs), axis=0)
-        counts = runs - resets + np.where(np.cumprod(same, axis=0).astype(bool), prior, 0)
-        self._last_raw, self._same_count = capacitance[-1].copy(), counts[-1]
-        return counts >= STUCK_FRAMES
+    def _runs_before(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(last frame (n,) pF, its run lengths (n,)) that this sensor's next
+        frames continue (stuck.py); a NaN frame and no runs before the first."""
+        if self._last_raw is None or self._last_raw.shape != (n,):
+            return np.full(n, np.nan), np.zeros(n, dtype=np.int64)
+        return self._last_raw, self._same_count
+
+    def _stuck(self, capacitance: np.ndarray, counted: tuple | None = None) -> np.ndarray:
+        """Run lengths (N, n) of repeated counts in frames (N, n), continuing
+        this sensor's runs (stuck.py); ``counted``: (run lengths, last frame)
+        already found with other sensors' frames (stuck.stale_rows), only kept."""
+        if counted is None:
+            previous, prior = self._runs_before(capacitance.shape[1])
+            counted = run_lengths(previous[None], prior[None], capacitance[None])[0], capacitance[-1].copy()
+        runs, self._last_raw = counted
+        self._same_count = runs[-1]
+        return runs
 
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
         """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
@@ -225,7 +223,7 @@ class GridProcessor:
         arithmetic, is the cost."""
         flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
         if self._noisy_board(baseline_std):
-            np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance))
+            np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance) >= STUCK_FRAMES)
         return flags
 
     def _noisy_board(self, baseline_std_pF: np.ndarray) -> bool:

@@ -10,13 +10,13 @@ dominates.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import accumulate
 
 import numpy as np
 
 from . import level0
 from .drift import quiet_medians
 from .sigma import empirical_forces, table_sigma
+from .stuck import stale_rows
 from .grid import (CROSSTALK_CORRECTED, DRIFT_SUSPECT, NO_READING, OUT_OF_RANGE, SATURATED, STALE, GridProcessor,
                    GridResult)
 
@@ -54,33 +54,42 @@ def process_full(jobs: list[GridJob]) -> list[GridResult]:
             for k, result in zip(ks, process_full([jobs[k] for k in ks])):
                 results[k] = result
         return results
-    parts: list[list[GridResult]] = [[] for _ in jobs]
-    pending = [(k, 0) for k in range(len(jobs))]
+    spans = [(job, 0, min(len(job.capacitance), job.processor.frames_to_adoption())) for job in jobs]
+    results = _full_rows(spans)
+    for job, start, end in spans:
+        job.processor._advance(end - start)
+    if all(end == len(job.capacitance) for job, _, end in spans):  # the usual batch: no adoption point inside
+        return results
+    parts = [[result] for result in results]
+    pending = [(k, end) for k, (job, _, end) in enumerate(spans) if end < len(job.capacitance)]
     while pending:
-        spans = [(k, start, min(len(jobs[k].capacitance), start + jobs[k].processor.frames_to_adoption())) for k, start in pending]
-        for (k, start, end), result in zip(spans, _full_rows(jobs, spans)):
+        spans = [(jobs[k], start, min(len(jobs[k].capacitance), start + jobs[k].processor.frames_to_adoption()))
+                 for k, start in pending]
+        for (k, _), (job, start, end), result in zip(pending, spans, _full_rows(spans)):
             parts[k].append(result)
-            jobs[k].processor._advance(end - start)
-        pending = [(k, end) for k, _, end in spans if end < len(jobs[k].capacitance)]
+            job.processor._advance(end - start)
+        pending = [(k, end) for (k, _), (job, _, end) in zip(pending, spans) if end < len(job.capacitance)]
     return [part[0] if len(part) == 1 else GridResult(*(np.concatenate([getattr(r, name) for r in part])
                                                         for name in ("forces_N", "taxel_flags", "sigma_N")))
             for part in parts]
 
 
-def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[GridResult]:
+def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     """One pass over rows ``start:end`` of each job (none crossing an adoption point)."""
-    pieces = [(jobs[k].processor, jobs[k], slice(start, end)) for k, start, end in spans]
-    counts = [end - start for _, start, end in spans]
-    bounds = list(accumulate(counts, initial=0))
-    rows = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
-    params = [p._row_parameters(job.baseline, job.baseline_std) for p, job, _ in pieces]
+    pieces, counts, rows, params = [], [], [], []
+    row = 0
+    for job, start, end in spans:  # each sensor's share, in one loop: per-sensor Python is what a pass costs
+        p = job.processor
+        pieces.append((p, job, slice(start, end)))
+        counts.append(end - start)
+        rows.append(slice(row, row + end - start))
+        row += end - start
+        params.append(p._row_parameters(job.baseline, job.baseline_std))
     capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma) = _stacked_rows(pieces, counts, params)
     flags = _reading_flags(pieces, rows, capacitance)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags)
     medians, enough = quiet_medians(ratio - 1.0, band)
-    drift, suspect = np.empty(len(capacitance)), np.empty(len(capacitance), dtype=bool)
-    for (p, _, _), r in zip(pieces, rows):
-        drift[r], suspect[r] = p.drift.follow(t_s[r], enough[r], medians[r])
+    drift, suspect = _drift(pieces, rows, t_s, enough, medians)
     scale = 1.0 + drift[:, None]
     relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
     for (p, job, _), r, (_, n, *_) in zip(pieces, rows, params):
@@ -90,14 +99,28 @@ def _full_rows(jobs: list[GridJob], spans: list[tuple[int, int, int]]) -> list[G
     np.bitwise_or(flags, CROSSTALK_CORRECTED, out=flags, where=np.abs(compensated - uncompensated) > CORRECTION_SIGMAS * noise)
     if np.count_nonzero(suspect):
         np.bitwise_or(flags, DRIFT_SUSPECT, out=flags, where=suspect[:, None] & (flags & (NO_READING | OUT_OF_RANGE) == 0))
-    forces, saturated, out_of_range = _inverted(pieces, rows, params, compensated, noise, gain)
+    first = pieces[0][0].response
+    shared = all(p.response.shares_curve(first) for p, _, _ in pieces)  # one table: one call for all rows
+    forces, saturated, out_of_range = _inverted(pieces, rows, params, compensated, noise, gain, shared)
     for (p, _, _), r in zip(pieces, rows):
         if p.curves:
             empirical_forces(p.curves, compensated[r], forces[r])
-    sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma), saturated)
+    sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma), saturated, shared)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
     return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]
+
+
+def _drift(pieces: list[Piece], rows: list[slice], t_s: np.ndarray, enough: np.ndarray,
+           medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(drift, drift-suspect) (R,) of the stacked rows, each sensor's tracker
+    stepped through its own rows."""
+    t_s, enough, medians = t_s.tolist(), enough.tolist(), medians.tolist()
+    steps = []
+    for (p, _, _), r in zip(pieces, rows):
+        steps += p.drift.follow(t_s[r], enough[r], medians[r])
+    steps = np.array(steps, dtype=float).reshape(-1, 2)
+    return steps[:, 0], steps[:, 1] != 0.0
 
 
 def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -> tuple:
@@ -115,9 +138,9 @@ def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -
 def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> np.ndarray:
     """No-reading and stale bits of the stacked rows."""
     flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
-    for (p, job, sl), r in zip(pieces, rows):
-        if p._noisy_board(job.baseline_std):
-            np.bitwise_or(flags[r], STALE, out=flags[r], where=p._stuck(job.capacitance[sl]))
+    stale = stale_rows(pieces, rows, capacitance)
+    if stale is not None:
+        np.bitwise_or(flags, STALE, out=flags, where=stale)
     return flags
 
 
@@ -161,21 +184,19 @@ def _unmixed(pieces: list[Piece], rows: list[slice], relative: np.ndarray) -> np
 
 
 def _inverted(pieces: list[Piece], rows: list[slice], params: list[tuple], compensated: np.ndarray,
-              noise: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              noise: np.ndarray, gain: np.ndarray, shared: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(forces, saturated, out of range) from the model tables; sensors on
-    the same table share the inversion, so their rows go through one call."""
-    first = pieces[0][0]
-    if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
-        return first.response.inverse(compensated, noise, gain)
+    the same table (``shared``) share the inversion, so their rows go through one call."""
+    if shared:
+        return pieces[0][0].response.inverse(compensated, noise, gain)
     inverted = [p.response.inverse(compensated[r], n) for (p, _, _), r, (_, n, *_) in zip(pieces, rows, params)]
     return tuple(np.concatenate(arrays) for arrays in zip(*inverted))
 
 
 def _sigma(pieces: list[Piece], rows: list[slice], compensated: np.ndarray, forces: np.ndarray,
-           per_row: tuple, saturated: np.ndarray) -> np.ndarray:
+           per_row: tuple, saturated: np.ndarray, shared: bool) -> np.ndarray:
     """σ of every force (sigma.py); sensors on the same table in one call."""
-    first = pieces[0][0]
-    if all(p.response.shares_curve(first.response) for p, _, _ in pieces):
-        return table_sigma(first.response, compensated, forces, *per_row, saturated)
+    if shared:
+        return table_sigma(pieces[0][0].response, compensated, forces, *per_row, saturated)
     return np.concatenate([table_sigma(p.response, compensated[r], forces[r], *(a[r] if a.ndim == 2 else a for a in per_row),
                                        saturated[r]) for (p, _, _), r in zip(pieces, rows)])

@@ -20,8 +20,9 @@ from ..physics.mountings import MOUNTINGS
 from ..readings import Reading, SensorInfo
 from .baseline import DEFAULT_TARE_FRAMES
 from .force_frame import ForceFrame
-from .grid import LOADED_AT_TARE, NO_READING, flag_names
+from .grid import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING
 from .grid_full import GridJob, process_full
+from .fatigue import update_many
 from .isolation import Isolation
 from .levels import DEFAULT_LEVEL, LEVELS, SceneConfig, choose_level
 from .sensor_states import Resolver, SensorState, SensorStates
@@ -59,6 +60,7 @@ class Reconstructor(SensorStates):
         self.hold_until_tared = hold_until_tared
         self._held: deque[tuple[SensorState, Reading]] = deque()
         self._isolation = Isolation(self._null_frames, clock, log)
+        self._quad_stack: dict[int, tuple[list, np.ndarray]] = {}  # batch size → (baselines, stacked): _quad_baselines
 
     def _calibration_applied(self, sensor_id: int) -> None:
         self._isolation.failing.discard(sensor_id)
@@ -74,9 +76,12 @@ class Reconstructor(SensorStates):
         """Reconstruct a batch of readings (e.g. one read from the port), each
         sensor's frames together; returns ForceFrames in arrival order."""
         pending: list[tuple[SensorState | Exception, Reading]] = []
+        sensors = self._sensors
         for reading in readings:
             try:
-                state = self._state(reading.sensor)
+                state = sensors.get(reading.sensor.id)
+                if state is None or state.info is not reading.sensor:  # the usual reading skips the call
+                    state = self._state(reading.sensor)
                 if state.baseline.update(reading.capacitance_pF) and not state.tare_judged:
                     self._judge_tare(state)
             except Exception as exc:  # noqa: BLE001 — isolated: this reading goes out null and flagged
@@ -98,13 +103,17 @@ class Reconstructor(SensorStates):
         return frames
 
     def _reconstruct(self, items: list[tuple[SensorState | Exception, Reading]]) -> list[ForceFrame]:
-        groups: dict[int, tuple[SensorState, list[int]]] = {}
+        groups: dict[int, tuple[SensorState, list[int], list[Reading]]] = {}
         out: list[ForceFrame | None] = [None] * len(items)
         for index, (state, reading) in enumerate(items):
             if isinstance(state, Exception):  # its baseline or state failed already
                 out[index] = self._isolation.error_frames(reading.sensor, [reading], state)[0]
-            else:
-                groups.setdefault(id(state), (state, []))[1].append(index)
+                continue
+            group = groups.get(id(state))
+            if group is None:
+                group = groups[id(state)] = (state, [], [])
+            group[1].append(index)
+            group[2].append(reading)
 
         def place(indices, frames):
             for i, frame in zip(indices, frames):
@@ -114,23 +123,27 @@ class Reconstructor(SensorStates):
         # frames together: at 1 kHz the per-call cost, not the per-frame
         # arithmetic, dominates. Quads are batched by model, grids by level;
         # a sensor that failed last time runs alone until it succeeds.
-        quads: dict[tuple, list[tuple[SensorState, list[int]]]] = {}
-        grids: list[tuple[SensorState, list[int]]] = []
-        for state, indices in groups.values():
+        quads: dict[tuple, list[tuple[SensorState, list[int], list[Reading]]]] = {}
+        grids: list[tuple[SensorState, list[int], list[Reading]]] = []
+        failing = self._isolation.failing
+        for group in groups.values():
+            state = group[0]
             if not state.baseline.ready:
-                place(indices, self._null_frames(state.info, [items[i][1] for i in indices], "taring"))
+                place(group[1], self._null_frames(state.info, group[2], "taring"))
             elif state.info.kind == "quad":
-                key = state.processor.batch_key if state.info.id not in self._isolation.failing else ("alone", state.info.id)
-                quads.setdefault(key, []).append((state, indices))
+                key = state.processor.batch_key if state.info.id not in failing else ("alone", state.info.id)
+                batch = quads.get(key)
+                if batch is None:
+                    batch = quads[key] = []
+                batch.append(group)
             else:
-                grids.append((state, indices))
+                grids.append(group)
         if grids:
-            members = [(state, [items[i][1] for i in indices]) for state, indices in grids]
-            for (_, indices), frames in zip(grids, self._isolated_grids(members)):
+            for (_, indices, _), frames in zip(grids, self._isolated_grids([(state, rs) for state, _, rs in grids])):
                 place(indices, frames)
         for batch in quads.values():
-            members = [(state, [items[i][1] for i in indices]) for state, indices in batch]
-            place((i for _, indices in batch for i in indices), self._isolation.without_state(members, self._reconstruct_quads))
+            frames = self._isolation.without_state([(state, rs) for state, _, rs in batch], self._reconstruct_quads)
+            place((i for _, indices, _ in batch for i in indices), frames)
         return out
 
     def _isolated_grids(self, members: list[tuple[SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
@@ -146,7 +159,8 @@ class Reconstructor(SensorStates):
         forces = np.full((len(readings), 3 if info.kind == "quad" else info.channels), np.nan)
         state = self._sensors.get(info.id)
         calibration = state.calibration.id if state is not None else ""
-        return self._frames(readings, forces, [r.frame_flags() + [flag] for r in readings], None, calibration, None)
+        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, r.frame_flags() + [flag], self.level, None,
+                           calibration, None, r.t_host_scan) for r, f in zip(readings, forces)]
 
     def _reconstruct_grids(self, members: list[tuple[SensorState, list[Reading]]],
                            isolated: bool = False) -> list[list[ForceFrame]]:
@@ -154,8 +168,7 @@ class Reconstructor(SensorStates):
         ``full`` each sensor is processed on its own; ``isolated`` then turns
         a sensor's exception into its null, flagged frames."""
         if self.level == "full":
-            jobs = [self._job(state, rs) for state, rs in members]
-            return [self._grid_frames(state, rs, result) for (state, rs), result in zip(members, process_full(jobs))]
+            return self._grids_frames(members, process_full(self._jobs(members)))
         out = []
         for state, rs in members:
             if not isolated:
@@ -172,48 +185,88 @@ class Reconstructor(SensorStates):
         return out
 
     @staticmethod
-    def _job(state: SensorState, readings: list[Reading]) -> GridJob:
-        return GridJob(state.processor, np.stack([r.capacitance_pF for r in readings]), state.baseline.value,
-                       state.baseline.std, np.array([r.t_us * 1e-6 for r in readings]))
+    def _jobs(members: list[tuple[SensorState, list[Reading]]]) -> list[GridJob]:
+        """Each grid's job, its frames and times rows of arrays made once for
+        all (once per sensor where the grids differ in size)."""
+        if len({state.info.channels for state, _ in members}) > 1:
+            return [job for member in members for job in Reconstructor._jobs([member])]
+        readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
+        capacitance = np.array([r.capacitance_pF for r in readings])
+        t_s = np.array([r.t_us for r in readings]) * 1e-6
+        jobs, start = [], 0
+        for state, rs in members:
+            end = start + len(rs)
+            jobs.append(GridJob(state.processor, capacitance[start:end], state.baseline.value, state.baseline.std,
+                                t_s[start:end]))
+            start = end
+        return jobs
 
     def _process_grid(self, state: SensorState, readings: list[Reading]):
-        job = self._job(state, readings)
+        job = self._jobs([(state, readings)])[0]
         return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s)
 
     def _grid_frames(self, state: SensorState, readings: list[Reading], result) -> list[ForceFrame]:
-        taxel_flags = result.taxel_flags
-        if state.loaded is not None:
-            np.bitwise_or(taxel_flags, LOADED_AT_TARE, out=taxel_flags, where=state.loaded)
-        flags = [r.frame_flags() for r in readings]
+        return self._grids_frames([(state, readings)], [result])[0]
+
+    def _grids_frames(self, members: list[tuple[SensorState, list[Reading]]], results: list) -> list[list[ForceFrame]]:
+        """Each grid's frames from its result; their frame flags and load
+        cycles found for all sensors together (one call per step, not per sensor)."""
+        for (state, _), result in zip(members, results):
+            if state.loaded is not None:
+                np.bitwise_or(result.taxel_flags, LOADED_AT_TARE, out=result.taxel_flags, where=state.loaded)
+        if len(results) == 1:
+            forces, taxel_flags, sigma = results[0].forces_N, results[0].taxel_flags, results[0].sigma_N
+        else:
+            forces, taxel_flags, sigma = (np.concatenate([getattr(r, name) for r in results])
+                                          for name in ("forces_N", "taxel_flags", "sigma_N"))
+        update_many([state.cycles for state, _ in members], forces, [len(rs) for _, rs in members])
         union = np.bitwise_or.reduce(taxel_flags, axis=1) & ~np.uint8(NO_READING)
-        if np.count_nonzero(union):
-            for f, bits in zip(flags, union.tolist()):
-                f.extend(flag_names(bits))
-        state.cycles.update(result.forces_N)
-        return self._frames(readings, result.forces_N, flags, taxel_flags, state.calibration.id, result.sigma_N)
+        union = union.tolist() if np.count_nonzero(union) else None
+        out, i, level, names = [], 0, self.level, FLAG_NAMES_BY_BITS
+        for state, readings in members:
+            calibration = state.calibration.id
+            frames = []
+            for r in readings:
+                flags = r.frame_flags()
+                if union is not None and union[i]:
+                    flags.extend(names[union[i]])
+                frames.append(ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, forces[i], r.capacitance_pF, flags, level,
+                                         taxel_flags[i], calibration, sigma[i], r.t_host_scan))
+                i += 1
+            out.append(frames)
+        return out
 
     def _reconstruct_quads(self, members: list[tuple[SensorState, list[Reading]]]) -> list[ForceFrame]:
         """Tared quads sharing one model, each with its readings; their
         frames in member order."""
         counts = [len(rs) for _, rs in members]
         readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
-        capacitance = np.stack([r.capacitance_pF for r in readings])
-        baseline = np.repeat(np.stack([state.baseline.value for state, _ in members]), counts, axis=0)
-        noise = np.repeat([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in members], counts)
+        capacitance = np.array([r.capacitance_pF for r in readings])
+        baseline = self._quad_baselines([state.baseline.value for state, _ in members])
+        noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in members])
+        sensitivity = np.array([self._sensitivity(state) for state, _ in members])
+        if len(readings) != len(members):
+            baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
         processor = members[0][0].processor
-        sensitivity = np.repeat([self._sensitivity(state) for state, _ in members], counts)
         forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity)
         sigma = processor.sigma(forces, noise)
-        start = 0
-        for (state, _), count in zip(members, counts):
-            state.cycles.update(forces[start:start + count, 2:3])
-            start += count
-        flags = [r.frame_flags() + extra for r, extra in zip(readings, quad_flags)]
-        if len(members) == 1:
-            return self._frames(readings, forces, flags, None, members[0][0].calibration.id, sigma)
-        ids = [state.calibration.id for state, rs in members for _ in rs]
-        return [frame for i, cid in enumerate(ids)
-                for frame in self._frames(readings[i:i + 1], forces[i:i + 1], flags[i:i + 1], None, cid, sigma[i:i + 1])]
+        update_many([state.cycles for state, _ in members], forces[:, 2:3], counts)
+        level, out, i = self.level, [], 0
+        for (state, rs) in members:
+            calibration = state.calibration.id
+            for r in rs:
+                out.append(ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, forces[i], r.capacitance_pF,
+                                      r.frame_flags() + quad_flags[i], level, None, calibration, sigma[i], r.t_host_scan))
+                i += 1
+        return out
+
+    def _quad_baselines(self, baselines: list[np.ndarray]) -> np.ndarray:
+        """The baselines (S, 4) of a batch's quads, stacked again only when
+        the sensors or one of their tares changed."""
+        cached = self._quad_stack.get(len(baselines))
+        if cached is None or any(a is not b for a, b in zip(cached[0], baselines)):
+            cached = self._quad_stack[len(baselines)] = (baselines, np.array(baselines))
+        return cached[1]
 
     @staticmethod
     def _sensitivity(state: SensorState) -> float:
@@ -226,14 +279,3 @@ class Reconstructor(SensorStates):
         if state.sensitivity_for is None or state.sensitivity_for[0] != count or state.sensitivity_for[1] is not model:
             state.sensitivity_for = (count, model, float(model.factor(count)))
         return state.sensitivity_for[2]
-
-    def _frames(self, readings: list[Reading], forces: np.ndarray, flags: list[list[str]], taxel_flags: np.ndarray | None,
-                calibration: str, sigma: np.ndarray | None) -> list[ForceFrame]:
-        level = self.level
-        if sigma is None:
-            sigma = [None] * len(readings)
-        if taxel_flags is None:
-            return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, None, calibration, sg,
-                               r.t_host_scan) for r, f, fl, sg in zip(readings, forces, flags, sigma)]
-        return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, fl, level, tf, calibration, sg,
-                           r.t_host_scan) for r, f, fl, tf, sg in zip(readings, forces, flags, taxel_flags, sigma)]
