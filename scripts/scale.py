@@ -1,12 +1,14 @@
 """How many boards × sensors one service and one gateway carry at 1 kHz (a script, not a unit test; docs/scale.md).
 
-    python scripts/scale.py service --boards 1 2 4 8 --sensors 2 4 [--seconds 10] [--nice -10]
+    python scripts/scale.py service --boards 1 2 4 8 --sensors 2 4 [--seconds 10] [--nice -10] [--in-process]
     python scripts/scale.py gateway --services 1 2 4 [--sensors 2] [--seconds 10]
 
 ``service``: one `tactile serve` reading ``boards`` simulated boards of
-``sensors`` sensors each (half grids 8×8, half quads, all at 1 kHz; the
-simulators run inside the service process, as a real board's bytes would
-arrive) and no client. Reported per set-up: the service's published latency
+``sensors`` sensors each (half grids 8×8, half quads, all at 1 kHz) and no
+client. Each board is a `tactile sim --tcp` process at nice 19, read over
+``socket://``: a real board costs the host nothing to make its bytes, and
+the simulator's forward model costs more than the service (run inside the
+service, ``--in-process``, it is counted in the service's CPU). Reported per set-up: the service's published latency
 (receive stamp → reconstructed and handed to the listeners, /health over its
 last 2 000 frames: p50, p99, max), the frames per second it published and
 its CPU (user + system over the window, /proc/PID/stat).
@@ -53,7 +55,7 @@ def cpu_s(pid: int) -> float:
 
 
 def health(port: int) -> dict:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=10) as response:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=30) as response:
         return json.load(response)
 
 
@@ -79,10 +81,29 @@ def stop(processes) -> None:
             process.wait()
 
 
-def one_service(boards: int, sensors: int, seconds: float, nice: int) -> dict:
+def simulator(sensors: int, seed: int) -> tuple[subprocess.Popen, str]:
+    """A `tactile sim --tcp` process at nice 19 and its socket:// URL."""
+    kinds = ",".join("grid" if i % 2 == 0 else "quad" for i in range(sensors))
+    process = subprocess.Popen(["nice", "-n", "19", sys.executable, "-m", "service.cli", "sim", "--tcp", "0",
+                                "--rate", "1000", "--sensors", kinds, "--scene", "press", "--seed", str(seed)],
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    line = process.stdout.readline()
+    if "socket://" not in line:
+        process.kill()
+        raise SystemExit(f"the simulator did not start: {line!r}")
+    return process, line.split(" on ", 1)[1].split()[0]
+
+
+def one_service(boards: int, sensors: int, seconds: float, nice: int, in_process: bool) -> dict:
     port = free_port()
-    sources = [arg for b in range(boards) for arg in ("--source", f"b{b}={sensors_url(sensors, b)}")]
-    process = start(["serve", *sources, "--port", str(port)], nice)
+    sims = [] if in_process else [simulator(sensors, b) for b in range(boards)]
+    urls = [sensors_url(sensors, b) for b in range(boards)] if in_process else [url for _, url in sims]
+    sources = [arg for b, url in enumerate(urls) for arg in ("--source", f"b{b}={url}")]
+    try:
+        process = start(["serve", *sources, "--port", str(port)], nice)
+    except BaseException:
+        stop([p for p, _ in sims])
+        raise
     try:
         time.sleep(3.0)  # tared, rates settled
         before, frames_before, t0 = cpu_s(process.pid), health(port)["frames_published"], time.monotonic()
@@ -91,7 +112,7 @@ def one_service(boards: int, sensors: int, seconds: float, nice: int) -> dict:
         elapsed = time.monotonic() - t0
         cpu = (cpu_s(process.pid) - before) / elapsed
     finally:
-        stop([process])
+        stop([process, *(p for p, _ in sims)])
     latency = report["latency"]["published"]
     return {"boards": boards, "sensors": sensors, "frames_per_s": round((report["frames_published"] - frames_before) / elapsed),
             "p50_ms": latency["p50_ms"], "p99_ms": latency["p99_ms"], "max_ms": latency["max_ms"],
@@ -145,6 +166,7 @@ def main() -> None:
     service = sub.add_parser("service")
     service.add_argument("--boards", type=int, nargs="+", default=[1, 2, 4, 8])
     service.add_argument("--sensors", type=int, nargs="+", default=[2, 4])
+    service.add_argument("--in-process", action="store_true", help="the simulators inside the service (sim://)")
     gateway = sub.add_parser("gateway")
     gateway.add_argument("--services", type=int, nargs="+", default=[1, 2, 4])
     gateway.add_argument("--sensors", type=int, default=2)
@@ -155,7 +177,7 @@ def main() -> None:
     if args.mode == "service":
         for boards in args.boards:
             for sensors in args.sensors:
-                print(json.dumps(one_service(boards, sensors, args.seconds, args.nice)), flush=True)
+                print(json.dumps(one_service(boards, sensors, args.seconds, args.nice, args.in_process)), flush=True)
     else:
         for services in args.services:
             print(json.dumps(one_gateway(services, args.sensors, args.seconds, args.nice)), flush=True)
