@@ -224,20 +224,24 @@ class Pipeline:
             listener(frames)
 
     def _keep(self, frames: list[ForceFrame], t_host: float) -> None:
-        """Latest frame, history and rate of each sensor in ``frames``: the
-        rate meters ticked once per sensor and batch, with its frame count."""
-        latest, histories, rates = self.latest, self.history, self.rates
-        counts: dict[int, int] = {}
-        for frame in frames:
-            sid = frame.sensor.id
-            history = histories.get(sid)
-            if history is None or history.info is not frame.sensor:
-                history = histories.for_frame(frame)
-            history.append(frame)
-            latest[sid] = frame
-            counts[sid] = counts.get(sid, 0) + 1
-        for sid, count in counts.items():
-            meter = rates.get(sid)
-            if meter is None:
-                meter = rates[sid] = RateMeter()
-            meter.tick(t_host, count)
+        keep(frames, self.latest, self.history, self.rates, t_host)
+
+
+def keep(frames: list[ForceFrame], latest: dict, histories: Histories, rates: dict, now: float) -> None:
+    """Latest frame, history and rate of each sensor in ``frames`` (one
+    board's): the rate meters ticked once per sensor and batch, with its
+    frame count."""
+    counts: dict[int, int] = {}
+    for frame in frames:
+        sid = frame.sensor.id
+        history = histories.get(sid)
+        if history is None or history.info is not frame.sensor:
+            history = histories.for_frame(frame)
+        history.append(frame)
+        latest[sid] = frame
+        counts[sid] = counts.get(sid, 0) + 1
+    for sid, count in counts.items():
+        meter = rates.get(sid)
+        if meter is None:
+            meter = rates[sid] = RateMeter()
+        meter.tick(now, count)

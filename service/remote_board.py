@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from .board import RemoteBoardError
 from .history import Histories
-from .pipeline import RateMeter
+from .pipeline import RateMeter, keep
 from .reconstruct import ForceFrame
 
 LOST_AFTER_S = 2.5  # health comes every second: two missed and a half
@@ -40,18 +40,9 @@ class RemoteBoard:
 
     def receive(self, frames: list[ForceFrame], now: float) -> None:
         """A batch of this board's frames (on the event loop)."""
-        counts: dict[int, int] = {}
         for frame in frames:
-            sid = frame.sensor.id
-            self.sensors[sid] = frame.sensor
-            history = self.history.get(sid)
-            if history is None or history.info is not frame.sensor:
-                history = self.history.for_frame(frame)
-            history.append(frame)
-            self.latest[sid] = frame
-            counts[sid] = counts.get(sid, 0) + 1
-        for sid, count in counts.items():
-            self.rates.setdefault(sid, RateMeter()).tick(now, count)
+            self.sensors[frame.sensor.id] = frame.sensor
+        keep(frames, self.latest, self.history, self.rates, now)
         self.frame_at = now
         if self.alive is not False:
             self.lost_at = None
