@@ -1,7 +1,5 @@
 """Several boards in one service: addressing board/sensor everywhere, and
 boards that cannot disturb each other (one vanishes, stalls or floods)."""
-import socket
-import threading
 import time
 
 import numpy as np
@@ -10,6 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from firmware_sim.board import BoardConfig, capture
+from firmware_sim.misbehaving import MisbehavingBoard
 from firmware_sim.sensors import SimGrid, SimQuad
 from service.api.app import create_app
 from service.board import BoardSpec
@@ -119,56 +118,6 @@ def test_a_bare_source_is_named_from_its_info():
         assert name not in ("", "board")  # the simulator's INFO names it
         assert client.get(f"/sensors/{name}/0/latest").json()["header"]["board"] == name
         assert client.get("/sensors/0/latest").status_code == 200  # one board: a bare id still works
-
-
-class MisbehavingBoard:
-    """A TCP 'board' for the service's second source: it streams a real
-    capture, then goes silent, then floods junk and frames as fast as the
-    socket takes them, then disappears."""
-
-    def __init__(self) -> None:
-        self.server = socket.create_server(("127.0.0.1", 0))
-        self.port = self.server.getsockname()[1]
-        self.phase = "stream"  # then "silent", "flood", "gone"
-        self.stop = threading.Event()
-        data, _ = capture(BoardConfig(sensors=[SimGrid(0), SimQuad(1)], scene="press", seed=9), 20.0)
-        self.data = data
-        threading.Thread(target=self._serve, daemon=True).start()
-
-    def _serve(self) -> None:
-        """One connection at a time; the service reconnecting (after the
-        silence) gets a new one, served in the phase of the moment."""
-        self.server.settimeout(0.05)
-        pos, started = 0, time.monotonic()
-        conn = None
-        try:
-            while not self.stop.is_set():
-                try:
-                    new, _ = self.server.accept()
-                    if conn is not None:
-                        conn.close()
-                    conn = new
-                except TimeoutError:
-                    pass
-                if conn is None or self.phase == "silent":
-                    continue
-                try:
-                    if self.phase == "stream":  # the capture at its own rate
-                        due = int((time.monotonic() - started) * len(self.data) / 20.0)
-                        conn.sendall(self.data[pos:due])
-                        pos = due
-                    else:  # flood: 64 KiB of frames and 8 KiB of junk every 5 ms, ~50x a board's rate
-                        junk = np.random.default_rng(pos).integers(0, 256, 8192, np.uint8).tobytes()
-                        conn.sendall(self.data[pos % 65536:pos % 65536 + 65536] + junk)
-                        pos += 65536
-                        time.sleep(0.005)
-                except OSError:
-                    conn.close()
-                    conn = None
-        finally:
-            if conn is not None:
-                conn.close()
-            self.server.close()
 
 
 def test_a_board_that_stalls_floods_or_vanishes_does_not_disturb_another():
