@@ -121,13 +121,14 @@ def wait_for(base: str, seconds: float) -> None:
             time.sleep(0.2)
 
 
-def measure(tree: Path, items: list[bytes], seconds: float, port: int, warmup: float) -> tuple[float, float]:
+def measure(tree: Path, items: list[bytes], seconds: float, port: int, warmup: float,
+            serve_options: tuple[str, ...] = ()) -> tuple[float, float]:
     """(service CPU in % of one core, frames decoded per second) over ``seconds``."""
     board = multiprocessing.Process(target=send_scans, args=(port + 1, items), daemon=True)
     board.start()
     time.sleep(0.5)
     service = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--source", f"socket://127.0.0.1:{port + 1}",
-                                "--port", str(port), "--level", "full"], cwd=tree,
+                                "--port", str(port), "--level", "full", *serve_options], cwd=tree,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     base = f"http://127.0.0.1:{port}"
     try:
@@ -240,6 +241,8 @@ def main() -> int:
     parser.add_argument("--boards", default=",".join(BOARDS), help=f"which boards (default {','.join(BOARDS)})")
     parser.add_argument("--before", type=Path, help="a second source tree to measure alternately (its service/ is run)")
     parser.add_argument("--port", type=int, default=8775)
+    parser.add_argument("--grid-batch-ms", type=float, metavar="MS",
+                        help="run this tree's service with --grid-batch-ms MS (not --before's: give --before this tree for an A/B)")
     parser.add_argument("--out", type=Path, help="write livecpu.png into this directory")
     parser.add_argument("--in-process", metavar="MERGES",
                         help="instead, the pipeline alone (no service), reads fed 1, 2, … at a time, e.g. 1,3: "
@@ -254,7 +257,8 @@ def main() -> int:
     for round_ in range(args.rounds):
         for name in boards:
             for label, tree in trees.items():
-                run = measure(tree, streams[name], args.seconds, args.port, args.warmup)
+                options = ("--grid-batch-ms", str(args.grid_batch_ms)) if args.grid_batch_ms and label != "before" else ()
+                run = measure(tree, streams[name], args.seconds, args.port, args.warmup, options)
                 results[label].setdefault(name, []).append(run)
                 print(f"round {round_ + 1}, {name} sensors, {label}: {run[0]:.1f} % of a core, {run[1]:,.0f} frames/s",
                       flush=True)

@@ -98,13 +98,14 @@ class Board:
     first INFO settled (``board`` until then)."""
 
     def __init__(self, spec: BoardSpec, calibrations, histories: Histories, name_board=None,
-                 silence_s: float = DEFAULT_SILENCE_S) -> None:
+                 silence_s: float = DEFAULT_SILENCE_S, grid_batch_s: float = 0.0) -> None:
         self.spec = spec
         self.source = spec.source
         self.silence_s = silence_s
         self.calibrations = calibrations
         self.pipeline = Pipeline(Reconstructor(level=spec.level, mounting=spec.mounting), histories=histories,
-                                 calibrations=calibrations, board_name=spec.name, name_board=name_board)
+                                 calibrations=calibrations, board_name=spec.name, name_board=name_board,
+                                 grid_batch_s=grid_batch_s)
         self.handover: LoopHandover | None = None
         self.readout: Readout | None = None
 

@@ -106,6 +106,10 @@ def _add_serving_options(parser: argparse.ArgumentParser) -> None:
                         help="after this long without a byte, ask the board INFO? and then reopen the link "
                              "(default: %(default)s)")
     _add_reconstruction_options(parser)
+    parser.add_argument("--grid-batch-ms", type=float, default=0.0, metavar="MS",
+                        help="let grids wait up to MS to be reconstructed together with the reads that come "
+                             "meanwhile: less CPU for up to MS more grid latency; quads never wait (default: "
+                             "%(default)s; docs/performance.md)")
     parser.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
                         help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
                              "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")

@@ -139,7 +139,8 @@ def cmd_serve(args) -> int:
     publisher = zenoh_publisher(args)
     book = book_from_options(args.registry, args.calibration, args.mounting, getattr(args, "recording", None))
     service = TactileService(sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
-                             silence_s=args.silence_s, calibrations=book, boards=specs, mounting=args.mounting)
+                             silence_s=args.silence_s, calibrations=book, boards=specs, mounting=args.mounting,
+                             grid_batch_s=_grid_batch_s(args.grid_batch_ms))
     service.zenoh = publisher
     app = create_app(service, token=token, bind_host=args.host, allow_hosts=tuple(args.allow_host),
                      allow_origins=tuple(args.allow_origin))
@@ -153,6 +154,12 @@ def cmd_serve(args) -> int:
     finally:
         for watcher in watchers:
             watcher.stop(final_look=False)
+
+
+def _grid_batch_s(ms: float) -> float:
+    if not 0 <= ms <= 100:
+        raise ValueError(f"--grid-batch-ms {ms:g} must be in [0, 100]")
+    return ms / 1000.0
 
 
 def cmd_gateway(args) -> int:

@@ -54,11 +54,14 @@ class TactileService:
     def __init__(self, source: str = DEFAULT_SOURCE, level: str = DEFAULT_LEVEL, mounting: str = "flat",
                  sched_slice_us: int | None = None, recordings_dir: str | Path = "recordings",
                  silence_s: float = DEFAULT_SILENCE_S, calibrations: CalibrationBook | None = None,
-                 boards: list[BoardSpec] | None = None, history_budget_bytes: int = DEFAULT_BUDGET_BYTES) -> None:
+                 boards: list[BoardSpec] | None = None, history_budget_bytes: int = DEFAULT_BUDGET_BYTES,
+                 grid_batch_s: float = 0.0) -> None:
         """``boards``: the boards to read (default: one, ``source``, named
         from its INFO). ``calibrations``: where sensors' calibrations come
         from and uploads go (default: the registry at its default place,
-        calibration/book.py). The history budget is shared equally by the boards."""
+        calibration/book.py). The history budget is shared equally by the
+        boards. ``grid_batch_s``: how long grids may wait to be reconstructed
+        with later reads (pipeline.py)."""
         specs = boards or [BoardSpec(source, level=level, mounting=mounting)]
         names = [spec.name for spec in specs if spec.name is not None]
         if len(set(names)) != len(names):
@@ -69,7 +72,7 @@ class TactileService:
         self.calibrations = calibrations if calibrations is not None else CalibrationBook(mounting=mounting)
         share = max(1, history_budget_bytes // len(specs))
         self._boards = [Board(spec, self.calibrations.with_pinned(list(spec.calibration)) if spec.calibration
-                              else self.calibrations, Histories(share), self._name_board, silence_s)
+                              else self.calibrations, Histories(share), self._name_board, silence_s, grid_batch_s)
                         for spec in specs]
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners

@@ -9,6 +9,7 @@ ForceFrames.
 """
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections import deque
@@ -75,7 +76,8 @@ class Pipeline:
     def __init__(self, reconstructor: Reconstructor | None = None, clock: Callable[[], float] = time.time,
                  histories: Histories | None = None, keep_history: bool = True,
                  calibrations: CalibrationSource | None = None, map_clock: bool = True,
-                 board_name: str | None = None, name_board: Callable[[dict], str] | None = None) -> None:
+                 board_name: str | None = None, name_board: Callable[[dict], str] | None = None,
+                 grid_batch_s: float = 0.0) -> None:
         """``keep_history=False`` (offline export) keeps no latest frame,
         history or rates: each batch only goes to the listeners.
         ``calibrations`` (calibration/book.py's CalibrationBook): a sensor's
@@ -84,8 +86,11 @@ class Pipeline:
         from the receive times (False for a stream without them, a raw
         capture). ``board_name``: the board's name in every sensor's address
         (board/id); without it ``name_board`` (readings.name_from_info by
-        default) names the board from its first INFO."""
+        default) names the board from its first INFO. ``grid_batch_s``: live,
+        grids wait up to this long to be reconstructed together with the
+        reads that come meanwhile (CPU for latency: docs/performance.md)."""
         self.clock = ClockMap() if map_clock else None
+        self.grid_batch_s = grid_batch_s
         self.keep_history = keep_history
         self.decoder = BulkDecoder()
         self.interpreter = Interpreter(clock, board_name=board_name, name_board=name_board or name_from_info)
@@ -124,7 +129,7 @@ class Pipeline:
         if grids:
             self._deferred.append((grids, t_host))
             if len(self._deferred) == 1:
-                defer(self._reconstruct_deferred)
+                defer(self._reconstruct_deferred if self.grid_batch_s <= 0 else self._reconstruct_after_window)
 
     def finish(self, t_host: float) -> list[ForceFrame]:
         """End of a finite stream: decode what is left, release held frames."""
@@ -204,6 +209,11 @@ class Pipeline:
             frames = self.reconstructor.process_many(readings) if readings else []
         self._publish(frames, t_host)
         return frames
+
+    def _reconstruct_after_window(self) -> None:
+        """On the loop: the grids deferred from now on go through together
+        after ``grid_batch_s`` (fewer, larger batches: less per-read cost)."""
+        asyncio.get_running_loop().call_later(self.grid_batch_s, self._reconstruct_deferred)
 
     def _reconstruct_deferred(self) -> None:
         """All grids deferred so far in one batch: reads that piled up while

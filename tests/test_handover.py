@@ -12,6 +12,7 @@ from service.fanout.hub import Outgoing, Subscriber
 from service.handover import LoopHandover
 from service.live_service import TactileService
 from service.pipeline import Pipeline
+from service.reconstruct import Reconstructor
 from service.readings import SensorInfo
 from service.reconstruct import ForceFrame
 
@@ -140,3 +141,38 @@ def test_a_link_lost_between_reads_resets_the_decoder_at_that_point():
     loop.run_until_complete(asyncio.sleep(0.01))
     loop.close()
     assert pipeline.decoder.counters.sensor(0).frames == 49
+
+
+def test_grids_wait_for_their_window_and_go_through_together_quads_never_wait():
+    """``grid_batch_s``: the grids of reads that come within the window are
+    reconstructed in one batch, the same frames as one read at a time (up to
+    where the tare's end falls); the quads of every read are published at once."""
+    data, _ = capture(BoardConfig(scene="press", seed=6), 0.6)
+    chunk = len(data) // 600  # ~1 ms of scans a read
+
+    def run(window: float) -> tuple[list, list]:
+        pipeline = Pipeline(Reconstructor(), grid_batch_s=window)
+        batches: list = []
+        pipeline.listeners.append(lambda frames: batches.append([(f.sensor.kind, f.seq, f.forces_N) for f in frames]))
+
+        async def feed() -> None:
+            loop = asyncio.get_running_loop()
+            for start in range(0, len(data), chunk):
+                pipeline.feed_reads([(data[start:start + chunk], time.time())], loop.call_soon)
+                await asyncio.sleep(0.0005)
+            await asyncio.sleep(window + 0.05)  # the last window closes
+
+        asyncio.run(feed())
+        grids = [b for b in batches if b[0][0] == "grid"]
+        quads = [b for b in batches if b[0][0] == "quad"]
+        return grids, quads
+
+    grids_now, quads_now = run(0.0)
+    grids_batched, quads_batched = run(0.010)
+    assert len(grids_batched) < len(grids_now) / 3  # ~0.4 s of reads: a batch per 10 ms, not one per read
+    assert len(quads_batched) >= len(quads_now) * 0.8  # quads keep going out read by read
+    frames_now = [f for batch in grids_now for f in batch]
+    frames_batched = [f for batch in grids_batched for f in batch]
+    assert [f[1] for f in frames_batched] == [f[1] for f in frames_now]
+    # The same forces but for the tare, which applies from the batch its last frame is in: 1.2e-5 N here.
+    assert all(np.allclose(a[2], b[2], rtol=0, atol=1e-4, equal_nan=True) for a, b in zip(frames_now, frames_batched))
