@@ -99,14 +99,13 @@ class RemoteBoard:
                                  "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
                                  "stale": stale, "last_frame_age_s": None if age is None else round(age, 3)}
         problems = list(document.get("problems") or [])
-        if lost:
+        part = {key: document.get(key) for key in BOARD_FIELDS}
+        if lost:  # the remote service's last word on its link no longer holds
             why = "its service's liveliness token is gone" if self.alive is False else \
                 f"nothing heard for {LOST_AFTER_S} s"
             problems.insert(0, f"lost: {why}")
-        part = {key: document.get(key) for key in BOARD_FIELDS}
-        if lost:  # the remote service's last word on its link no longer holds
             part["link"] = {**(part["link"] or {}), "source": self.source, "state": "down", "up": False,
-                            "last_error": f"the service of board {self.name} is lost ({problems[0][6:]})"}
+                            "last_error": f"the service of board {self.name} is lost ({why})"}
         return {
             "source": self.source,
             "status": "degraded" if lost or problems else "ok",

@@ -487,7 +487,7 @@ function worstLink(health) {
 
 function describeStatus(health) {
   const [which, link] = worstLink(health);
-  const source = link.source ? ` · ${which}${link.source}` : "";
+  const source = link.source ? ` · ${link.source}` : "";
   const age = link.last_data_age_s == null ? "" : ` for ${link.last_data_age_s.toFixed(1)} s`;
   const state = linkState(link);
   if (state === "finished") return ["finished", `Replay finished: the recording has ended, showing its last frames${source}`];
