@@ -88,28 +88,28 @@ def cmd_bench(args) -> int:
 
 
 def cmd_tables_build(args) -> int:
-    from .physics import tables
+    from .physics import table_files, tables
 
     directory = Path(args.out) if args.out else None
     for shape in args.shape:
-        spec = tables.TableSpec(shape, pdms_nu=args.nu, p=args.p, pz=args.pz)
+        spec = table_files.TableSpec(shape, pdms_nu=args.nu, p=args.p, pz=args.pz)
         try:
-            tables.load(spec, directory)
+            table_files.load(spec, directory)
             print(f"{spec.filename}: up to date")
             continue
         except FileNotFoundError:
             pass
         with progress_bar(desc=shape, total=100, unit="%", bar_format="{desc:8s} {percentage:3.0f}%|{bar}| {elapsed}") as bar:
             table = tables.build(spec, lambda fraction: bar.update(round(100 * fraction) - bar.n))
-        print(f"{tables.save(table, directory)}: {len(table.force_N)} points to {table.max_force_N:.2f} N")
+        print(f"{table_files.save(table, directory)}: {len(table.force_N)} points to {table.max_force_N:.2f} N")
     return 0
 
 
 def cmd_tables_list(args) -> int:
-    from .physics import tables
+    from .physics import table_files
 
-    for path in sorted(tables.shipped_dir().glob("*.json")):
-        table = tables.ForceTable.from_json(path.read_bytes())
+    for path in sorted(table_files.shipped_dir().glob("*.json")):
+        table = table_files.ForceTable.from_json(path.read_bytes())
         print(f"{path.name}: shape {table.spec.shape}, ν {table.spec.pdms_nu}, p {table.spec.p}/{table.spec.pz}, "
               f"0–{table.max_force_N:.2f} N")
     return 0

@@ -36,7 +36,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from ..physics.mountings import MOUNTINGS
-from ..physics.tables import TableSpec, load
+from ..physics.table_files import TableSpec, load
 from ..physics.taxel_response import SENSITIVITY_FORCES_N, TaxelResponse
 from .segmentation import TaxelSamples
 

@@ -174,7 +174,7 @@ def dense_inverse(force_N: np.ndarray, relative: np.ndarray) -> tuple[np.ndarray
 
 @lru_cache(maxsize=8)
 def _table(shape: str):
-    from .tables import TableSpec, load
+    from .table_files import TableSpec, load
 
     return load(TableSpec(shape))
 
