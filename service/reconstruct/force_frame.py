@@ -42,6 +42,11 @@ class ForceFrame:
             self._contact = summarise(self.forces_N, self.sensor.rows, self.sensor.cols)
         return self._contact
 
+    def keep_contact(self, summary: dict | None) -> None:
+        """The contact summary found for many frames at once
+        (record/contact_batch.py), bit for bit ``contact``'s."""
+        self._contact = summary
+
     def taxel_flag_lists(self) -> dict[str, list[int]]:
         """Per-taxel flags as {name: [row-major taxel indices]}, only flags set."""
         if self.taxel_flags is None or not self.taxel_flags.any():
