@@ -67,21 +67,27 @@ def test_create_app_fails_clearly_without_the_dashboard(tmp_path, monkeypatch):
         app.create_app(TactileService("sim://"))
 
 
-def test_a_replay_starts_without_scipy_or_the_model_builder(tmp_path):
+def test_a_replay_starts_without_scipy_the_model_builder_or_pandas(tmp_path):
     # Start-up is most of a short replay's time: scipy.sparse (pulled in by the
-    # Ritz model that builds the tables) alone took 0.3 s of it.
+    # Ritz model that builds the tables) took 0.3 s of it, pandas (which
+    # pyarrow.array imports) 0.26 s of a Parquet export.
     from firmware_sim.board import BoardConfig, capture
     from firmware_sim.urlhandler.protocol_sim import parse_sensors
 
     raw = tmp_path / "tiny.bin"
     raw.write_bytes(capture(BoardConfig(sensors=parse_sensors("grid,quad")), 0.3)[0])
-    code = f"""
+    for suffix in ("jsonl", "parquet"):
+        code = f"""
 import sys
 from service.cli import main
-code = main(["replay", "--raw", {str(raw)!r}, "--export", {str(tmp_path / "out.jsonl")!r}])
-print(code, sorted(m for m in sys.modules if m.startswith(("scipy", "service.physics.ritz", "service.physics.tables"))))
+code = main(["replay", "--raw", {str(raw)!r}, "--export", {str(tmp_path / ("out." + suffix))!r}])
+print(code, sorted(m for m in sys.modules if m.startswith(("scipy", "service.physics.ritz", "service.physics.tables",
+                                                           "pandas"))))
 """
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert result.returncode == 0, result.stderr
-    assert result.stdout.splitlines()[-1] == "0 []"
+        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0, result.stderr
+        assert result.stdout.splitlines()[-1] == "0 []"
     assert (tmp_path / "out.jsonl").read_bytes().count(b"\n") > 200
+    import pyarrow.parquet as pq
+
+    assert pq.read_table(tmp_path / "out.parquet").num_rows == (tmp_path / "out.jsonl").read_bytes().count(b"\n")

@@ -13,8 +13,11 @@ calibration id and the 1-σ of each force:
     calibration string · sigma_N list<f32> (null where the frame has none)
 
 Forces are the reconstruction's float64, bit for bit. Columns are built per
-batch with numpy and written in row groups of ROW_GROUP rows; pandas
-(``read_parquet``) and polars (``read_parquet``) open the file as it is.
+batch from numpy buffers (arrow_columns.py: no pandas import, no Python
+object per value) and written in row groups of ROW_GROUP rows, text columns
+dictionary-encoded (the floats' dictionaries cost half the write and saved
+nothing); pandas (``read_parquet``) and polars (``read_parquet``) open the
+file as it is.
 """
 from __future__ import annotations
 
@@ -25,78 +28,103 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..reconstruct import ForceFrame
+from .arrow_columns import fixed_lists, lists, numbers, strings, structs
 from .contact_batch import columns
 
 ROW_GROUP = 65_536
 CONTACT = pa.struct([("total_N", pa.float64()), ("cop_x_mm", pa.float64()), ("cop_y_mm", pa.float64()),
                      ("area_mm2", pa.float64()), ("contacts", pa.int32())])
+TAXEL_FLAGS = pa.map_(pa.string(), pa.list_(pa.int32()))
 SCHEMA = pa.schema([
     ("board", pa.string()), ("sensor", pa.uint8()), ("seq", pa.uint16()), ("t_us", pa.uint32()), ("kind", pa.string()),
     ("taxels_N", pa.list_(pa.float64())), ("fxyz_N", pa.list_(pa.float64(), 3)),
-    ("flags", pa.list_(pa.string())), ("taxel_flags", pa.map_(pa.string(), pa.list_(pa.int32()))),
+    ("flags", pa.list_(pa.string())), ("taxel_flags", TAXEL_FLAGS),
     ("contact", CONTACT), ("calibration", pa.string()), ("sigma_N", pa.list_(pa.float32())),
 ])
+TEXT_COLUMNS = ["board", "kind", "flags", "taxel_flags", "calibration"]  # dictionary-encoded; floats are not worth it
 
 
-def _lists(arrays: list[np.ndarray | None], dtype, fixed: int | None = None) -> pa.Array:
-    """A list column from per-row arrays (None: a null row)."""
-    missing = np.array([a is None for a in arrays])
-    mask = pa.array(missing) if missing.any() else None
-    if fixed is not None:
-        filler = np.full(fixed, np.nan, dtype)
-        values = np.concatenate([filler if a is None else a for a in arrays]).astype(dtype, copy=False)
-        return pa.FixedSizeListArray.from_arrays(pa.array(values), fixed, mask=mask)
-    present = [a for a in arrays if a is not None]
-    values = np.concatenate(present).astype(dtype, copy=False) if present else np.empty(0, dtype)
-    offsets = np.concatenate([[0], np.cumsum([0 if a is None else a.size for a in arrays])]).astype(np.int32)
-    return pa.ListArray.from_arrays(pa.array(offsets), pa.array(values), mask=mask)
-
-
-def _contacts(frames: list[ForceFrame]) -> pa.Array:
-    """The grids' contact summaries (contact_batch, per sensor), null for
-    quads and for frames without any force."""
+def _grid_forces(frames: list[ForceFrame], grid: np.ndarray) -> tuple[pa.Array, pa.Array]:
+    """(taxels_N, contact) columns: the grids' forces stacked once, their
+    contact summaries per sensor (contact_batch)."""
     n = len(frames)
+    rows = np.flatnonzero(grid).tolist()
+    forces = [frames[i].forces_N for i in rows]
+    sizes = np.zeros(n, np.int64)
+    sizes[rows] = [a.size for a in forces]
+    flat = np.concatenate(forces) if forces else np.empty(0)
     found = [np.ones(n, bool)] + [np.full(n, np.nan) for _ in range(4)] + [np.zeros(n, np.int32)]
     by_sensor: dict[object, list[int]] = {}
-    for i, f in enumerate(frames):
-        if f.sensor.kind == "grid":
-            by_sensor.setdefault(f.sensor, []).append(i)
-    for info, indices in by_sensor.items():
-        for out, column in zip(found, columns(np.stack([frames[i].forces_N for i in indices]), info.rows, info.cols)):
-            out[indices] = column
-    fields = [pa.array(column, type=field.type) for column, field in zip(found[1:], CONTACT)]
-    return pa.StructArray.from_arrays(fields, fields=list(CONTACT), mask=pa.array(found[0]))
+    for k, i in enumerate(rows):
+        by_sensor.setdefault(frames[i].sensor, []).append(k)
+    starts = np.concatenate([[0], np.cumsum(sizes[rows])])
+    for info, ks in by_sensor.items():
+        size = info.rows * info.cols
+        if len(by_sensor) == 1 and len(flat) == len(rows) * size:
+            block = flat.reshape(-1, size)
+        else:
+            block = np.stack([flat[starts[k] : starts[k] + size] for k in ks])
+        targets = [rows[k] for k in ks]
+        for out, column in zip(found, columns(block, info.rows, info.cols)):
+            out[targets] = column
+    contact = structs([numbers(column, field.type) for column, field in zip(found[1:], CONTACT)], CONTACT, ~found[0])
+    return lists(numbers(flat, pa.float64()), sizes, grid), contact
 
 
-def _taxel_flags(frames: list[ForceFrame]) -> pa.Array:
-    def entries(f: ForceFrame):
-        if f.sensor.kind != "grid":
-            return None
-        if f.taxel_flags is None or not np.count_nonzero(f.taxel_flags):
-            return []
-        return list(f.taxel_flag_lists().items())
+def _quad_forces(frames: list[ForceFrame], grid: np.ndarray) -> pa.Array:
+    values = np.full((len(frames), 3), np.nan)
+    rows = np.flatnonzero(~grid).tolist()
+    if rows:
+        values[rows] = np.stack([frames[i].forces_N for i in rows])
+    return fixed_lists(values, pa.list_(pa.float64(), 3), ~grid)
 
-    return pa.array([entries(f) for f in frames], SCHEMA.field("taxel_flags").type)
+
+def _flags(frames: list[ForceFrame]) -> pa.Array:
+    sizes = np.fromiter((len(f.flags) for f in frames), np.int64, len(frames))
+    return lists(strings([name for f in frames for name in f.flags]), sizes)
+
+
+def _taxel_flags(frames: list[ForceFrame], grid: np.ndarray) -> pa.Array:
+    """{flag: [taxels]} of each grid frame (empty when none is set), null for quads."""
+    entries = [f.taxel_flag_lists() if g and f.taxel_flags is not None and f.taxel_flags.any() else {}
+               for f, g in zip(frames, grid.tolist())]
+    hits = [taxels for entry in entries for taxels in entry.values()]
+    flat = np.fromiter((t for taxels in hits for t in taxels), np.int32)
+    pairs = structs([strings([name for entry in entries for name in entry]),
+                     lists(numbers(flat, pa.int32()), np.fromiter(map(len, hits), np.int64, len(hits)))],
+                    pa.struct([TAXEL_FLAGS.key_field, TAXEL_FLAGS.item_field]))
+    return lists(pairs, np.fromiter(map(len, entries), np.int64, len(entries)), grid, TAXEL_FLAGS)
+
+
+def _sigma(frames: list[ForceFrame]) -> pa.Array:
+    sigma = [f.sigma_N for f in frames]
+    present = np.fromiter((s is not None for s in sigma), bool, len(sigma))
+    given = [s for s in sigma if s is not None]
+    sizes = np.zeros(len(sigma), np.int64)
+    sizes[present] = [s.size for s in given]
+    values = np.concatenate(given).astype(np.float32, copy=False) if given else np.empty(0, np.float32)
+    return lists(numbers(values, pa.float32()), sizes, present)
 
 
 def table(frames: list[ForceFrame]) -> pa.Table:
     """The rows of a batch of frames."""
-    grid = [f.sensor.kind == "grid" for f in frames]
-    columns = [
-        pa.array([f.sensor.board for f in frames], pa.string()),
-        pa.array(np.array([f.sensor.id for f in frames], np.uint8)),
-        pa.array(np.array([f.seq for f in frames], np.uint16)),
-        pa.array(np.array([f.t_us for f in frames], np.uint32)),
-        pa.array([f.sensor.kind for f in frames], pa.string()),
-        _lists([f.forces_N if g else None for f, g in zip(frames, grid)], np.float64),
-        _lists([None if g else f.forces_N for f, g in zip(frames, grid)], np.float64, fixed=3),
-        pa.array([f.flags for f in frames], pa.list_(pa.string())),
-        _taxel_flags(frames),
-        _contacts(frames),
-        pa.array([f.calibration for f in frames], pa.string()),
-        _lists([f.sigma_N for f in frames], np.float32),
+    grid = np.fromiter((f.sensor.kind == "grid" for f in frames), bool, len(frames))
+    taxels, contact = _grid_forces(frames, grid)
+    columns_ = [
+        strings([f.sensor.board for f in frames]),
+        numbers(np.fromiter((f.sensor.id for f in frames), np.uint8, len(frames)), pa.uint8()),
+        numbers(np.fromiter((f.seq for f in frames), np.uint16, len(frames)), pa.uint16()),
+        numbers(np.fromiter((f.t_us for f in frames), np.uint32, len(frames)), pa.uint32()),
+        strings([f.sensor.kind for f in frames]),
+        taxels,
+        _quad_forces(frames, grid),
+        _flags(frames),
+        _taxel_flags(frames, grid),
+        contact,
+        strings([f.calibration for f in frames]),
+        _sigma(frames),
     ]
-    return pa.Table.from_arrays(columns, schema=SCHEMA)
+    return pa.Table.from_arrays(columns_, schema=SCHEMA)
 
 
 class Parquet:
@@ -104,7 +132,7 @@ class Parquet:
     file's footer: without it the file does not open)."""
 
     def __init__(self, path: str | Path) -> None:
-        self._writer = pq.ParquetWriter(str(path), SCHEMA)
+        self._writer = pq.ParquetWriter(str(path), SCHEMA, use_dictionary=TEXT_COLUMNS)
         self._pending: list[pa.Table] = []
         self._rows = 0
 
