@@ -102,6 +102,38 @@ def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path, caplog)
     assert chunks and all(isinstance(c, bytes) for _, c in chunks)
 
 
+def test_a_complete_recording_is_read_through_its_index_as_the_stream_reads_it(tmp_path):
+    from service.record import mcap_reader
+
+    *_, mcap_path, _ = live_recording(tmp_path, seconds=1.0)
+    streamed = [(topic, m.channel_id, m.log_time, m.data) for topic, m in mcap_reader._messages(mcap_path, None)]
+    indexed = [(topic, m.channel_id, m.log_time, m.data) for topic, m in iter_messages(mcap_path)]
+    assert indexed == streamed and len({topic for topic, *_ in streamed}) >= 4
+    raw = [entry for entry in streamed if entry[0] == "/raw"]
+    assert [(t, chunk) for _, t, chunk in mcap_reader.read_boards(mcap_path)] == \
+        [mcap_reader._raw_chunk(m) for topic, m in mcap_reader._messages(mcap_path, {"/raw"})] and len(raw) > 100
+
+
+def test_a_damaged_chunk_loses_its_messages_only(tmp_path, caplog):
+    from mcap.reader import make_reader
+
+    *_, mcap_path, _ = live_recording(tmp_path, seconds=1.5)
+    with open(mcap_path, "rb") as stream:
+        chunks = sorted(make_reader(stream).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3
+    middle = chunks[len(chunks) // 2]
+    data = bytearray(mcap_path.read_bytes())
+    data[middle.chunk_start_offset + middle.chunk_length - 20] ^= 0xFF  # inside its compressed records
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    whole = list(read_raw(mcap_path))
+    with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
+        kept = list(read_raw(damaged))
+    assert f"chunk at byte {middle.chunk_start_offset} is damaged" in caplog.text
+    assert 0 < len(whole) - len(kept) < len(whole) / 2
+    assert set(kept) < set(whole)
+
+
 def test_write_errors_are_reported(tmp_path):
     with pytest.raises(FileNotFoundError):
         Recorder(tmp_path / "missing" / "run.mcap")
