@@ -26,13 +26,12 @@ One frame shape, whichever the encoding (``latest``, ``history`` and
      "raw": {"capacitance_pF": [...]},        # when fields include "raw"
      "contact": {...},                        # grids, JSON only (see below)
      "flags": [...],                          # when fields include "flags" (default)
-     "taxel_flags": {"saturated": [27]}}      # grids, JSON only
+     "taxel_flags": {"saturated": [27]}}      # grids, when fields include "flags"
 
 Numbers: JSON gives lists with None for no value, binary numpy float32
 arrays with NaN (``wrench`` has None either way). The binary encoding does
-not carry the contact summary nor per-taxel flags: a binary grid frame has
-no ``contact`` and no ``taxel_flags`` key — subscribe in JSON (or ask
-``contact(id)``) where they are needed. ``subscribe`` counts the frames the
+not carry the contact summary: a binary grid frame has no ``contact`` key —
+subscribe in JSON (or ask ``contact(id)``) where it is needed. ``subscribe`` counts the frames the
 server dropped for this client in ``dropped`` and keeps its notices (e.g. a
 subscription to sensors not announced yet) in ``notices``.
 """
@@ -178,6 +177,8 @@ class TactileClient:
             frame["raw"] = {"capacitance_pF": record["capacitance_pF"]}
         if "flags" in fields:
             frame["flags"] = record["flags"]
+            if kind == "grid":
+                frame["taxel_flags"] = record.get("taxel_flags", {})
         return frame
 
     def subscribe(self, sensors: list[int | str] | None = None, fields: list[str] | None = None, max_rate: float | None = None,

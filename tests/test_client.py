@@ -82,7 +82,7 @@ def first_frames(client, binary, **options):
 def test_json_and_binary_frames_have_one_shape(served, fields):
     client = TactileClient(served[0])
     as_json, as_binary = first_frames(client, False, fields=fields), first_frames(client, True, fields=fields)
-    json_only = {"contact", "taxel_flags"}  # the binary encoding carries neither
+    json_only = {"contact"}  # the binary encoding does not carry it
     for kind in ("grid", "quad"):
         j, b = as_json[kind], as_binary[kind]
         assert set(b) == set(j) - json_only and j["header"].keys() == b["header"].keys()

@@ -173,3 +173,32 @@ def test_parquet_rows_equal_the_json_lines_for_grids_of_two_sizes_and_quads_in_a
                 assert contact == doc["contact"]
             else:
                 assert row["taxel_flags"] is None and row["contact"] is None
+
+
+def test_binary_frames_carry_each_taxels_flags_to_clients_and_the_gateway(frames):
+    """Encoding v4: a binary client, and a gateway rebuilding frames from the
+    published encoding, see which taxels are flagged, as a JSON client does."""
+    import struct
+
+    from service.client import TactileClient
+    from service.fanout.encoding import DEFAULT_FIELDS, decode_binary, to_binary
+    from service.net.zenoh_feed import _frame
+
+    flagged = [f for f in frames if f.sensor.kind == "grid" and f.taxel_flag_lists()]
+    quads = [f for f in frames if f.sensor.kind == "quad"][:5]
+    assert len(flagged) > 20 and quads
+    chosen = flagged[:: max(1, len(flagged) // 40)] + quads
+    records = decode_binary(struct.pack("<H", len(chosen)) + b"".join(to_binary(f) for f in chosen))
+    client = TactileClient("http://localhost:1")
+    client._sensors = {(f.sensor.board, f.sensor.id): {"rows": f.sensor.rows, "cols": f.sensor.cols} for f in chosen}
+    for frame, record in zip(chosen, records):
+        assert record["flags"] == [name for name in encoding.FRAME_FLAG_BITS if name in frame.flags]
+        as_json = encoding.to_json_dict(frame)
+        if frame.sensor.kind == "grid":
+            assert record["taxel_flags"] == as_json["taxel_flags"] == frame.taxel_flag_lists()
+            assert client._from_binary(record, DEFAULT_FIELDS)["taxel_flags"] == as_json["taxel_flags"]
+            assert _frame(frame.sensor, record).taxel_flag_lists() == frame.taxel_flag_lists()
+        else:
+            assert "taxel_flags" not in record and "taxel_flags" not in client._from_binary(record, DEFAULT_FIELDS)
+    without = decode_binary(struct.pack("<H", 1) + to_binary(flagged[0], frozenset({"force"})))[0]
+    assert "taxel_flags" not in without and without["force_N"].shape == (64,)

@@ -28,11 +28,14 @@ means no value.
 Binary (``encoding=binary``), little-endian, one record per frame,
 concatenated; a message starts with the u16 record count:
 
-    u8 version (3) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
-    (1 force, 2 raw, 4 sigma) · u16 seq · u32 board_time_us · f64 stamp ·
+    u8 version (4) · u8 kind (0 grid, 1 quad) · u8 sensor id · u8 field bits
+    (1 force, 2 raw, 4 sigma, 8 taxel flags) · u16 seq · u32 board_time_us · f64 stamp ·
     f64 scan_stamp (NaN: not mapped) · u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
     m bytes calibration id (ASCII) · u8 b · b bytes board name (ASCII) · f32[n] force · f32[n] sigma (if
-    requested) · f32[n'] raw (if requested; n' = channels) — NaN = no value.
+    requested) · f32[n'] raw (if requested; n' = channels) · u8[n] taxel flags (a grid's, with the
+    ``flags`` field; bits of reconstruct/grid.py's TAXEL_FLAG_NAMES) — NaN = no value.
+Version 4 added the taxel flags: a binary client learns which taxels are
+saturated, stale or corrected, as a JSON one does.
 
 The replay export (``tactile replay --export``, the recorder's ``forces``
 topic) is flatter, one object per frame: see ``to_export_dict``.
@@ -45,6 +48,7 @@ import struct
 import numpy as np
 
 from ..reconstruct import ForceFrame
+from ..reconstruct.force_frame import taxel_flag_lists
 
 FIELDS = ("force", "sigma", "raw", "contact", "flags")
 DEFAULT_FIELDS = frozenset({"force", "sigma", "contact", "flags"})
@@ -55,7 +59,7 @@ FRAME_FLAG_BITS = (
 )
 _FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
 _RECORD = struct.Struct("<BBBBHIddIHB")
-BINARY_VERSION = 3
+BINARY_VERSION = 4
 
 
 def sensor_name(frame: ForceFrame) -> str:
@@ -131,7 +135,9 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     for name in frame.flags:
         flag_bits |= _FLAG_BIT.get(name, 0)
     with_sigma = "sigma" in fields
-    field_bits = (1 if "force" in fields else 0) | (2 if "raw" in fields else 0) | (4 if with_sigma else 0)
+    with_taxel_flags = "flags" in fields and info.kind == "grid"
+    field_bits = ((1 if "force" in fields else 0) | (2 if "raw" in fields else 0) | (4 if with_sigma else 0)
+                  | (8 if with_taxel_flags else 0))
     forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields or with_sigma else np.empty(0, "<f4")
     calibration = frame.calibration.encode("ascii", "replace")[:255]
     board = info.board.encode("ascii", "replace")[:255]
@@ -143,7 +149,10 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     if "force" not in fields:
         forces = np.full(forces.size, np.nan, "<f4")
     raw = np.asarray(frame.capacitance_pF, dtype="<f4").tobytes() if "raw" in fields else b""
-    return head + calibration + bytes((len(board),)) + board + forces.tobytes() + sigma + raw
+    taxel_flags = b""
+    if with_taxel_flags:
+        taxel_flags = bytes(forces.size) if frame.taxel_flags is None else np.asarray(frame.taxel_flags, np.uint8).tobytes()
+    return head + calibration + bytes((len(board),)) + board + forces.tobytes() + sigma + raw + taxel_flags
 
 
 def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> list[dict]:
@@ -174,5 +183,9 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
             m = channels.get((board, sid)) or channels.get(sid, n if kind == 0 else 4)
             record["capacitance_pF"] = np.frombuffer(message, "<f4", m, pos)
             pos += 4 * m
+        if field_bits & 8:
+            record["taxel_flag_bits"] = np.frombuffer(message, np.uint8, n, pos)
+            record["taxel_flags"] = taxel_flag_lists(record["taxel_flag_bits"])
+            pos += n
         out.append(record)
     return out

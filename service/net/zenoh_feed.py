@@ -158,11 +158,12 @@ class ZenohFeed:
 
 def _frame(info: SensorInfo, record: dict) -> ForceFrame:
     """A decoded binary record as the ForceFrame the service published
-    (raw channels and per-taxel flags are not in the published encoding)."""
+    (raw channels are not in the published encoding)."""
     forces = np.array(record["force_N"], dtype=np.float64)
     sigma = record.get("sigma_N")
+    bits = record.get("taxel_flag_bits")
     return ForceFrame(info, record["seq"], record["board_time_us"], record["stamp"], forces,
                       np.full(info.channels, np.nan), record["flags"], REMOTE_LEVEL,
-                      calibration=record["calibration"],
+                      taxel_flags=None if bits is None else bits.copy(), calibration=record["calibration"],
                       sigma_N=None if sigma is None else np.array(sigma, dtype=np.float64),
                       t_host_scan=record["scan_stamp"])

@@ -49,11 +49,17 @@ class ForceFrame:
 
     def taxel_flag_lists(self) -> dict[str, list[int]]:
         """Per-taxel flags as {name: [row-major taxel indices]}, only flags set."""
-        if self.taxel_flags is None or not self.taxel_flags.any():
-            return {}
-        out = {}
-        for bit, name in TAXEL_FLAG_NAMES.items():
-            hits = np.flatnonzero(self.taxel_flags & bit)
-            if hits.size:
-                out[name] = hits.tolist()
-        return out
+        return taxel_flag_lists(self.taxel_flags)
+
+
+def taxel_flag_lists(bits: np.ndarray | None) -> dict[str, list[int]]:
+    """(n,) per-taxel flag bits (grid.TAXEL_FLAG_NAMES) as {name: [row-major
+    taxel indices]}, only flags set."""
+    if bits is None or not bits.any():
+        return {}
+    out = {}
+    for bit, name in TAXEL_FLAG_NAMES.items():
+        hits = np.flatnonzero(bits & bit)
+        if hits.size:
+            out[name] = hits.tolist()
+    return out
