@@ -75,20 +75,22 @@ class DriftTracker:
         """Advance through frames at times ``t_s`` given their quiet medians
         and whether those were enough (``quiet_medians``, as lists: the
         recurrence is scalar, and a live read holds a frame or two per
-        sensor); return each frame's drift and whether it is drift-suspect."""
-        if len(t_s) == 1:  # the live read
-            return [self._step(t_s[0], enough[0], medians[0])]
-        step = self._step
-        return [step(t, ok, median) for t, ok, median in zip(t_s, enough, medians)]
-
-    def _step(self, t: float, enough: bool, median: float) -> tuple[float, bool]:
-        """Advance the exponential average to board time ``t``."""
-        dt = 0.0 if self._last_t is None else min(max(t - self._last_t, 0.0), self.tau_s)
-        self._last_t = t
-        if enough:
-            self.drift += (median - self.drift) * (dt / self.tau_s)
-            self._frozen_since = None
-        elif self._frozen_since is None:
-            self._frozen_since = t
-        frozen_long = self._frozen_since is not None and t - self._frozen_since >= self.suspect_after_s
-        return self.drift, frozen_long or abs(self.drift) > self.max_drift
+        sensor); return each frame's drift and whether it is drift-suspect.
+        The exponential average is advanced to each board time ``t`` by
+        dt = t − last (clipped to [0, tau_s]); one loop with locals, as an
+        offline replay steps every frame of a log through it."""
+        tau, suspect_after, max_drift = self.tau_s, self.suspect_after_s, self.max_drift
+        drift, last, frozen_since = self.drift, self._last_t, self._frozen_since
+        out = []
+        for t, ok, median in zip(t_s, enough, medians):
+            dt = 0.0 if last is None else min(max(t - last, 0.0), tau)
+            last = t
+            if ok:
+                drift += (median - drift) * (dt / tau)
+                frozen_since = None
+            elif frozen_since is None:
+                frozen_since = t
+            out.append((drift, (frozen_since is not None and t - frozen_since >= suspect_after)
+                        or abs(drift) > max_drift))
+        self.drift, self._last_t, self._frozen_since = drift, last, frozen_since
+        return out
