@@ -26,6 +26,7 @@ from .reconstruct.sensor_calibration import SensorCalibration
 
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
+TareListener = Callable[[dict[int, int], bool], None]
 Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
@@ -104,12 +105,17 @@ class Pipeline:
         self.rates: dict[int, RateMeter] = {}
         self.listeners: list[Listener] = []
         self.byte_listeners: list[ByteListener] = []
+        # Tares, with each sensor's number of the first read they apply to
+        # (the recorder writes them there, and a replay makes them there again).
+        self.tare_listeners: list[TareListener] = []
+        self.reads = 0  # reads decoded so far
+        self._reconstructed = {"grid": 0, "other": 0}  # reads whose grids / other sensors are reconstructed
         self._lock = threading.Lock()
-        self._deferred: deque[tuple[list[Reading], float]] = deque()
+        self._deferred: deque[tuple[list[Reading], float, int]] = deque()  # (grids, t_host, reads)
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
         """One read: decoded, reconstructed and published as one batch, in arrival order."""
-        return self._reconstruct(self._decode([(data, t_host)]), t_host)
+        return self._reconstruct(self._decode([(data, t_host)]), t_host, {"grid": 1, "other": 1})
 
     def feed_reads(self, chunks: list[tuple[bytes, float]], defer: Defer) -> None:
         """Reads that waited together, each with its receive time. Sensors
@@ -124,12 +130,14 @@ class Pipeline:
         cheap, grids = [], []
         for reading in self._decode(chunks):
             (grids if reading.sensor.kind == "grid" else cheap).append(reading)
-        if cheap:
-            self._reconstruct(cheap, t_host)
-        if grids:
-            self._deferred.append((grids, t_host))
+        self._reconstruct(cheap, t_host, {"other": len(chunks)})
+        if grids or self._deferred:  # reads without grids still count behind those waiting
+            self._deferred.append((grids, t_host, len(chunks)))
             if len(self._deferred) == 1:
                 defer(self._reconstruct_deferred if self.grid_batch_s <= 0 else self._reconstruct_after_window)
+        else:
+            with self._lock:
+                self._reconstructed["grid"] += len(chunks)
 
     def finish(self, t_host: float) -> list[ForceFrame]:
         """End of a finite stream: decode what is left, release held frames."""
@@ -155,7 +163,23 @@ class Pipeline:
                 loaded = self._loaded(sensor_id)
                 if loaded:
                     raise LoadedAtTare(loaded)
-            return self.reconstructor.tare(sensor_id, judge=not force)
+            tared = self.reconstructor.tare(sensor_id, judge=not force)
+            if self.tare_listeners:
+                # Each sensor's tare applies from the first read whose frames of its kind were not
+                # reconstructed yet (a grid's may wait in _deferred).
+                done = self._reconstructed
+                before_read = {sid: done["grid" if self.reconstructor.kind(sid) == "grid" else "other"] for sid in tared}
+                for listener in self.tare_listeners:
+                    listener(before_read, not force)
+            return tared
+
+    def retare(self, sensor_id: int, judge: bool) -> None:
+        """A recorded tare made again (replay.py): the sensor's baseline
+        restarted, without the loaded check the live tare passed; a sensor
+        not seen yet has nothing to restart."""
+        with self._lock:
+            if self.reconstructor.kind(sensor_id) is not None:
+                self.reconstructor.tare(sensor_id, judge=judge)
 
     def loaded(self, sensor_id: int | None = None) -> dict[int, list[int]]:
         """{sensor id: taxels} whose latest reading stands above the
@@ -189,6 +213,7 @@ class Pipeline:
             for listener in self.byte_listeners:
                 listener(data, t_host)
             with self._lock:
+                self.reads += 1
                 read = self._interpret(self.decoder.feed(data), t_host)
                 if read and self.clock is not None:
                     self._map_clock(read, t_host)
@@ -204,9 +229,13 @@ class Pipeline:
         for reading, scan in zip(readings, scans.tolist()):
             reading.t_host_scan = scan
 
-    def _reconstruct(self, readings: list[Reading], t_host: float) -> list[ForceFrame]:
+    def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:
+        """``reads``: how many more reads are reconstructed, by kind ("grid",
+        "other"), counted with the reconstruction (what a tare's position is)."""
         with self._lock:
             frames = self.reconstructor.process_many(readings) if readings else []
+            for kind, count in reads.items():
+                self._reconstructed[kind] += count
         self._publish(frames, t_host)
         return frames
 
@@ -220,7 +249,8 @@ class Pipeline:
         the loop was busy cost one call per step, not one per read."""
         batches, self._deferred = self._deferred, deque()
         if batches:
-            self._reconstruct([r for readings, _ in batches for r in readings], batches[-1][1])
+            self._reconstruct([r for readings, _, _ in batches for r in readings], batches[-1][1],
+                              {"grid": sum(reads for _, _, reads in batches)})
 
     def _interpret(self, frames, t_host: float) -> list[Reading]:
         return self.interpreter.interpret_many(frames, t_host)

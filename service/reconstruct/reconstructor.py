@@ -76,24 +76,44 @@ class Reconstructor(SensorStates):
         """Reconstruct a batch of readings (e.g. one read from the port), each
         sensor's frames together; returns ForceFrames in arrival order."""
         pending: list[tuple[SensorState | Exception, Reading]] = []
+        taring: list[int] = []  # readings in their sensor's tare window, the one that completes it aside
         sensors = self._sensors
         for reading in readings:
             try:
                 state = sensors.get(reading.sensor.id)
                 if state is None or state.info is not reading.sensor:  # the usual reading skips the call
                     state = self._state(reading.sensor)
-                if state.baseline.update(reading.capacitance_pF) and not state.tare_judged:
-                    self._judge_tare(state)
+                if state.baseline.update(reading.capacitance_pF):
+                    if not state.tare_judged:
+                        self._judge_tare(state)
+                else:
+                    taring.append(len(pending))
             except Exception as exc:  # noqa: BLE001 — isolated: this reading goes out null and flagged
                 state = exc
             pending.append((state, reading))
         if not self.hold_until_tared:
-            return self._reconstruct(pending)
+            return self._reconstruct(pending) if not taring else self._with_taring(pending, taring)
         self._held.extend(pending)
         release = []
         while self._held and (isinstance(self._held[0][0], Exception) or self._held[0][0].baseline.ready):
             release.append(self._held.popleft())
         return self._reconstruct(release)
+
+    def _with_taring(self, pending: list[tuple[SensorState | Exception, Reading]], taring: list[int]) -> list[ForceFrame]:
+        """A batch that holds readings of a tare window: those go out null
+        and flagged ``taring`` whatever else the batch holds (so a frame's
+        forces do not depend on how reads were batched: the live service
+        merges reads that waited, a replay feeds them one at a time); the
+        rest as usual, all in arrival order."""
+        out: list[ForceFrame | None] = [None] * len(pending)
+        for i in taring:
+            state, reading = pending[i]
+            out[i] = self._null_frames(state.info, [reading], "taring")[0]
+        skip = set(taring)
+        rest = [i for i in range(len(pending)) if i not in skip]
+        for i, frame in zip(rest, self._reconstruct([pending[i] for i in rest])):
+            out[i] = frame
+        return out
 
     def flush(self) -> list[ForceFrame]:
         """Release every held reading; those of sensors that never completed a

@@ -88,6 +88,11 @@ class SensorStates:
             self._calibration_applied(info.id)
         return document
 
+    def kind(self, sensor_id: int) -> str | None:
+        """The sensor's kind ("grid", "quad"); None for a sensor not seen yet."""
+        state = self._sensors.get(sensor_id)
+        return None if state is None else state.info.kind
+
     def sensor_ids(self) -> list[int]:
         return sorted(self._sensors)
 

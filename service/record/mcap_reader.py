@@ -59,13 +59,26 @@ def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, 
                         path, stream.tell(), Path(path).stat().st_size, str(exc) or type(exc).__name__)
 
 
-def raw_board(topic: str) -> str | None | bool:
-    """The board a raw-bytes topic belongs to: None for ``/raw`` (a one-board
-    recording), NAME for ``/NAME/raw``; False for any other topic."""
-    if topic == "/raw":
+def raw_board(topic: str, channel: str = "raw") -> str | None | bool:
+    """The board a raw-bytes topic (or another per-board ``channel``'s)
+    belongs to: None for ``/raw`` (a one-board recording), NAME for
+    ``/NAME/raw``; False for any other topic."""
+    if topic == f"/{channel}":
         return None
     parts = topic.split("/")
-    return parts[1] if len(parts) == 3 and parts[0] == "" and parts[2] == "raw" else False
+    return parts[1] if len(parts) == 3 and parts[0] == "" and parts[2] == channel else False
+
+
+def read_tares(path: str | Path) -> dict[str | None, list[tuple[int, int, bool]]]:
+    """The tares made while recording, per board (as ``read_boards`` names
+    them): (reads of that board before the tare took effect, sensor id,
+    judged) in the order they were made."""
+    tares: dict[str | None, list[tuple[int, int, bool]]] = {}
+    for topic, message in _topics_of(path, lambda topic: raw_board(topic, "tare") is not False):
+        doc = orjson.loads(message.data)
+        tares.setdefault(raw_board(topic, "tare"), []).extend(
+            (int(s["after_reads"]), int(s["sensor"]), bool(doc["judge"])) for s in doc["sensors"])
+    return tares
 
 
 def read_raw(path: str | Path, board: str | None = None) -> Iterator[tuple[float, bytes]]:
@@ -86,12 +99,18 @@ def read_boards(path: str | Path) -> Iterator[tuple[str | None, float, bytes]]:
     file order (the order they were received); board None for a one-board
     recording's ``/raw``. A complete recording is read through its index:
     only the raw messages are parsed, not the forces recorded beside them."""
+    for topic, message in _topics_of(path, lambda topic: raw_board(topic) is not False):
+        yield (raw_board(topic), *_raw_chunk(message))
+
+
+def _topics_of(path: str | Path, wanted) -> Iterator[tuple[str, Message]]:
+    """(topic, message) of the topics ``wanted`` accepts: through the index,
+    or as a stream for a file without one."""
     check_mcap(path)
-    messages = _indexed_messages(path, lambda topic: raw_board(topic) is not False)
-    for topic, message in messages if messages is not None else _messages(path, None):
-        board = raw_board(topic)
-        if board is not False:
-            yield (board, *_raw_chunk(message))
+    messages = _indexed_messages(path, wanted)
+    if messages is not None:
+        return messages
+    return ((topic, message) for topic, message in _messages(path, None) if wanted(topic))
 
 
 def _indexed_messages(path: str | Path, wanted) -> Iterator[tuple[str, Message]] | None:

@@ -8,7 +8,9 @@ every read of the port), per sensor
 (tactile.Forces), ``/sensor/{id}/grid`` (foxglove.Grid, grids only), and
 ``/diagnostics``, ``/calibrations`` (tactile.Calibration: each sensor's
 calibration document, written before the first frame that uses it, so a
-replay reconstructs with it whatever the registry holds then). log_time is the host receive time (ns); publish_time the
+replay reconstructs with it whatever the registry holds then), ``/tare``
+(tactile.Tare: a tare made while recording, with the read before which it
+took effect, so a replay makes it there). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
 
 Chunks are small (64 KiB, ~0.2 s at 1 kHz) and the file is flushed after
@@ -49,7 +51,7 @@ class McapLog:
             name: self._writer.register_schema(schema["title"], "jsonschema", schemas.encoded(schema))
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
                                  ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
-                                 ("calibration", schemas.CALIBRATION))
+                                 ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE))
         }
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -88,6 +90,12 @@ class McapLog:
         self._add("/calibrations", "calibration", t_host, {"board": sensor.board, "sensor": sensor.id,
                                                            "id": calibration_id, "document": document,
                                                            "cycles_at_start": cycles})
+
+    def tare(self, board: str, after_reads: dict[int, int], judge: bool, t_host: float, prefix: str = "") -> None:
+        """``after_reads``: {sensor id: the board's reads recorded before the tare took effect for it}."""
+        self._add(f"{prefix}/tare", "tare", t_host, {
+            "board": board, "judge": judge,
+            "sensors": [{"sensor": sid, "after_reads": n} for sid, n in sorted(after_reads.items())]})
 
     def diagnostics(self, t_host: float, diagnostics: dict, prefix: str = "") -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

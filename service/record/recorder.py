@@ -74,6 +74,7 @@ class Recorder:
         # New lists, not appends: the pipeline may be iterating the old ones on another thread.
         pipeline.byte_listeners = [*pipeline.byte_listeners, listeners.on_bytes]
         pipeline.listeners = [*pipeline.listeners, listeners.on_frames]
+        pipeline.tare_listeners = [*pipeline.tare_listeners, listeners.on_tare]
 
     def detach(self) -> None:
         attached, self._pipelines = self._pipelines, []
@@ -81,6 +82,7 @@ class Recorder:
             pipeline = listeners.pipeline
             pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != listeners.on_bytes]
             pipeline.listeners = [f for f in pipeline.listeners if f != listeners.on_frames]
+            pipeline.tare_listeners = [f for f in pipeline.tare_listeners if f != listeners.on_tare]
 
     @property
     def active(self) -> bool:
@@ -160,6 +162,10 @@ class Recorder:
             for sensor, calibration_id, document, cycles in payload:
                 self._log.calibration(sensor, calibration_id, document, cycles, t_host)
                 self.messages += 1
+        elif kind == "tare":
+            after_reads, judge = payload
+            self._log.tare(pipeline.interpreter.name, after_reads, judge, t_host, prefix)
+            self.messages += 1
         else:
             self._log.diagnostics(t_host, payload, prefix)
             self.messages += 1
@@ -186,10 +192,21 @@ class _Listeners:
         self.pipeline = pipeline
         self._last_diag = 0.0
         self._calibrations_written: set[tuple[int, str]] = set()
+        self._first_read: int | None = None  # the pipeline's number of the first read recorded
 
     def on_bytes(self, data: bytes, t_host: float) -> None:
         if self.recorder.active:
+            if self._first_read is None:  # on the feeding thread, before this read is decoded: its number
+                self._first_read = self.pipeline.reads
             self.recorder._queue.put(("raw", (self.pipeline, data), t_host))
+
+    def on_tare(self, before_read: dict[int, int], judge: bool) -> None:
+        """A tare: {sensor id: the pipeline's number of the first read it
+        applies to}, counted here from the recording's first read."""
+        if self.recorder.active:
+            first = self._first_read if self._first_read is not None else self.pipeline.reads
+            after_reads = {sid: max(0, n - first) for sid, n in before_read.items()}
+            self.recorder._queue.put(("tare", (self.pipeline, (after_reads, judge)), time.time()))
 
     def on_frames(self, frames: list[ForceFrame]) -> None:
         recorder = self.recorder

@@ -45,6 +45,21 @@ CALIBRATION = {
     },
 }
 
+TARE = {
+    "title": "tactile.Tare",
+    "description": "A tare made while recording (POST /tare): each sensor's baseline restarted before the board's "
+                   "read after_reads (counted from the recording's first read of that board), where a replay "
+                   "restarts it too",
+    "type": "object",
+    "properties": {
+        "board": {"type": "string"},
+        "judge": {"type": "boolean", "description": "loaded taxels judged against the calibration's C0 (false: a "
+                                                    "forced tare, the load present is the zero)"},
+        "sensors": {"type": "array", "items": {"type": "object", "properties": {
+            "sensor": {"type": "integer"}, "after_reads": {"type": "integer"}}}},
+    },
+}
+
 FORCES = {
     "title": "tactile.Forces",
     "description": "Reconstructed forces of one frame (the replay export shape)",

@@ -1,0 +1,118 @@
+"""Tares made while recording are recorded where they took effect, and a
+replay makes them there again: its forces equal the live ones after them too."""
+import io
+
+import orjson
+import pytest
+
+from firmware_sim.board import BoardConfig, capture
+from service.pipeline import Pipeline
+from service.reconstruct import Reconstructor
+from service.record.mcap_reader import iter_messages, read_tares
+from service.record.recorder import Recorder
+from service.replay import replay
+
+SIZES = [1, 700, 3000, 31, 4096, 17]  # irregular reads, as a port delivers them
+
+
+def reads(data: bytes):
+    """(index, bytes) of each read; there are ~230 per second of capture."""
+    pos, i = 0, 0
+    while pos < len(data):
+        chunk = data[pos : pos + SIZES[i % len(SIZES)]]
+        yield i, chunk
+        pos += len(chunk)
+        i += 1
+
+
+def recorded_forces(path):
+    return [orjson.loads(m.data) for topic, m in iter_messages(path) if topic.endswith("/forces")]
+
+
+def replayed_forces(path):
+    out = io.BytesIO()
+    replay(path, out)
+    return [orjson.loads(line) for line in out.getvalue().splitlines()]
+
+
+def by_frame(docs):
+    return {(d["sensor"], d["seq"], d["t_us"]): d for d in docs}
+
+
+@pytest.fixture(scope="module")
+def pressed():
+    data = capture(BoardConfig(scene="press", seed=7), 4.0)[0]
+    assert sum(1 for _ in reads(data)) > 900
+    return data
+
+
+def test_a_tare_in_the_middle_of_a_recording_replays_where_it_was_made(tmp_path, pressed):
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    t = 1000.0
+    tares = {300: (None, True), 700: (1, False)}  # at these reads: (sensor or all, forced)
+    for i, chunk in reads(pressed):
+        if i in tares:
+            sensor, forced = tares[i]
+            pipeline.tare(sensor, force=forced)
+        pipeline.feed(chunk, t)
+        t += 0.002
+    recorder.stop()
+    made = read_tares(tmp_path / "run.mcap")[None]
+    assert [(sensor, judge) for _, sensor, judge in made] == [(0, False), (1, False), (1, True)]
+    live, again = by_frame(recorded_forces(tmp_path / "run.mcap")), by_frame(replayed_forces(tmp_path / "run.mcap"))
+    assert live.keys() == again.keys() and len(live) > 4000
+    assert sum("taring" in d["flags"] for d in live.values()) > 3 * 100  # the first tare and both made later
+    assert [key for key in live if live[key] != again[key]] == []
+
+
+def test_a_tare_while_grids_wait_for_the_loop_applies_to_them_in_the_replay_too(tmp_path, pressed):
+    """Live, grids wait for the loop (feed_reads); a tare made meanwhile
+    (from the API's thread) starts with those waiting frames, and the
+    recording says so."""
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    waiting = []
+    batch, t = [], 1000.0
+    for i, chunk in reads(pressed):
+        batch.append((chunk, t))
+        t += 0.002
+        if len(batch) == 3:
+            pipeline.feed_reads(batch, waiting.append)
+            batch = []
+            if i in (302, 602, 851):  # grids of the reads just fed are still waiting
+                assert waiting
+                pipeline.tare(None if i != 602 else 0, force=True)
+            if i % 2:  # the loop's turn comes every other time
+                while waiting:
+                    waiting.pop(0)()
+    pipeline.feed_reads(batch, waiting.append)
+    while waiting:
+        waiting.pop(0)()
+    recorder.stop()
+    made = read_tares(tmp_path / "run.mcap")[None]
+    by_sensor = {}
+    for after, sensor, _ in made:
+        by_sensor.setdefault(sensor, []).append(after)
+    assert len(by_sensor[0]) == 3 and len(by_sensor[1]) == 2
+    live, again = by_frame(recorded_forces(tmp_path / "run.mcap")), by_frame(replayed_forces(tmp_path / "run.mcap"))
+    assert live.keys() == again.keys() and len(live) > 4000
+    assert [key for key in live if live[key] != again[key]] == []
+
+
+def test_without_its_tares_the_replay_would_differ(tmp_path, pressed, monkeypatch):
+    """The check above can fail: the same recording replayed with its tares
+    ignored gives other forces after them."""
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for i, chunk in reads(pressed):
+        if i == 500:
+            pipeline.tare(force=True)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    monkeypatch.setattr("service.replay.read_tares", lambda path: {})
+    live, again = by_frame(recorded_forces(tmp_path / "run.mcap")), by_frame(replayed_forces(tmp_path / "run.mcap"))
+    assert sum(live[key] != again[key] for key in live) > 500
