@@ -427,3 +427,31 @@ def test_an_uploaded_calibration_is_set_aside_when_the_sensor_changes_shape():
     frames = rec.process_many(readings)
     assert rec.calibration(0).id == "builtin-mean-4x4"
     assert "reconstruction_error" not in frames[-1].flags and np.isfinite(frames[-1].forces_N).all()
+
+
+# --- a channel the tare gave no zero ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+def test_a_grid_channel_implausible_since_power_up_is_null_and_flagged_never_silent(level):
+    """Taxel 0 reads the converter's top count from the first frame, taxel 1
+    reads 1 aF, taxel 2 is open through the tare and then reads well: none
+    gets a zero from the tare. Their forces are null and say why
+    (out_of_range for an implausible reading, no_reading while a plausible
+    one waits for its late zero); the other taxels are unaffected."""
+    rng = np.random.default_rng(5)
+    c0 = table1().c0_pF
+    rec = Reconstructor(tare_frames=20, level=level)
+    frames = []
+    for seq in range(60):
+        c = c0 * (1 + rng.normal(0, 2e-4, 64))
+        c[0], c[1] = TOP_COUNT_PF, ONE_AF_PF
+        c[2] = np.nan if seq < 25 else c0[2]
+        frames += rec.process(reading(GRID, c, seq))
+    tared = frames[20:]
+    for frame in tared:
+        assert np.isnan(frame.forces_N[:2]).all() and (frame.taxel_flags[:2] & OUT_OF_RANGE).all()
+        assert "out_of_range" in frame.flags
+        assert np.isfinite(frame.forces_N[3:]).all() and not (frame.taxel_flags[3:] & (OUT_OF_RANGE | NO_READING)).any()
+    waiting = [f for f in tared if f.seq >= 25 and np.isnan(f.forces_N[2])]
+    assert waiting and all(f.taxel_flags[2] & NO_READING and not f.taxel_flags[2] & OUT_OF_RANGE for f in waiting)
+    assert np.isfinite(tared[-1].forces_N[2])  # its late zero came after 20 readings of its own

@@ -97,6 +97,8 @@ class GridProcessor:
     adopted_events: int = 0
     _frames_seen: int = 0
     _sampled: list = field(default_factory=list)  # (ΔC/C0 rows, noise, baseline) awaiting the estimator
+    tare_window: tuple[np.ndarray, np.ndarray] | None = None  # (n,) low, high pF a tare accepts (level0.py)
+    _zero_missing_for: tuple | None = None
 
     def __post_init__(self) -> None:
         if self.level not in GRID_LEVELS:
@@ -181,7 +183,7 @@ class GridProcessor:
             from .grid_full import GridJob, process_full  # grid_full builds on this module
 
             return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
-        flags = self._reading_flags(capacitance, baseline_std)
+        flags = self._reading_flags(capacitance, baseline, baseline_std)
         relative = level0.relative_change(capacitance, baseline)
         if self.level == "level0":  # level0.grid_forces, on the checked ΔC/C0
             implausible = level0.implausible(relative, *self._bounds)
@@ -217,14 +219,37 @@ class GridProcessor:
             self._low_flagged_for = (noise, bool(np.all(OUT_OF_RANGE_SIGMAS * noise < -self.plausible[0])))
         return self._low_flagged_for[1]
 
-    def _reading_flags(self, capacitance: np.ndarray, baseline_std: np.ndarray) -> np.ndarray:
-        """No-reading and stale bits of (N, n) frames. Flags are set with
-        ``where=`` masks: at 1 kHz the number of numpy calls, not their
+    def _reading_flags(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray) -> np.ndarray:
+        """No-reading, stale and no-zero bits of (N, n) frames. Flags are set
+        with ``where=`` masks: at 1 kHz the number of numpy calls, not their
         arithmetic, is the cost."""
         flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
         if self._noisy_board(baseline_std):
             np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance) >= STUCK_FRAMES)
+        self.flag_missing_zero(flags, capacitance, baseline)
         return flags
+
+    def flag_missing_zero(self, flags: np.ndarray, capacitance: np.ndarray, baseline: np.ndarray) -> None:
+        """A channel the tare gave no zero (baseline NaN: no plausible
+        reading in its window) has no force. Where it reads, say why: a
+        reading outside the tare window (level0.py; e.g. a channel stuck at
+        the converter's top since power-up) is ``out_of_range``, a
+        plausible one still waiting for its late zero (baseline.py)
+        ``no_reading``. Once per tare the usual answer is that every
+        channel has its zero."""
+        if self._zero_missing_for is None or self._zero_missing_for[0] is not baseline:
+            missing = np.isnan(baseline)
+            self._zero_missing_for = (baseline, missing if missing.any() else None)
+        missing = self._zero_missing_for[1]
+        if missing is None:
+            return
+        reads = missing & ~np.isnan(capacitance)
+        if self.tare_window is None:
+            outside = reads
+        else:
+            outside = reads & ((capacitance < self.tare_window[0]) | (capacitance > self.tare_window[1]))
+        np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=outside)
+        np.bitwise_or(flags, NO_READING, out=flags, where=reads & ~outside)
 
     def _noisy_board(self, baseline_std_pF: np.ndarray) -> bool:
         """Whether the converter shows noise at all (else equal counts in a

@@ -136,11 +136,13 @@ def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -
 
 
 def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> np.ndarray:
-    """No-reading and stale bits of the stacked rows."""
+    """No-reading, stale and no-zero bits of the stacked rows."""
     flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
     stale = stale_rows(pieces, rows, capacitance)
     if stale is not None:
         np.bitwise_or(flags, STALE, out=flags, where=stale)
+    for (p, job, _), r in zip(pieces, rows):
+        p.flag_missing_zero(flags[r], capacitance[r], job.baseline)
     return flags
 
 
