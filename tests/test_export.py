@@ -157,6 +157,8 @@ def test_parquet_rows_equal_the_json_lines_for_grids_of_two_sizes_and_quads_in_a
     frames = sink.frames
     assert {(f.sensor.kind, f.forces_N.size) for f in frames} == {("grid", 64), ("grid", 15), ("quad", 3)}
     docs = [orjson.loads(line) for line in reference(frames)]
+    assert {(d.get("rows"), d.get("cols"), len(d.get("taxels_N", d.get("fxyz_N")))) for d in docs} == \
+        {(8, 8, 64), (3, 5, 15), (None, None, 3)}  # a grid's shape is in its line, not only its length
     for batch in (1, 13, len(frames)):
         got = pa.concat_tables([table(frames[i : i + batch]) for i in range(0, len(frames), batch)])
         got.validate(full=True)
@@ -166,6 +168,7 @@ def test_parquet_rows_equal_the_json_lines_for_grids_of_two_sizes_and_quads_in_a
             assert nulls(row[key]) == doc[key] and row[other] is None
             assert (row["board"], row["sensor"], row["seq"], row["t_us"], row["flags"], row["calibration"]) == \
                 (doc["board"], doc["sensor"], doc["seq"], doc["t_us"], doc["flags"], doc["calibration"])
+            assert (row["rows"], row["cols"]) == (doc.get("rows"), doc.get("cols"))
             assert nulls(row["sigma_N"]) == [None if v is None else float(np.float32(v)) for v in doc["sigma_N"]]
             if doc["kind"] == "grid":
                 assert dict(row["taxel_flags"]) == doc["taxel_flags"]

@@ -111,19 +111,23 @@ def _wrench(fxyz: np.ndarray) -> dict:
 
 def to_export_dict(frame: ForceFrame) -> dict:
     """The replay export / recording shape (one JSON object per frame)."""
-    key = "taxels_N" if frame.sensor.kind == "grid" else "fxyz_N"
+    grid = frame.sensor.kind == "grid"
     out = {
         "board": frame.sensor.board,
         "sensor": frame.sensor.id,
         "seq": frame.seq,
         "t_us": frame.t_us,
         "kind": frame.sensor.kind,
-        key: frame.forces_N,
+    }
+    if grid:  # the shape, which the flat taxel list does not say (a 4×4 and a 2×8 grid both have 16)
+        out["rows"], out["cols"] = frame.sensor.rows, frame.sensor.cols
+    out |= {
+        "taxels_N" if grid else "fxyz_N": frame.forces_N,
         "sigma_N": frame.sigma_N,
         "calibration": frame.calibration,
         "flags": frame.flags,
     }
-    if frame.sensor.kind == "grid":
+    if grid:
         out["taxel_flags"] = frame.taxel_flag_lists()
         out["contact"] = frame.contact
     return out

@@ -5,7 +5,8 @@ one table: a column a frame's kind does not have is null), plus the
 calibration id and the 1-σ of each force:
 
     sensor u8 · seq u16 · t_us u32 · kind string
-    taxels_N list<f64>    (grids; NaN = no reading, JSON's null)
+    rows u16 · cols u16   (grids: the taxels' shape)
+    taxels_N list<f64>    (grids, row-major; NaN = no reading, JSON's null)
     fxyz_N   list<f64>[3] (quads)
     flags list<string> · taxel_flags map<string, list<i32>> (grids)
     contact struct<total_N f64, cop_x_mm f64, cop_y_mm f64, area_mm2 f64, contacts i32> (grids;
@@ -37,7 +38,7 @@ CONTACT = pa.struct([("total_N", pa.float64()), ("cop_x_mm", pa.float64()), ("co
 TAXEL_FLAGS = pa.map_(pa.string(), pa.list_(pa.int32()))
 SCHEMA = pa.schema([
     ("board", pa.string()), ("sensor", pa.uint8()), ("seq", pa.uint16()), ("t_us", pa.uint32()), ("kind", pa.string()),
-    ("taxels_N", pa.list_(pa.float64())), ("fxyz_N", pa.list_(pa.float64(), 3)),
+    ("rows", pa.uint16()), ("cols", pa.uint16()), ("taxels_N", pa.list_(pa.float64())), ("fxyz_N", pa.list_(pa.float64(), 3)),
     ("flags", pa.list_(pa.string())), ("taxel_flags", TAXEL_FLAGS),
     ("contact", CONTACT), ("calibration", pa.string()), ("sigma_N", pa.list_(pa.float32())),
 ])
@@ -116,6 +117,8 @@ def table(frames: list[ForceFrame]) -> pa.Table:
         numbers(np.fromiter((f.seq for f in frames), np.uint16, len(frames)), pa.uint16()),
         numbers(np.fromiter((f.t_us for f in frames), np.uint32, len(frames)), pa.uint32()),
         strings([f.sensor.kind for f in frames]),
+        numbers(np.fromiter((f.sensor.rows for f in frames), np.uint16, len(frames)), pa.uint16(), grid),
+        numbers(np.fromiter((f.sensor.cols for f in frames), np.uint16, len(frames)), pa.uint16(), grid),
         taxels,
         _quad_forces(frames, grid),
         _flags(frames),

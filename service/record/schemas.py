@@ -69,6 +69,8 @@ FORCES = {
         "seq": {"type": "integer"},
         "t_us": {"type": "integer"},
         "kind": {"type": "string", "enum": ["grid", "quad"]},
+        "rows": {"type": "integer", "description": "grids: taxel rows (taxels_N is row-major)"},
+        "cols": {"type": "integer"},
         "taxels_N": {"type": "array", "items": {"type": ["number", "null"]}},
         "fxyz_N": {"type": "array", "items": {"type": ["number", "null"]}},
         "flags": {"type": "array", "items": {"type": "string"}},

@@ -52,6 +52,7 @@ def export(data: bytes, out) -> int:
         c = np.where((counts == 0) | (counts == 0xFFFFFFFF), np.nan, counts / 1e6)
         doc = {"sensor": sensor, "seq": seq, "t_us": t_us, "kind": "grid" if ftype == 0x10 else "quad"}
         if ftype == 0x10 and counts.size == 64:
+            doc["rows"] = doc["cols"] = 8
             forces = (c / cal.c0_pF - 1.0) / cal.sensitivity_per_N
             loaded = np.nan_to_num(forces) > 0.05
             total = float(forces[loaded].sum())
