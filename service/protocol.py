@@ -20,7 +20,9 @@ board that restarted (``board_restarts``; however soon, even if its bytes
 equal an older scan's). Otherwise, when its bytes equal one of the sensor's
 last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else,
 if the clock went back, it is a restart whose INFO was lost (at the same board
-time it is sequenced like any scan). None of these is a gap of 65 000 scans.
+time it is sequenced like any scan). After an INFO, a frame whose clock ran
+on but whose sequence fell back is a restart too (a board that ran for
+less time than it was off). None of these is a gap of 65 000 scans.
 Data frames from id 255, the board's own, are dropped (``board_id_data``).
 """
 from __future__ import annotations
@@ -264,9 +266,12 @@ class Decoder:
                             sensor_counters.duplicates += 1
                             return None
                         restart = step != 0
-                elif state.infos != self._infos and t_us < state.t_us and step > RESTART_JUMP_US:
-                    # After an INFO the clock fell back towards 0: a board that had run
-                    # more than half the clock's period restarted (not a forward step).
+                elif state.infos != self._infos and ((t_us < state.t_us and step > RESTART_JUMP_US)
+                                                     or (seq - state.seq) % SEQ_MODULUS >= SEQ_MODULUS // 2):
+                    # After an INFO the clock fell back towards 0 (a board that had run more
+                    # than half the clock's period: not a forward step), or the clock ran on
+                    # but the sequence started again (a board that had run for less time than
+                    # it was off): a restart, not a gap of 65 000 scans.
                     restart = True
                 if restart:
                     sensor_counters.board_restarts += 1

@@ -9,6 +9,7 @@ from service.protocol import (
     FrameType,
     encode_frame,
 )
+from service.protocol_bulk import BulkDecoder
 
 
 def quad_payload(*af):
@@ -244,6 +245,29 @@ def test_a_board_in_a_boot_loop_restarts_within_256_scans_and_nothing_is_dropped
     assert [i for i, f in enumerate(data) if f.board_restart] == [40, 80]
     counters = decoder.counters.sensor(1)
     assert (counters.board_restarts, counters.duplicates, counters.seq_gaps, counters.missed_frames) == (2, 0, 0, 0)
+
+
+@pytest.mark.parametrize("bulk", [False, True])
+def test_a_board_up_for_less_time_than_it_was_off_that_restarts_is_no_gap(bulk):
+    # Up 50 ms, off, then its power-up INFO and scans from seq 0 whose clock
+    # (from 80 ms: the board's boot took that long) stands past the last one
+    # before: the clock ran on, the sequence started again. Five times over,
+    # as a board in a brown-out loop.
+    def run(start_us):
+        return info(0) + b"".join(hand_frame(seq=s, t_us=start_us + 1000 * s) for s in range(50))
+    decoder = BulkDecoder() if bulk else Decoder()
+    frames = [f for f in decoder.feed(b"".join(run(1000 + 80_000 * k) for k in range(5))) if f.type == FrameType.QUAD]
+    assert [i for i, f in enumerate(frames) if f.board_restart] == [50, 100, 150, 200]
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.seq_gaps, counters.missed_frames) == (4, 0, 0)
+
+
+def test_an_info_reply_then_the_next_scan_is_neither_a_restart_nor_a_gap():
+    decoder = Decoder()
+    before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5))
+    after = info(5500) + b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5, 8))
+    frames = [f for f in decoder.feed(before + after) if f.type == FrameType.QUAD]
+    assert not any(f.board_restart or f.gap for f in frames)
 
 
 def test_a_board_up_for_over_half_its_clock_period_that_restarts_is_no_gap():
