@@ -37,6 +37,9 @@ class SensorInfo:
     cols: int
     serial: str | None = None  # the sensor's own identity, when INFO carries one
     board: str = ""  # the name of the board it is on: a sensor's address is board/id
+    # Without a serial of its own, a sensor is known by its board's (protocol.md), else the board's model:
+    # another board on the same link makes it another sensor (new tare, its own calibration).
+    board_identity: str | None = None
 
     @property
     def channels(self) -> int:
@@ -283,7 +286,7 @@ class Interpreter:
             if info is None:
                 self.rejected["unknown_shape"] += 1
                 return None
-            info = replace(info, board=self.name)
+            info = replace(info, board=self.name, board_identity=self.board.get("serial") or self.board.get("board"))
             self.sensors[frame.sensor] = info
             self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
@@ -299,8 +302,17 @@ class Interpreter:
             self.rejected["info_invalid"] += 1
             log.warning("ignoring INFO frame: %s", exc)
             return
-        self.board = {k: v for k, v in doc.items() if k != "sensors"}
+        board = {k: v for k, v in doc.items() if k != "sensors"}
+        identity = board.get("serial") or board.get("board")
+        if self.board and identity != (self.board.get("serial") or self.board.get("board")):
+            log.warning("board %s: INFO now describes board %r (was %r): its sensors without a serial of their own "
+                        "are new sensors, tared afresh", self.name, identity,
+                        self.board.get("serial") or self.board.get("board"))
+            self.sensors.update({sid: replace(info, board_identity=identity)  # in place: interpret_many holds it
+                                 for sid, info in self.sensors.items() if info.serial is None})
+        self.board = board
         if self.board_name is None:
             self.board_name = self.name_board(self.board)
-        self.sensors.update({sid: replace(info, board=self.board_name) for sid, info in sensors.items()})
+        self.sensors.update({sid: replace(info, board=self.board_name, board_identity=None if info.serial else identity)
+                             for sid, info in sensors.items()})
         self._unannounced.difference_update(sensors)

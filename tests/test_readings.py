@@ -167,7 +167,7 @@ def test_malformed_info_is_rejected_whole_and_counted_never_raised(doc):
     first = {"board": "old", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 16}]}
     feed(interpreter, info_frame(first), info_frame(doc))
     assert interpreter.rejected["info_invalid"] == 1
-    assert interpreter.sensors == {0: replace(parse_info(orjson.dumps(first))[1][0], board="old")}
+    assert interpreter.sensors == {0: replace(parse_info(orjson.dumps(first))[1][0], board="old", board_identity="old")}
     assert interpreter.board_name == "old"  # named by the first valid INFO, kept
     assert (interpreter.sensors[0].rows, interpreter.sensors[0].cols) == (4, 16)
     assert interpreter.board == {"board": "old"}
@@ -230,3 +230,30 @@ def test_a_malformed_info_costs_nothing_but_itself_in_the_read_it_arrives_in():
     frames = pipeline.feed(b"".join(scans[:3]) + info_frame({"sensors": None}) + b"".join(scans[3:]), 0.0)
     assert [f.seq for f in frames] == list(range(6))
     assert pipeline.interpreter.rejected["info_invalid"] == 1
+
+
+def test_another_board_on_the_same_link_makes_its_serial_less_sensors_new_sensors():
+    """protocol.md: a sensor without a serial is known by its board's serial
+    and its id. When the INFO names another board (a swap on the same port),
+    those sensors are new: tared afresh, not read against the old board's
+    zero; a sensor with its own serial keeps its identity."""
+    from service.reconstruct import Reconstructor
+
+    def board_info(serial):
+        return encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps({
+            "board": "b", "serial": serial, "sensors": [{"id": 1, "kind": "quad"},
+                                                        {"id": 2, "kind": "quad", "serial": "Q-7"}]}))
+
+    def scans(c0_af, start, count):
+        return b"".join(encode_frame(FrameType.QUAD, sid, seq, 1000 * (seq + 1), np.full(4, c0_af, "<u4").tobytes())
+                        for seq in range(start, start + count) for sid in (1, 2))
+
+    stream = board_info("BOARD-A") + scans(2_200_000, 0, 150) + board_info("BOARD-B") + scans(2_600_000, 0, 150)
+    interpreter, reconstructor = Interpreter(clock=lambda: 0.0), Reconstructor(tare_frames=20)
+    frames = reconstructor.process_many(interpreter.interpret_many(Decoder().feed(stream), 0.0))
+    after = [f for f in frames if f.sensor.id == 1][150:]
+    assert {f.sensor.board_identity for f in after} == {"BOARD-B"} and after[0].sensor.board == "BOARD-A"
+    assert all("taring" in f.flags for f in after[:19]) and not any("taring" in f.flags for f in after[20:])
+    assert max(abs(f.forces_N[2]) for f in after[20:]) < 0.01  # zero against B's own baseline, not A's
+    own = [f for f in frames if f.sensor.id == 2][150:]
+    assert {f.sensor.board_identity for f in own} == {None} and not any("taring" in f.flags for f in own)
