@@ -22,7 +22,10 @@ last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else,
 if the clock went back, it is a restart whose INFO was lost (at the same board
 time it is sequenced like any scan). After an INFO, a frame whose clock ran
 on but whose sequence fell back is a restart too (a board that ran for
-less time than it was off). None of these is a gap of 65 000 scans.
+less time than it was off). A frame whose sequence is the next one (other
+than 0 after 65 535) is in order whatever its clock did: a pause of more
+than half the clock's period (STOP … START) looks like a step back. None of
+these is a gap of 65 000 scans.
 Data frames from id 255, the board's own, are dropped (``board_id_data``).
 """
 from __future__ import annotations
@@ -258,7 +261,9 @@ class Decoder:
                 # The board clock only runs forward (wrapping every 71.6 min):
                 # only when it did not is the frame a repeat or a restart.
                 step = (t_us - state.t_us) % T_US_MODULUS
-                if step == 0 or step > _HALF_CLOCK:
+                if step > _HALF_CLOCK and seq == state.seq + 1:  # (not 0 after 65 535: that may be a restart)
+                    pass  # the next scan after a pause longer than half the clock's period (STOP … START): in order
+                elif step == 0 or step > _HALF_CLOCK:
                     info_step = (t_us - self._info_t_us) % T_US_MODULUS
                     restart = state.infos != self._infos and 0 < info_step < _HALF_CLOCK
                     if not restart:

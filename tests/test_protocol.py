@@ -262,6 +262,19 @@ def test_a_board_up_for_less_time_than_it_was_off_that_restarts_is_no_gap(bulk):
     assert (counters.board_restarts, counters.seq_gaps, counters.missed_frames) == (4, 0, 0)
 
 
+@pytest.mark.parametrize("bulk", [False, True])
+def test_the_next_scan_after_a_long_pause_is_in_order(bulk):
+    # STOP for 40 min, START: the sequence runs on, the clock jumped 2.4e9 µs,
+    # more than half its period, so modulo 2^32 it looks like a step back.
+    decoder = BulkDecoder() if bulk else Decoder()
+    before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5))
+    after = b"".join(hand_frame(seq=s, t_us=2_400_000_000 + 1000 * s) for s in range(5, 10))
+    frames = decoder.feed(before + after)
+    assert [f.seq for f in frames] == list(range(10)) and not any(f.board_restart or f.gap for f in frames)
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.seq_gaps, counters.duplicates) == (0, 0, 0)
+
+
 def test_an_info_reply_then_the_next_scan_is_neither_a_restart_nor_a_gap():
     decoder = Decoder()
     before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5))

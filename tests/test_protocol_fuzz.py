@@ -56,7 +56,8 @@ def passed_on(expected):
     last one is the first after a restart when an INFO the board sent before
     it came since that last frame; otherwise it is a repeat, dropped, when it
     equals one of the sensor's last 256 frames, and a restart when the clock
-    went back. After an INFO, a clock that fell back by more than
+    went back — unless its sequence is the next one (not 0 after 65 535):
+    then it is in order. After an INFO, a clock that fell back by more than
     RESTART_JUMP_US (yet "forward" modulo 2^32) is a restart too, and so is
     a sequence that fell back (by half its period or more) while the clock ran on."""
     last, recent, kept = {}, {}, []
@@ -69,7 +70,9 @@ def passed_on(expected):
             if sensor in last:
                 last_seq, last_t_us, info_t_us = last[sensor]
                 step = (t_us - last_t_us) % 2**32
-                if step == 0 or step > 2**31:
+                if step > 2**31 and seq == last_seq + 1:
+                    pass  # the next scan, after a long pause or a clock step back: in order
+                elif step == 0 or step > 2**31:
                     restart = info_t_us is not None and 0 < (t_us - info_t_us) % 2**32 < 2**31
                     if not restart and spec in recent[sensor][-256:]:
                         continue
