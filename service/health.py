@@ -21,6 +21,7 @@ def stale_after_s(board: dict) -> float:
 def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None) -> dict:
     sensors = {}
     name = pipeline.interpreter.name
+    unlisted = pipeline.interpreter.unlisted
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
@@ -35,6 +36,8 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "last_frame_age_s": None if age is None else round(age, 3),
             "calibration": calibration_state(pipeline, sid, now, book),
             "fatigue": pipeline.reconstructor.fatigue(sid),
+            "not_in_info": sid in unlisted,
+            "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors
@@ -62,6 +65,10 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  for sid, error in errors.items() if error["active"]]
     problems += [f"sensor {sid} uses the built-in calibration: its own could not be used ({s['calibration']['problem']})"
                  for sid, s in sensors.items() if (s.get("calibration") or {}).get("problem")]
+    problems += [f"sensor {sid}: channels {s['unzeroed_channels']} have no zero (no plausible reading while it "
+                 "tared): their forces are null" for sid, s in sensors.items() if s.get("unzeroed_channels")]
+    problems += [f"sensor {sid} sends data but the board's INFO does not list it (its shape is taken from its frames)"
+                 for sid, s in sensors.items() if s.get("not_in_info")]
     return problems
 
 

@@ -196,6 +196,7 @@ class Interpreter:
         self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
         self.max_unannounced_sensors = max_unannounced_sensors
         self._unannounced: set[int] = set()  # sensors known only from their data frames
+        self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
 
@@ -203,6 +204,13 @@ class Interpreter:
     def name(self) -> str:
         """The board's name (``board`` until one is settled)."""
         return self.board_name or UNNAMED_BOARD
+
+    @property
+    def unlisted(self) -> list[int]:
+        """Sensors that send data although the board's INFO in force does not
+        list them (their shape taken from their frames, or from an older
+        INFO); none before any INFO."""
+        return sorted(set(self.sensors) - self._listed) if self.board else []
 
     def interpret(self, frame: Frame, t_host: float | None = None) -> Reading | None:
         """Return a reading for a data frame, or None for INFO/ERROR frames and
@@ -316,3 +324,4 @@ class Interpreter:
         self.sensors.update({sid: replace(info, board=self.board_name, board_identity=None if info.serial else identity)
                              for sid, info in sensors.items()})
         self._unannounced.difference_update(sensors)
+        self._listed = set(sensors)

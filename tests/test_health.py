@@ -88,3 +88,25 @@ def test_the_binary_encoding_carries_the_reconstruction_error_flag():
     import struct
     decoded = decode_binary(struct.pack("<H", 1) + to_binary(frame, frozenset({"force", "flags"})))
     assert decoded[0]["flags"] == ["reconstruction_error"]
+
+
+def test_a_channel_without_a_zero_and_a_sensor_the_info_does_not_list_are_problems_by_name():
+    """A grid channel stuck at the converter's top since power-up gets no
+    zero from the tare; a sensor streams that the INFO does not describe.
+    Both are said in /health, not only in the frames' flags."""
+    service = TactileService("sim://")
+    info = orjson.dumps({"board": "b", "serial": "B-1", "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}]})
+    counts = np.full(64, 10_000_000, "<u4")
+    counts[5] = 0xFFFFFFFE  # the converter's top count: not a sentinel, not a capacitance either
+    scans = b"".join(encode_frame(FrameType.GRID, 0, s, 1000 * (s + 1), counts.tobytes())
+                     + encode_frame(FrameType.QUAD, 3, s, 1000 * (s + 1), np.full(4, 2_200_000, "<u4").tobytes())
+                     for s in range(150))
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info) + scans, time.time())
+    report = health_report(service)
+    assert report["sensors"]["0"]["unzeroed_channels"] == [5] and report["sensors"]["0"]["not_in_info"] is False
+    assert report["sensors"]["3"]["not_in_info"] is True and report["sensors"]["3"]["unzeroed_channels"] == []
+    assert report["status"] == "degraded"
+    assert any("sensor 0: channels [5] have no zero" in p for p in report["problems"])
+    assert any("sensor 3 sends data but the board's INFO does not list it" in p for p in report["problems"])
+    latest = service.pipeline.latest[0]
+    assert np.isnan(latest.forces_N[5]) and "out_of_range" in latest.flags

@@ -88,6 +88,14 @@ class SensorStates:
             self._calibration_applied(info.id)
         return document
 
+    def unzeroed(self, sensor_id: int) -> list[int]:
+        """Channels the completed tare gave no zero (no plausible reading in
+        its window): their forces are null, flagged, until one comes."""
+        state = self._sensors.get(sensor_id)
+        if state is None or not state.baseline.ready:
+            return []
+        return np.flatnonzero(np.isnan(state.baseline.value)).tolist()
+
     def kind(self, sensor_id: int) -> str | None:
         """The sensor's kind ("grid", "quad"); None for a sensor not seen yet."""
         state = self._sensors.get(sensor_id)
