@@ -455,3 +455,17 @@ def test_a_grid_channel_implausible_since_power_up_is_null_and_flagged_never_sil
     waiting = [f for f in tared if f.seq >= 25 and np.isnan(f.forces_N[2])]
     assert waiting and all(f.taxel_flags[2] & NO_READING and not f.taxel_flags[2] & OUT_OF_RANGE for f in waiting)
     assert np.isfinite(tared[-1].forces_N[2])  # its late zero came after 20 readings of its own
+
+
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+def test_a_quad_electrode_implausible_since_power_up_nulls_its_frames_flagged(level):
+    rng = np.random.default_rng(6)
+    rec = Reconstructor(tare_frames=20, level=level)
+    frames = []
+    for seq in range(60):
+        c = quad_counts(rng)
+        c[3] = TOP_COUNT_PF / 5  # ~860 pF from the first frame: no tare reading is plausible
+        frames += rec.process(reading(QUAD, c, seq))
+    for frame in frames[20:]:
+        assert np.isnan(frame.forces_N).all() and "out_of_range" in frame.flags
+    assert rec.unzeroed(QUAD.id) == [3]

@@ -9,7 +9,8 @@ An electrode outside its plausible range (level0.py: ΔC/C0 against its own
 baseline outside [−0.5, (1 + r_top)·1.5 − 1], r_top = QuadModel.top_relative
 = 0.360 with the paper's fits, so an upper bound of 1.04) leaves the frame without forces (all three
 null: every axis combines all four electrodes), flagged ``out_of_range``, at
-every level — the same rule and flag as a grid taxel's. ``electrode_fault``
+every level — the same rule and flag as a grid taxel's; so is a frame with an
+electrode the tare gave no zero (no plausible reading in its window). ``electrode_fault``
 keeps its meaning: plausible electrodes that disagree with the model (the
 redundant combination R); it and the range flags are not raised on a frame
 without forces.
@@ -86,6 +87,9 @@ class QuadProcessor:
         if not np.isscalar(sensitivity) or sensitivity != 1.0:
             relative = relative / (np.asarray(sensitivity)[:, None] if np.ndim(sensitivity) else sensitivity)
         bad = implausible(relative, *self._bounds)
+        if np.isnan(baseline).any():  # an electrode the tare gave no zero reads nothing usable either
+            unzeroed = np.isnan(baseline) & ~np.isnan(capacitance)
+            bad = unzeroed if bad is None else bad | unzeroed
         if bad is not None:  # a frame with an implausible electrode has no force
             frames = bad.any(axis=-1)
             relative = np.where(frames[..., None], np.nan, relative)
