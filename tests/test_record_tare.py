@@ -116,3 +116,24 @@ def test_without_its_tares_the_replay_would_differ(tmp_path, pressed, monkeypatc
     monkeypatch.setattr("service.replay.read_tares", lambda path: {})
     live, again = by_frame(recorded_forces(tmp_path / "run.mcap")), by_frame(replayed_forces(tmp_path / "run.mcap"))
     assert sum(live[key] != again[key] for key in live) > 500
+
+
+def test_a_calibration_changed_while_recording_is_said_by_the_replay(tmp_path, pressed, caplog):
+    """Not replayed (the replay keeps each sensor's first calibration): a
+    warning says so, naming the sensor and both calibrations."""
+    import logging
+
+    from service.record.calibrations import recorded_calibrations
+
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for i, chunk in reads(pressed):
+        if i == 400:
+            pipeline.set_calibration(pipeline.interpreter.sensors[1],
+                                     {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]})
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    with caplog.at_level(logging.WARNING, logger="service.record.calibrations"):
+        recorded_calibrations(tmp_path / "run.mcap")
+    assert f"sensor {pipeline.interpreter.name}/1 changed calibration while recording (builtin-fits34-35 → " in caplog.text

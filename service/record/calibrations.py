@@ -1,11 +1,14 @@
 """The calibrations a recording was made with, read back for its replay."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import orjson
 
 from .mcap_reader import iter_messages
+
+log = logging.getLogger(__name__)
 
 
 def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
@@ -18,11 +21,18 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
     one anyway."""
     found: dict[int, dict] = {}
     cycles: dict[int, tuple[str, list[int]]] = {}
+    used: dict[int | str, list[str]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
         sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
+        used.setdefault(sensor, []).append(doc["id"])
         if doc.get("document") is not None:
             found.setdefault(sensor, doc["document"])
         if doc.get("cycles_at_start") is not None:
             cycles.setdefault(sensor, (doc["id"], doc["cycles_at_start"]))
+    for sensor, ids in used.items():
+        if len(ids) > 1:  # a replay would give the first one's forces throughout: say so
+            log.warning("%s: sensor %s changed calibration while recording (%s); the replay reconstructs with the "
+                        "first throughout, so its forces after the change differ from the recorded ones",
+                        path, sensor, " → ".join(ids))
     return found, cycles
