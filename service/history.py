@@ -7,11 +7,6 @@ generation; its full passes over them stalled the event loop for up to
 the collector) plus one tuple of flag names per frame (tuples of strings are
 untracked by the collector), and ForceFrames are rebuilt only for the frames
 a history request returns.
-
-Frames are written into the ring a few dozen at a time (``PENDING_FRAMES``):
-at 1 kHz a frame written alone cost ~3 µs in numpy's per-call overhead,
-nine calls per frame; written together the calls are per batch. Every read
-of the ring writes what is pending first, so it sees every frame appended.
 """
 from __future__ import annotations
 
@@ -24,7 +19,6 @@ from .reconstruct import ForceFrame
 _FLAG_SETS: dict[tuple[str, ...], tuple[str, ...]] = {}
 DEFAULT_BUDGET_BYTES = 256 << 20
 DEFAULT_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5.5 MB for an 8x8 grid)
-PENDING_FRAMES = 32  # frames appended before they are written into the ring together
 
 
 class History:
@@ -53,12 +47,9 @@ class History:
         self._flags: list[tuple[str, ...]] = [()] * capacity
         self._levels: list[str] = [""] * capacity
         self._calibrations: list[str] = [""] * capacity  # the frames' own id strings: one object per calibration
-        self._count = 0  # frames ever written into the ring
-        self._pending: list[ForceFrame] = []  # appended, not yet written
-        self._none, self._none_flags = np.full(outputs, np.nan), np.zeros(outputs, np.uint8)  # for a frame without σ or taxel flags
+        self._count = 0  # frames ever appended
 
     def __len__(self) -> int:
-        self._write()
         return min(self._count, self.capacity)
 
     @staticmethod
@@ -70,7 +61,6 @@ class History:
         """Keep only the newest ``capacity`` frames (and room for no more)."""
         if not 1 <= capacity < self.capacity:
             return
-        self._write()
         kept = min(len(self), capacity)
         order = (self._count - kept + np.arange(kept)) % self.capacity  # oldest first
         arrays = ("_t_host", "_t_scan", "_seq", "_t_us", "_forces", "_sigma", "_raw") + (
@@ -89,38 +79,19 @@ class History:
         """Store the sensor's next frame."""
         if frame.sensor is not self.info and frame.sensor != self.info:
             raise ValueError(f"history of sensor {self.info.id} was given a frame of sensor {frame.sensor.id}")
-        pending = self._pending
-        pending.append(frame)
-        if len(pending) >= PENDING_FRAMES:
-            self._write()
-
-    def _write(self) -> None:
-        """The pending frames into the ring, one numpy call per field for all."""
-        frames = self._pending
-        if not frames:
-            return
-        self._pending = []
-        skipped = max(0, len(frames) - self.capacity)  # overwritten at once: each slot written once
-        if skipped:
-            frames = frames[skipped:]
-            self._count += skipped
-        slots = (self._count + np.arange(len(frames))) % self.capacity
-        self._t_host[slots] = [f.t_host for f in frames]
-        self._seq[slots] = [f.seq for f in frames]
-        self._t_us[slots] = [f.t_us for f in frames]
-        self._t_scan[slots] = [f.t_host_scan for f in frames]
-        self._forces[slots] = [f.forces_N for f in frames]
-        self._sigma[slots] = [self._none if f.sigma_N is None else f.sigma_N for f in frames]
-        self._raw[slots] = [f.capacitance_pF for f in frames]
+        i = self._count % self.capacity
+        self._t_host[i], self._seq[i], self._t_us[i] = frame.t_host, frame.seq, frame.t_us
+        self._t_scan[i] = frame.t_host_scan
+        self._forces[i] = frame.forces_N
+        self._sigma[i] = np.nan if frame.sigma_N is None else frame.sigma_N
+        self._raw[i] = frame.capacitance_pF
         if self._taxel_flags is not None:
-            self._taxel_flags[slots] = [self._none_flags if f.taxel_flags is None else f.taxel_flags for f in frames]
-        sets, flags, levels, calibrations = _FLAG_SETS, self._flags, self._levels, self._calibrations
-        for slot, f in zip(slots.tolist(), frames):
-            flag_set = tuple(f.flags)
-            flags[slot] = sets.setdefault(flag_set, flag_set)  # one tuple per distinct set of flags, not per frame
-            levels[slot] = f.level
-            calibrations[slot] = f.calibration
-        self._count += len(frames)
+            self._taxel_flags[i] = 0 if frame.taxel_flags is None else frame.taxel_flags
+        flags = tuple(frame.flags)
+        self._flags[i] = _FLAG_SETS.setdefault(flags, flags)  # one tuple per distinct set of flags, not per frame
+        self._levels[i] = frame.level
+        self._calibrations[i] = frame.calibration
+        self._count += 1
 
     def window(self, seconds: float, max_points: int) -> list[ForceFrame]:
         """Frames received in the last ``seconds`` before the newest one,
@@ -129,7 +100,7 @@ class History:
 
     def window_slots(self, seconds: float, max_points: int) -> np.ndarray:
         """The ring slots ``window`` returns, oldest first, shape (k,)."""
-        n = len(self)  # pending frames written first
+        n = len(self)
         if n == 0:
             return np.zeros(0, dtype=np.int64)
         order = (self._count - n + np.arange(n)) % self.capacity  # ring slots, oldest first
@@ -145,12 +116,10 @@ class History:
         """Which frame each written slot holds, counted from the ring's first
         (a shrink renumbers them, changing ``capacity``): a slot that holds
         the same number holds the same frame."""
-        self._write()
         return self._count - 1 - (self._count - 1 - slots) % self.capacity
 
     def frames_at(self, slots: np.ndarray) -> list[ForceFrame]:
         """Frames rebuilt from ring slots (copies: the ring goes on)."""
-        self._write()
         return [self._frame(int(i)) for i in slots]
 
     def _frame(self, i: int) -> ForceFrame:
