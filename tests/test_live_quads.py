@@ -1,14 +1,15 @@
 """The live quads' plan (quad_batch.QuadPlan) against the general path, sensor by sensor.
 
-Reads of one scan each go through the plan once it is made; the reference
-is each quad alone, with no plan, its frames of a read together (a read
-that piled up takes one fatigue factor for its frames, as the batched path
-always has, where frame by frame a cycle counted mid-read would move it). Bit for bit, through
-what changes a plan's basis: different calibrations (two batches), a tare
-and a new calibration mid-stream, load cycles that move the fatigue factor,
-sentinel and implausible channels (null and flagged, never a number), reads
-that pile up, and quads that start failing mid-stream (their frames null and
-flagged, the others as without them).
+Reads go through the plan once it is made (one scan each, or several that
+piled up); the reference is each quad alone, with no plan, its frames of a
+read together (a read that piled up takes one fatigue factor for its
+frames, as the batched path always has, where frame by frame a cycle
+counted mid-read would move it). Bit for bit, through what changes a
+plan's basis: different calibrations (two batches), a tare and a new
+calibration mid-stream, load cycles that move the fatigue factor, sentinel
+and implausible channels (null and flagged, never a number), and quads
+that start failing mid-stream (their frames null and flagged, the others
+as without them).
 """
 import numpy as np
 import pytest
@@ -58,7 +59,7 @@ def reads():
     rng = np.random.default_rng(4)
     out, i = [], 0
     while i < len(scans):
-        n = 3 if rng.random() < 0.05 else 1
+        n = int(rng.choice([1, 2, 3], p=[0.8, 0.1, 0.1]))  # reads that piled up: several scans
         out.append([r for scan in scans[i:i + n] for r in scan])
         i += n
     return out
@@ -75,7 +76,8 @@ def _run(reads, alone=None, fail=False, monkeypatch=None):
         rec.set_calibration(infos[sid], {"normal_fit": [-0.0008, 0.031], "shear_fit": [0.0075, 0.0004]})
     planned = []
     original = QuadPlan.frames
-    monkeypatch.setattr(QuadPlan, "frames", lambda plan, items: planned.append(1) or original(plan, items))
+    monkeypatch.setattr(QuadPlan, "frames",
+                        lambda plan, items: planned.append(len(items) // len(plan.states)) or original(plan, items))
     frames = {}
     for k, read in enumerate(reads):
         if k == TARE_AT and 5 in rec._sensors:
@@ -89,7 +91,7 @@ def _run(reads, alone=None, fail=False, monkeypatch=None):
         for batch in batches:
             for frame in rec.process_many(batch):
                 frames[(frame.sensor.id, frame.seq)] = frame
-    return frames, rec, len(planned)
+    return frames, rec, planned
 
 
 def _assert_same(a, b):
@@ -101,10 +103,10 @@ def _assert_same(a, b):
 
 def test_planned_reads_give_each_quad_what_it_gets_alone(reads, monkeypatch):
     together, rec, planned = _run(reads, monkeypatch=monkeypatch)
-    assert planned > 0.6 * len(reads)  # the usual way (not while a quad tares, nor for reads that piled up)
+    assert len(planned) > 0.7 * len(reads) and {2, 3} <= set(planned)  # the usual way, also for several scans
     for sid in QUADS:
         alone, reference, unplanned = _run(reads, alone=sid, monkeypatch=monkeypatch)
-        assert unplanned == 0
+        assert not unplanned
         assert len(alone) == len([key for key in together if key[0] == sid])
         for key, frame in alone.items():
             _assert_same(together[key], frame)
@@ -117,7 +119,7 @@ def test_planned_reads_give_each_quad_what_it_gets_alone(reads, monkeypatch):
 
 def test_quads_failing_mid_stream_leave_the_others_as_alone(reads, monkeypatch):
     together, rec, planned = _run(reads, fail=True, monkeypatch=monkeypatch)
-    assert planned > 0.5 * len(reads)  # until the failures
+    assert len(planned) > 0.5 * len(reads)  # until the failures
     for sid in (0, 1, 3, 5):
         alone, _, _ = _run(reads, alone=sid, monkeypatch=monkeypatch)
         for key, frame in alone.items():

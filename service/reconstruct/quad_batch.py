@@ -7,7 +7,8 @@ reference, for any readings); ``QuadPlan`` keeps how the last read of quads
 went — which sensors in which batch, their constants stacked — and the next
 read of the same sensors, each once, whose baselines, processors,
 calibrations and cycle counts are all still the same objects and values,
-goes through it without being grouped again. The values are the same either
+goes through it without being grouped again (also k scans of them, which a
+read holds when it waited while the loop was busy). The values are the same either
 way (tests/test_live_quads.py).
 """
 from __future__ import annotations
@@ -90,10 +91,13 @@ class _Batch:
 
 
 class QuadPlan:
-    """A read of tared quads, each sensor once, as the last one went.
+    """A read of tared quads, one scan of each sensor or several (k scans,
+    scan after scan, as reads pile up while the loop is busy), as the last
+    one went.
 
-    ``batches``: (positions in the read, the states there), one per model,
-    as the general path grouped them."""
+    ``states``: the sensors of one scan, in order; ``batches``: (positions
+    in a scan, the states there), one per model, as the general path
+    grouped them."""
 
     def __init__(self, level: str, states: list, batches: list[tuple[list[int], list]]) -> None:
         self.level = level
@@ -106,30 +110,44 @@ class QuadPlan:
         self._single = len(self.batches) == 1 and self.batches[0].positions == list(range(len(states)))
 
     def fits(self, items: list[tuple[object, Reading]]) -> bool:
-        """Whether ``items`` are the planned sensors, in order, on the same basis."""
-        if len(items) != len(self.states):
+        """Whether ``items`` are k scans of the planned sensors, in order, on the same basis."""
+        n = len(self.states)
+        if not items or len(items) % n:
             return False
         for (state, _), planned, (value, processor, calibration, cycles, count) in zip(items, self.states, self._basis):
             if (state is not planned or state.baseline.value is not value or state.processor is not processor
                     or state.calibration is not calibration or state.cycles is not cycles or cycles.counts[0] != count):
+                return False
+        states = self.states
+        for i in range(n, len(items)):
+            if items[i][0] is not states[i % n]:
                 return False
         return True
 
     def frames(self, items: list[tuple[object, Reading]]) -> list[ForceFrame]:
         """The frames of a read that ``fits``, in its order."""
         readings = [reading for _, reading in items]
-        if self._single:
-            return self._batch_frames(self.batches[0], readings)
+        n = len(self.states)
+        scans = len(items) // n
+        if scans == 1 and self._single:
+            return self._batch_frames(self.batches[0], readings, 1)
         out: list[ForceFrame | None] = [None] * len(items)
         for batch in self.batches:
-            for i, frame in zip(batch.positions, self._batch_frames(batch, [readings[i] for i in batch.positions])):
+            # Sensor after sensor, each with its scans in order: the general path's order for a batch.
+            places = [p + j * n for p in batch.positions for j in range(scans)]
+            for i, frame in zip(places, self._batch_frames(batch, [readings[i] for i in places], scans)):
                 out[i] = frame
         return out
 
-    def _batch_frames(self, batch: _Batch, readings: list[Reading]) -> list[ForceFrame]:
+    def _batch_frames(self, batch: _Batch, readings: list[Reading], scans: int) -> list[ForceFrame]:
+        baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
+        counts = None
+        if scans > 1:
+            baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
+            counts = [scans] * len(batch.states)
         processor = batch.processor
-        forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), batch.baseline,
-                                               batch.noise, batch.sensitivity)
-        sigma = processor.sigma(forces, batch.noise)
-        update_many(batch.cycles, forces[:, 2:3], batch.ones)
-        return _frames(self.level, batch.states, readings, forces, sigma, quad_flags)
+        forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), baseline, noise,
+                                               sensitivity)
+        sigma = processor.sigma(forces, noise)
+        update_many(batch.cycles, forces[:, 2:3], counts or batch.ones)
+        return _frames(self.level, batch.states, readings, forces, sigma, quad_flags, counts)

@@ -156,16 +156,21 @@ class Reconstructor(SensorStates):
         return out
 
     def _plan_quads(self, items: list, groups: dict, quads: dict) -> None:
-        """Keep how a read of tared quads went, each sensor once and none
-        failing, for the next read of the same sensors (quad_batch.QuadPlan).
-        A read without tared quads (a read's grids) leaves the plan as it is."""
+        """Keep how a read of tared quads went — k scans of the same sensors,
+        scan after scan, none failing — for the next such read
+        (quad_batch.QuadPlan). A read without tared quads (a read's grids)
+        leaves the plan as it is."""
         if not quads:
             return
         self._quad_plan = None
-        if len(groups) != len(items) or self._isolation.failing or sum(map(len, quads.values())) != len(items):
+        n = len(groups)
+        if len(items) % n or self._isolation.failing or sum(map(len, quads.values())) != n:
+            return
+        states = [group[0] for group in groups.values()]  # in the order they came
+        if any(items[i][0] is not states[i % n] for i in range(len(items))):
             return
         batches = [([indices[0] for _, indices, _ in batch], [state for state, _, _ in batch]) for batch in quads.values()]
-        self._quad_plan = QuadPlan(self.level, [state for state, _ in items], batches)
+        self._quad_plan = QuadPlan(self.level, states, batches)
 
     def _isolated_grids(self, members: list[tuple[SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
         """Tared grids' frames per sensor. At ``full`` they go through one
