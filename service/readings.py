@@ -73,6 +73,8 @@ class Reading:
     t_host_scan: float = math.nan  # the scan's time on the host clock (clock_map.py); NaN: not mapped
 
     def frame_flags(self) -> list[str]:
+        if not (self.board_flags or self.gap or self.board_restart or self.open_channel or self.shorted_channel):
+            return []  # the usual frame: once per frame at 1 kHz, so the common case is one test
         flags = []
         if self.board_flags & FLAG_SATURATED:
             flags.append("saturated")
