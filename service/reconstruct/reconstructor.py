@@ -1,11 +1,11 @@
 """The Reconstructor: readings (capacitance) → ForceFrames (forces, σ, flags), per sensor.
 
 Sensors are batched (grids of a level in one call, quads sharing a model in
-one call), a failing sensor isolated from the others (isolation.py). Each
-sensor's SensorCalibration comes from ``calibrations`` (the registry, a
-recording's own, ``--calibration``: chosen above this layer) or is the
-built-in one (sensor_states.py keeps each sensor's calibration, tare and
-load cycles).
+one call: quad_batch.py), a failing sensor isolated from the others
+(isolation.py). Each sensor's SensorCalibration comes from ``calibrations``
+(the registry, a recording's own, ``--calibration``: chosen above this
+layer) or is the built-in one (sensor_states.py keeps each sensor's
+calibration, tare and load cycles).
 """
 from __future__ import annotations
 
@@ -24,8 +24,8 @@ from .grid import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING
 from .grid_full import GridJob, process_full
 from .fatigue import update_many
 from .isolation import Isolation
-from .quad_batch import QuadBatches, QuadPlan
 from .levels import DEFAULT_LEVEL, LEVELS, SceneConfig, choose_level
+from .quad_batch import QuadBatches, QuadPlan
 from .sensor_states import Resolver, SensorState, SensorStates
 
 log = logging.getLogger(__name__)
