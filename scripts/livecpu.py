@@ -243,6 +243,8 @@ def main() -> int:
     parser.add_argument("--port", type=int, default=8775)
     parser.add_argument("--grid-batch-ms", type=float, metavar="MS",
                         help="run this tree's service with --grid-batch-ms MS (not --before's: give --before this tree for an A/B)")
+    parser.add_argument("--before-grid-batch-ms", type=float, metavar="MS",
+                        help="run --before's service with --grid-batch-ms MS (to compare two trees both batching grids)")
     parser.add_argument("--out", type=Path, help="write livecpu.png into this directory")
     parser.add_argument("--in-process", metavar="MERGES",
                         help="instead, the pipeline alone (no service), reads fed 1, 2, … at a time, e.g. 1,3: "
@@ -257,7 +259,8 @@ def main() -> int:
     for round_ in range(args.rounds):
         for name in boards:
             for label, tree in trees.items():
-                options = ("--grid-batch-ms", str(args.grid_batch_ms)) if args.grid_batch_ms and label != "before" else ()
+                batch_ms = args.before_grid_batch_ms if label == "before" else args.grid_batch_ms
+                options = ("--grid-batch-ms", str(batch_ms)) if batch_ms else ()
                 run = measure(tree, streams[name], args.seconds, args.port, args.warmup, options)
                 results[label].setdefault(name, []).append(run)
                 print(f"round {round_ + 1}, {name} sensors, {label}: {run[0]:.1f} % of a core, {run[1]:,.0f} frames/s",

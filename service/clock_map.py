@@ -106,6 +106,28 @@ class ClockMap:
         """
         t = np.asarray(t_us, dtype=np.int64)
         newest = int(t[-1])
+        scale, base = self._take(newest, t_recv)
+        # µs relative to the newest frame; the modular form only when the counter may have wrapped within the read.
+        d_us = t - newest if newest >= _QUARTER else ((t - newest + _HALF) & _MASK) - _HALF
+        out = d_us * scale
+        out += base
+        return np.minimum(out, t_recv, out=out)
+
+    def scan_times(self, t_us: list[int], t_recv: float) -> list[float]:
+        """``observe`` for a read's board times as a list, in plain Python
+        (the same float operations, so the same values): for one read's few
+        dozen frames numpy's per-call cost outweighs the arithmetic."""
+        newest = t_us[-1]
+        scale, base = self._take(newest, t_recv)
+        if newest >= _QUARTER:
+            times = [(t - newest) * scale + base for t in t_us]
+        else:
+            times = [(((t - newest + _HALF) & _MASK) - _HALF) * scale + base for t in t_us]
+        return [t if t < t_recv else t_recv for t in times]
+
+    def _take(self, newest: int, t_recv: float) -> tuple[float, float]:
+        """Take a read whose newest frame has board time ``newest``; return
+        the map (µs from the newest → host seconds) as (scale, base)."""
         if self._empty or t_recv - self._t_last > self.gap_s or self._step_us(newest) < -self._jump_us:
             self._begin(newest, t_recv)
         x_us = self._x_us + self._step_us(newest)
@@ -121,11 +143,7 @@ class ClockMap:
             self._add(0.0, 0.0)
         if t_recv >= self._next_refit:
             self._refit(t_recv)
-        # µs relative to the newest frame; the modular form only when the counter may have wrapped within the read.
-        d_us = t - newest if newest >= _QUARTER else ((t - newest + _HALF) & _MASK) - _HALF
-        out = d_us * ((1.0 + self._m) * 1e-6)
-        out += self._r0 + self._c + (1.0 + self._m) * (self._x_us * 1e-6)
-        return np.minimum(out, t_recv, out=out)
+        return (1.0 + self._m) * 1e-6, self._r0 + self._c + (1.0 + self._m) * (self._x_us * 1e-6)
 
     def _begin(self, newest: int, t_recv: float) -> None:
         if not self._empty:

@@ -15,8 +15,6 @@ import time
 from collections import deque
 from typing import Callable, Protocol
 
-import numpy as np
-
 from .clock_map import ClockMap
 from .history import Histories
 from .protocol_bulk import BulkDecoder
@@ -142,7 +140,7 @@ class Pipeline:
     def finish(self, t_host: float) -> list[ForceFrame]:
         """End of a finite stream: decode what is left, release held frames."""
         with self._lock:
-            readings = self._interpret(self.decoder.finish(), t_host)
+            readings = self.interpreter.interpret_many(self.decoder.finish(), t_host)
             frames = (self.reconstructor.process_many(readings) if readings else []) + self.reconstructor.flush()
         self._publish(frames, t_host)
         return frames
@@ -214,20 +212,9 @@ class Pipeline:
                 listener(data, t_host)
             with self._lock:
                 self.reads += 1
-                read = self._interpret(self.decoder.feed(data), t_host)
-                if read and self.clock is not None:
-                    self._map_clock(read, t_host)
-                readings += read
+                # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.
+                readings += self.interpreter.interpret_many(self.decoder.feed(data), t_host, self.clock)
         return readings
-
-    def _map_clock(self, readings: list[Reading], t_host: float) -> None:
-        """Each reading's scan time on the host clock, from the board's
-        clock mapped by the frames' arrival times (clock_map.py)."""
-        if any(r.board_restart for r in readings):
-            self.clock.restart()
-        scans = self.clock.observe(np.fromiter((r.t_us for r in readings), np.int64, len(readings)), t_host)
-        for reading, scan in zip(readings, scans.tolist()):
-            reading.t_host_scan = scan
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:
         """``reads``: how many more reads are reconstructed, by kind ("grid",
@@ -251,9 +238,6 @@ class Pipeline:
         if batches:
             self._reconstruct([r for readings, _, _ in batches for r in readings], batches[-1][1],
                               {"grid": sum(reads for _, _, reads in batches)})
-
-    def _interpret(self, frames, t_host: float) -> list[Reading]:
-        return self.interpreter.interpret_many(frames, t_host)
 
     def _publish(self, frames: list[ForceFrame], t_host: float) -> None:
         if not frames:

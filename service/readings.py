@@ -76,6 +76,8 @@ class Reading:
     t_host_scan: float = math.nan  # the scan's time on the host clock (clock_map.py); NaN: not mapped
 
     def frame_flags(self) -> list[str]:
+        if not (self.board_flags or self.gap or self.board_restart or self.open_channel or self.shorted_channel):
+            return []  # the usual frame: once per frame at 1 kHz, so the common case is one test
         flags = []
         if self.board_flags & FLAG_SATURATED:
             flags.append("saturated")
@@ -231,34 +233,47 @@ class Interpreter:
         return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted,
                        frame.board_restart)
 
-    def interpret_many(self, frames: list[Frame], t_host: float) -> list[Reading]:
+    def interpret_many(self, frames: list[Frame], t_host: float, clock=None) -> list[Reading]:
         """``interpret`` of each frame, in order, None left out: the same
         decisions and values, but the channels of all data frames of one
         size (a read's grids, its quads) converted by one numpy call each,
         not one per frame — at 1 kHz the per-call cost is what a frame
-        costs. Each reading's ``capacitance_pF`` is a row of its group's array."""
+        costs. Each reading's ``capacitance_pF`` is a row of its group's array.
+        ``clock`` (clock_map.ClockMap): the frames are one read received at
+        ``t_host``, and each reading gets its scan's host time from it."""
         accepted: list[tuple[SensorInfo, Frame]] = []
         groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
         sensors, fits = self.sensors, self._fits
+        restart = False
         for frame in frames:
-            size = len(frame.payload)
+            ftype, sensor, _, _, _, payload, _, board_restart = frame
+            size = len(payload)
             # The usual frame: of the same type and size as its sensor's last, which is still announced as it was.
-            fit = fits.get(frame.sensor)
-            if fit is not None and fit[1] == frame.type and fit[2] == size and sensors.get(frame.sensor) is fit[0]:
+            fit = fits.get(sensor)
+            if fit is not None and fit[1] == ftype and fit[2] == size and sensors.get(sensor) is fit[0]:
                 info = fit[0]
             else:
                 info = self._sensor_for(frame, t_host)
                 if info is None:
                     continue
-                fits[frame.sensor] = (info, frame.type, size)
+                fits[sensor] = (info, ftype, size)
             group = groups.get(size)
             if group is None:
                 group = groups[size] = []
             group.append(len(accepted))
             accepted.append((info, frame))
+            restart = restart or board_restart
+        if not accepted:
+            return []
+        if clock is None:
+            scans = [math.nan] * len(accepted)
+        else:
+            if restart:
+                clock.restart()
+            scans = clock.scan_times([frame[4] for _, frame in accepted], t_host)
         out: list[Reading | None] = [None] * len(accepted)
         for size, indices in groups.items():
-            raw = np.frombuffer(b"".join([accepted[i][1].payload for i in indices]), dtype="<u4")
+            raw = np.frombuffer(b"".join([accepted[i][1][5] for i in indices]), dtype="<u4")
             raw = raw.reshape(len(indices), size // 4)
             capacitance = raw / AF_PER_PF
             sentinel = (raw - np.uint32(SHORT_SENTINEL + 1)) >= np.uint32(OPEN_SENTINEL - 1)
@@ -268,8 +283,8 @@ class Interpreter:
                 opened = (raw == OPEN_SENTINEL).any(axis=1).tolist()
                 shorted = (raw == SHORT_SENTINEL).any(axis=1).tolist()
             for i, row, o, s in zip(indices, capacitance, opened, shorted):
-                info, f = accepted[i]
-                out[i] = Reading(info, f.seq, f.t_us, t_host, f.flags, f.gap, row, o, s, f.board_restart)
+                info, (_, _, flags, seq, t_us, _, gap, board_restart) = accepted[i]
+                out[i] = Reading(info, seq, t_us, t_host, flags, gap, row, o, s, board_restart, scans[i])
         return out
 
     def _sensor_for(self, frame: Frame, t_host: float) -> SensorInfo | None:

@@ -146,13 +146,41 @@ def update_many(counters: list[CycleCounter], forces: np.ndarray, counts: list[i
         return
     hits = above.any(axis=1).tolist()
     single = []  # counters with one judged frame (a live read) that is loaded or pending: stepped together
+    several: dict[int, list[tuple[CycleCounter, int]]] = {}  # judged frames → counters with as many, loaded or pending
     for counter, a, b in spans:
         if b - a > 1:
-            counter._count(judged[a:b], above[a:b])
+            if counter._any_armed or any(hits[a:b]):
+                several.setdefault(b - a, []).append((counter, a))
         elif counter._any_armed or hits[a]:
             single.append((counter, a))
+    for frames, members in several.items():
+        _count_together(members, frames, judged, above)
     if single:
         _step_together(single, judged, above)
+
+
+def _count_together(members: list[tuple[CycleCounter, int]], frames: int, judged: np.ndarray, above: np.ndarray) -> None:
+    """``CycleCounter._count`` of ``frames`` judged frames for each (counter,
+    its first row of ``judged``), all counters in one scan: a batch of grids
+    that piled up costs ~15 numpy calls, not ~15 per sensor."""
+    if len(members) == 1:
+        counter, a = members[0]
+        counter._count(judged[a:a + frames], above[a:a + frames])
+        return
+    rows = np.array([a for _, a in members])[:, None] + np.arange(frames)  # (C, frames)
+    forces, up = judged[rows], above[rows]
+    # As _count, along axis 1: +1 above HIGH, −1 below LOW, 0 between (keeps the last); a cycle is +1 → −1.
+    state = np.where(up, 1, np.where(forces < LOW_N, -1, 0)).astype(np.int8)
+    armed = np.array([counter._armed for counter, _ in members])
+    state = np.concatenate([np.where(armed, 1, -1).astype(np.int8)[:, None], state], axis=1)
+    steps = np.arange(frames + 1)[None, :, None]
+    last = np.maximum.accumulate(np.where(state != 0, steps, 0), axis=1)
+    filled = np.take_along_axis(state, last, axis=1)
+    cycles = np.count_nonzero((filled[:, :-1] == 1) & (filled[:, 1:] == -1), axis=1)
+    armed = filled[:, -1] == 1
+    for (counter, _), counted, row, any_armed in zip(members, cycles, armed, armed.any(axis=1).tolist()):
+        counter.counts += counted
+        counter._armed, counter._any_armed = row, any_armed
 
 
 def _step_together(single: list[tuple[CycleCounter, int]], judged: np.ndarray, above: np.ndarray) -> None:

@@ -1,11 +1,11 @@
 """The Reconstructor: readings (capacitance) → ForceFrames (forces, σ, flags), per sensor.
 
 Sensors are batched (grids of a level in one call, quads sharing a model in
-one call), a failing sensor isolated from the others (isolation.py). Each
-sensor's SensorCalibration comes from ``calibrations`` (the registry, a
-recording's own, ``--calibration``: chosen above this layer) or is the
-built-in one (sensor_states.py keeps each sensor's calibration, tare and
-load cycles).
+one call: quad_batch.py), a failing sensor isolated from the others
+(isolation.py). Each sensor's SensorCalibration comes from ``calibrations``
+(the registry, a recording's own, ``--calibration``: chosen above this
+layer) or is the built-in one (sensor_states.py keeps each sensor's
+calibration, tare and load cycles).
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from .grid_full import GridJob, process_full
 from .fatigue import update_many
 from .isolation import Isolation
 from .levels import DEFAULT_LEVEL, LEVELS, SceneConfig, choose_level
+from .quad_batch import QuadBatches, QuadPlan
 from .sensor_states import Resolver, SensorState, SensorStates
 
 log = logging.getLogger(__name__)
@@ -60,7 +61,8 @@ class Reconstructor(SensorStates):
         self.hold_until_tared = hold_until_tared
         self._held: deque[tuple[SensorState, Reading]] = deque()
         self._isolation = Isolation(self._null_frames, clock, log)
-        self._quad_stack: dict[int, tuple[list, np.ndarray]] = {}  # batch size → (baselines, stacked): _quad_baselines
+        self._quads = QuadBatches(self.level)
+        self._quad_plan: QuadPlan | None = None  # the last read of tared quads, each once: how it went
 
     def _calibration_applied(self, sensor_id: int) -> None:
         self._isolation.failing.discard(sensor_id)
@@ -123,14 +125,20 @@ class Reconstructor(SensorStates):
         return frames
 
     def _reconstruct(self, items: list[tuple[SensorState | Exception, Reading]]) -> list[ForceFrame]:
+        plan = self._quad_plan
+        if plan is not None and not self._isolation.failing and plan.fits(items):
+            try:
+                return plan.frames(items)
+            except Exception:  # noqa: BLE001 — nothing was changed: the general path below finds the culprit
+                self._quad_plan = None
         groups: dict[int, tuple[SensorState, list[int], list[Reading]]] = {}
         out: list[ForceFrame | None] = [None] * len(items)
         for index, (state, reading) in enumerate(items):
-            if isinstance(state, Exception):  # its baseline or state failed already
-                out[index] = self._isolation.error_frames(reading.sensor, [reading], state)[0]
-                continue
             group = groups.get(id(state))
             if group is None:
+                if isinstance(state, Exception):  # its baseline or state failed already
+                    out[index] = self._isolation.error_frames(reading.sensor, [reading], state)[0]
+                    continue
                 group = groups[id(state)] = (state, [], [])
             group[1].append(index)
             group[2].append(reading)
@@ -162,9 +170,27 @@ class Reconstructor(SensorStates):
             for (_, indices, _), frames in zip(grids, self._isolated_grids([(state, rs) for state, _, rs in grids])):
                 place(indices, frames)
         for batch in quads.values():
-            frames = self._isolation.without_state([(state, rs) for state, _, rs in batch], self._reconstruct_quads)
+            frames = self._isolation.without_state([(state, rs) for state, _, rs in batch], self._quads.frames)
             place((i for _, indices, _ in batch for i in indices), frames)
+        self._plan_quads(items, groups, quads)
         return out
+
+    def _plan_quads(self, items: list, groups: dict, quads: dict) -> None:
+        """Keep how a read of tared quads went — k scans of the same sensors,
+        scan after scan, none failing — for the next such read
+        (quad_batch.QuadPlan). A read without tared quads (a read's grids)
+        leaves the plan as it is."""
+        if not quads:
+            return
+        self._quad_plan = None
+        n = len(groups)
+        if len(items) % n or self._isolation.failing or sum(map(len, quads.values())) != n:
+            return
+        states = [group[0] for group in groups.values()]  # in the order they came
+        if any(items[i][0] is not states[i % n] for i in range(len(items))):
+            return
+        batches = [([indices[0] for _, indices, _ in batch], [state for state, _, _ in batch]) for batch in quads.values()]
+        self._quad_plan = QuadPlan(self.level, states, batches)
 
     def _isolated_grids(self, members: list[tuple[SensorState, list[Reading]]]) -> list[list[ForceFrame]]:
         """Tared grids' frames per sensor. At ``full`` they go through one
@@ -255,47 +281,3 @@ class Reconstructor(SensorStates):
                 i += 1
             out.append(frames)
         return out
-
-    def _reconstruct_quads(self, members: list[tuple[SensorState, list[Reading]]]) -> list[ForceFrame]:
-        """Tared quads sharing one model, each with its readings; their
-        frames in member order."""
-        counts = [len(rs) for _, rs in members]
-        readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
-        capacitance = np.array([r.capacitance_pF for r in readings])
-        baseline = self._quad_baselines([state.baseline.value for state, _ in members])
-        noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state, _ in members])
-        sensitivity = np.array([self._sensitivity(state) for state, _ in members])
-        if len(readings) != len(members):
-            baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
-        processor = members[0][0].processor
-        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity)
-        sigma = processor.sigma(forces, noise)
-        update_many([state.cycles for state, _ in members], forces[:, 2:3], counts)
-        level, out, i = self.level, [], 0
-        for (state, rs) in members:
-            calibration = state.calibration.id
-            for r in rs:
-                out.append(ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, forces[i], r.capacitance_pF,
-                                      r.frame_flags() + quad_flags[i], level, None, calibration, sigma[i], r.t_host_scan))
-                i += 1
-        return out
-
-    def _quad_baselines(self, baselines: list[np.ndarray]) -> np.ndarray:
-        """The baselines (S, 4) of a batch's quads, stacked again only when
-        the sensors or one of their tares changed."""
-        cached = self._quad_stack.get(len(baselines))
-        if cached is None or any(a is not b for a, b in zip(cached[0], baselines)):
-            cached = self._quad_stack[len(baselines)] = (baselines, np.array(baselines))
-        return cached[1]
-
-    @staticmethod
-    def _sensitivity(state: SensorState) -> float:
-        """What load cycles left of a quad's sensitivity (1: no fatigue model);
-        recomputed only when the count moved."""
-        model = state.calibration.fatigue
-        if model is None:
-            return 1.0
-        count = int(state.cycles.counts[0])
-        if state.sensitivity_for is None or state.sensitivity_for[0] != count or state.sensitivity_for[1] is not model:
-            state.sensitivity_for = (count, model, float(model.factor(count)))
-        return state.sensitivity_for[2]

@@ -1,0 +1,153 @@
+"""Quads of one model reconstructed together: one stacked (n×4) array per call.
+
+At 1 kHz a read holds one frame per quad, so what a quad costs is the
+Python around it, per sensor: finding its batch, stacking its baseline, its
+noise and its fatigue factor. ``QuadBatches.frames`` does one batch (the
+reference, for any readings); ``QuadPlan`` keeps how the last read of quads
+went — which sensors in which batch, their constants stacked — and the next
+read of the same sensors, each once, whose baselines, processors,
+calibrations and cycle counts are all still the same objects and values,
+goes through it without being grouped again (also k scans of them, which a
+read holds when it waited while the loop was busy). The values are the same either
+way (tests/test_live_quads.py).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..readings import Reading
+from .fatigue import update_many
+from .force_frame import ForceFrame
+
+
+def fatigue_factor(state) -> float:
+    """What load cycles left of a quad's sensitivity (1: no fatigue model);
+    recomputed only when the count moved."""
+    model = state.calibration.fatigue
+    if model is None:
+        return 1.0
+    count = int(state.cycles.counts[0])
+    if state.sensitivity_for is None or state.sensitivity_for[0] != count or state.sensitivity_for[1] is not model:
+        state.sensitivity_for = (count, model, float(model.factor(count)))
+    return state.sensitivity_for[2]
+
+
+def _frames(level: str, states: list, readings: list[Reading], forces: np.ndarray, sigma: np.ndarray,
+            quad_flags: list[list[str]], counts: list[int] | None = None) -> list[ForceFrame]:
+    """The ForceFrames of ``readings``, ``counts[k]`` of them (default one) of ``states[k]``."""
+    calibrations = [state.calibration.id for state in states]
+    if counts is not None:
+        calibrations = [c for c, n in zip(calibrations, counts) for _ in range(n)]
+    return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, r.frame_flags() + q, level, None, c, s,
+                       r.t_host_scan)
+            for r, f, s, q, c in zip(readings, forces, sigma, quad_flags, calibrations)]
+
+
+class QuadBatches:
+    """Tared quads sharing one model, each with its readings → their frames."""
+
+    def __init__(self, level: str) -> None:
+        self.level = level
+        self._stacks: dict[int, tuple[list, np.ndarray]] = {}  # batch size → (baselines, stacked): _baselines
+
+    def frames(self, members: list[tuple[object, list[Reading]]]) -> list[ForceFrame]:
+        """The members' frames in member order (several readings per sensor allowed)."""
+        counts = [len(rs) for _, rs in members]
+        readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
+        states = [state for state, _ in members]
+        baseline = self._baselines([state.baseline.value for state in states])
+        noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state in states])
+        sensitivity = np.array([fatigue_factor(state) for state in states])
+        if len(readings) != len(members):
+            baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
+        processor = states[0].processor
+        forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), baseline, noise,
+                                               sensitivity)
+        sigma = processor.sigma(forces, noise)
+        update_many([state.cycles for state in states], forces[:, 2:3], counts)
+        return _frames(self.level, states, readings, forces, sigma, quad_flags, counts)
+
+    def _baselines(self, baselines: list[np.ndarray]) -> np.ndarray:
+        """The baselines (S, 4) of a batch's quads, stacked again only when
+        the sensors or one of their tares changed."""
+        cached = self._stacks.get(len(baselines))
+        if cached is None or any(a is not b for a, b in zip(cached[0], baselines)):
+            cached = self._stacks[len(baselines)] = (baselines, np.array(baselines))
+        return cached[1]
+
+
+class _Batch:
+    """One model's quads of the planned read: their places in it and their constants."""
+
+    def __init__(self, positions: list[int], states: list) -> None:
+        self.positions = positions
+        self.states = states
+        self.processor = states[0].processor
+        self.baseline = np.array([state.baseline.value for state in states])
+        self.noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state in states])
+        self.sensitivity = np.array([fatigue_factor(state) for state in states])
+        self.cycles = [state.cycles for state in states]
+        self.ones = [1] * len(states)
+
+
+class QuadPlan:
+    """A read of tared quads, one scan of each sensor or several (k scans,
+    scan after scan, as reads pile up while the loop is busy), as the last
+    one went.
+
+    ``states``: the sensors of one scan, in order; ``batches``: (positions
+    in a scan, the states there), one per model, as the general path
+    grouped them."""
+
+    def __init__(self, level: str, states: list, batches: list[tuple[list[int], list]]) -> None:
+        self.level = level
+        self.states = states
+        # What each sensor's constants rest on: a change to any of them (a tare, a late channel's baseline,
+        # a calibration, a load cycle counted) makes the plan miss, and the general path runs.
+        self._basis = [(state.baseline.value, state.processor, state.calibration, state.cycles,
+                        int(state.cycles.counts[0])) for state in states]
+        self.batches = [_Batch(positions, members) for positions, members in batches]
+        self._single = len(self.batches) == 1 and self.batches[0].positions == list(range(len(states)))
+
+    def fits(self, items: list[tuple[object, Reading]]) -> bool:
+        """Whether ``items`` are k scans of the planned sensors, in order, on the same basis."""
+        n = len(self.states)
+        if not items or len(items) % n:
+            return False
+        for (state, _), planned, (value, processor, calibration, cycles, count) in zip(items, self.states, self._basis):
+            if (state is not planned or state.baseline.value is not value or state.processor is not processor
+                    or state.calibration is not calibration or state.cycles is not cycles or cycles.counts[0] != count):
+                return False
+        states = self.states
+        for i in range(n, len(items)):
+            if items[i][0] is not states[i % n]:
+                return False
+        return True
+
+    def frames(self, items: list[tuple[object, Reading]]) -> list[ForceFrame]:
+        """The frames of a read that ``fits``, in its order."""
+        readings = [reading for _, reading in items]
+        n = len(self.states)
+        scans = len(items) // n
+        if scans == 1 and self._single:
+            return self._batch_frames(self.batches[0], readings, 1)
+        out: list[ForceFrame | None] = [None] * len(items)
+        for batch in self.batches:
+            # Sensor after sensor, each with its scans in order: the general path's order for a batch.
+            places = [p + j * n for p in batch.positions for j in range(scans)]
+            for i, frame in zip(places, self._batch_frames(batch, [readings[i] for i in places], scans)):
+                out[i] = frame
+        return out
+
+    def _batch_frames(self, batch: _Batch, readings: list[Reading], scans: int) -> list[ForceFrame]:
+        baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
+        counts = None
+        if scans > 1:
+            baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
+            counts = [scans] * len(batch.states)
+        processor = batch.processor
+        forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), baseline, noise,
+                                               sensitivity)
+        sigma = processor.sigma(forces, noise)
+        update_many(batch.cycles, forces[:, 2:3], counts or batch.ones)
+        return _frames(self.level, batch.states, readings, forces, sigma, quad_flags, counts)

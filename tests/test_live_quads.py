@@ -1,0 +1,132 @@
+"""The live quads' plan (quad_batch.QuadPlan) against the general path, sensor by sensor.
+
+Reads go through the plan once it is made (one scan each, or several that
+piled up); the reference is each quad alone, with no plan, its frames of a
+read together (a read that piled up takes one fatigue factor for its
+frames, as the batched path always has, where frame by frame a cycle
+counted mid-read would move it). Bit for bit, through what changes a
+plan's basis: different calibrations (two batches), a tare and a new
+calibration mid-stream, load cycles that move the fatigue factor, sentinel
+and implausible channels (null and flagged, never a number), and quads
+that start failing mid-stream (their frames null and flagged, the others
+as without them).
+"""
+import numpy as np
+import pytest
+
+from firmware_sim.board import BoardConfig, capture
+from firmware_sim.sensors import SimQuad
+from service.protocol import Decoder
+from service.readings import Interpreter, Reading
+from service.reconstruct import Reconstructor
+from service.reconstruct.quad_batch import QuadPlan
+
+QUADS = range(6)
+TARE_AT, CALIBRATE_AT, FAIL_AT = 400, 700, 1100  # read numbers
+RELEASE_FROM_SEQ = 1300  # quad 0 lets go of the scene's load every other 40 frames from here (load cycles)
+
+
+def _boom(*_args, **_kwargs):
+    raise RuntimeError("boom")
+
+
+def _with(r: Reading, capacitance: np.ndarray, opened: bool = False) -> Reading:
+    return Reading(r.sensor, r.seq, r.t_us, r.t_host, r.board_flags, r.gap, capacitance, opened, r.shorted_channel)
+
+
+def _faulty(r: Reading) -> Reading:
+    """Quad 1 now and then: an open channel (NaN), an implausible one (1 aF) or a top count."""
+    if r.sensor.id != 1 or r.seq % 37 not in (5, 6, 7):
+        return r
+    c = r.capacitance_pF.copy()
+    kind = r.seq % 37
+    c[kind % 4] = np.nan if kind == 5 else (1e-6 if kind == 6 else 4294.967294)
+    return _with(r, c, opened=kind == 5)
+
+
+@pytest.fixture(scope="module")
+def reads():
+    data, _ = capture(BoardConfig(sensors=[SimQuad(i) for i in QUADS], scene="demo", seed=9), 1.8)
+    interpreter = Interpreter(clock=lambda: 0.0)
+    readings = [_faulty(r) for r in (interpreter.interpret(f, 0.0) for f in Decoder().feed(data)) if r is not None]
+    unloaded = {r.seq: r.capacitance_pF for r in readings if r.sensor.id == 0 and r.seq < RELEASE_FROM_SEQ}
+    readings = [_with(r, unloaded[r.seq - 1000]) if r.sensor.id == 0 and r.seq >= RELEASE_FROM_SEQ and r.seq // 40 % 2
+                else r for r in readings]
+    scans: dict[int, list[Reading]] = {}
+    for r in readings:
+        scans.setdefault(r.t_us, []).append(r)
+    scans = list(scans.values())
+    rng = np.random.default_rng(4)
+    out, i = [], 0
+    while i < len(scans):
+        n = int(rng.choice([1, 2, 3], p=[0.8, 0.1, 0.1]))  # reads that piled up: several scans
+        out.append([r for scan in scans[i:i + n] for r in scan])
+        i += n
+    return out
+
+
+def _run(reads, alone=None, fail=False, monkeypatch=None):
+    """Frames by (sensor, seq), the reconstructor, and how many reads the
+    plan made. ``alone``: only that quad, no plan."""
+    infos = {r.sensor.id: r.sensor for read in reads for r in read}
+    rec = Reconstructor(level="full", clock=lambda: 0.0)
+    if alone is not None:
+        rec._plan_quads = lambda *_: None
+    for sid in (2, 3):
+        rec.set_calibration(infos[sid], {"normal_fit": [-0.0008, 0.031], "shear_fit": [0.0075, 0.0004]})
+    planned = []
+    original = QuadPlan.frames
+    monkeypatch.setattr(QuadPlan, "frames",
+                        lambda plan, items: planned.append(len(items) // len(plan.states)) or original(plan, items))
+    frames = {}
+    for k, read in enumerate(reads):
+        if k == TARE_AT and 5 in rec._sensors:
+            rec.tare(5)
+        if k == CALIBRATE_AT and 4 in rec._sensors:
+            rec.set_calibration(infos[4], {"normal_fit": [-0.0007, 0.033], "shear_fit": [0.0078, 0.0004]})
+        if fail and k == FAIL_AT:  # quad 2's processor (its batch's first) and quad 4's tare fail from here on
+            rec._sensors[2].processor.sigma = _boom
+            rec._sensors[4].baseline.update = _boom
+        batches = [read] if alone is None else [[r for r in read if r.sensor.id == alone]]
+        for batch in batches:
+            for frame in rec.process_many(batch):
+                frames[(frame.sensor.id, frame.seq)] = frame
+    return frames, rec, planned
+
+
+def _assert_same(a, b):
+    np.testing.assert_array_equal(a.forces_N, b.forces_N)
+    np.testing.assert_array_equal(a.sigma_N, b.sigma_N)
+    np.testing.assert_array_equal(a.capacitance_pF, b.capacitance_pF)
+    assert (a.flags, a.seq, a.t_us, a.level) == (b.flags, b.seq, b.t_us, b.level)
+
+
+def test_planned_reads_give_each_quad_what_it_gets_alone(reads, monkeypatch):
+    together, rec, planned = _run(reads, monkeypatch=monkeypatch)
+    assert len(planned) > 0.7 * len(reads) and {2, 3} <= set(planned)  # the usual way, also for several scans
+    for sid in QUADS:
+        alone, reference, unplanned = _run(reads, alone=sid, monkeypatch=monkeypatch)
+        assert not unplanned
+        assert len(alone) == len([key for key in together if key[0] == sid])
+        for key, frame in alone.items():
+            _assert_same(together[key], frame)
+        assert rec.cycle_counts()[sid][2] == reference.cycle_counts()[sid][2]
+    assert sum(rec.cycle_counts()[0][2]) > 0, "the release counted load cycles (the fatigue factor moved)"
+    flagged = [f for (sid, _), f in together.items() if sid == 1 and ("out_of_range" in f.flags or "open_channel" in f.flags)]
+    assert flagged and all(np.isnan(f.forces_N).all() for f in flagged)
+    assert sum("taring" in f.flags for (sid, _), f in together.items() if sid == 5) == 2 * 99  # start-up and the tare (the last reading of each has forces)
+
+
+def test_quads_failing_mid_stream_leave_the_others_as_alone(reads, monkeypatch):
+    together, rec, planned = _run(reads, fail=True, monkeypatch=monkeypatch)
+    assert len(planned) > 0.5 * len(reads)  # until the failures
+    for sid in (0, 1, 3, 5):
+        alone, _, _ = _run(reads, alone=sid, monkeypatch=monkeypatch)
+        for key, frame in alone.items():
+            _assert_same(together[key], frame)
+    for sid in (2, 4):
+        late = [f for (s, _), f in together.items() if s == sid and "reconstruction_error" in f.flags]
+        assert late and all(np.isnan(f.forces_N).all() for f in late)
+        first = min(f.seq for f in late)
+        assert all("reconstruction_error" in f.flags for (s, seq), f in together.items() if s == sid and seq >= first)
+    assert set(rec.errors()) == {2, 4}
