@@ -59,8 +59,9 @@ def proc_sample(pid: int) -> tuple[float, int]:
     return cpu, rss
 
 
-# A binary record's head (service/fanout/encoding.py, v3): then the calibration id (m bytes), the
-# board name (u8 length b, b bytes), n forces, n sigmas (field bit 4) and the raw channels (field bit 2: n for a grid, 4 for a quad), f4 each.
+# A binary record's head (service/fanout/encoding.py, v4): then the calibration id (m bytes), the
+# board name (u8 length b, b bytes), n forces, n sigmas (field bit 4) and the raw channels (field bit 2: n for a grid,
+# 4 for a quad), f4 each, and a grid's n taxel-flag bytes (field bit 8).
 HEADER = np.dtype([("version", "u1"), ("kind", "u1"), ("sid", "u1"), ("field_bits", "u1"), ("seq", "<u2"),
                    ("t_us", "<u4"), ("stamp", "<f8"), ("scan_stamp", "<f8"), ("flag_bits", "<u4"),
                    ("n", "<u2"), ("m", "u1")])
@@ -91,7 +92,7 @@ class Tally:
             kind, field_bits, n, m = message[pos + 1], message[pos + 3], *COUNT_AT(message, pos + 30), message[pos + 32]
             channels = (n if kind == 0 else 4) if field_bits & 2 else 0
             b = message[pos + HEADER.itemsize + m]
-            pos += HEADER.itemsize + m + 1 + b + 4 * (n * (1 + (field_bits >> 2 & 1)) + channels)
+            pos += HEADER.itemsize + m + 1 + b + 4 * (n * (1 + (field_bits >> 2 & 1)) + channels) + (n if field_bits & 8 else 0)
         raw = np.frombuffer(message, np.uint8)[np.add.outer(starts, HEADER_BYTES)]
         headers = raw.view(HEADER)[:, 0]
         self._sids.append(headers["sid"])

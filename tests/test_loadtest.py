@@ -24,6 +24,24 @@ def message(seqs) -> bytes:
     return len(frames).to_bytes(2, "little") + b"".join(to_binary(frame) for frame in frames)
 
 
+def test_records_of_grids_and_quads_with_every_field_are_cut_where_they_end():
+    """Each record's length follows its fields (forces, σ, raw, a grid's
+    taxel flags): a miscut would count garbage as sequence numbers."""
+    from service.fanout.encoding import DEFAULT_FIELDS
+
+    grid = SensorInfo(0, "grid", 3, 5, board="left")
+    flags = np.zeros(15, np.uint8)
+    flags[2] = 2
+    frames = [ForceFrame(grid if k % 2 else QUAD, 100 + k, 0, time.time(), np.zeros(15 if k % 2 else 3),
+                         np.ones(15 if k % 2 else 4), [], "full", flags if k % 2 else None, "cal", np.ones(15 if k % 2 else 3))
+              for k in range(10)]
+    for fields in (DEFAULT_FIELDS, DEFAULT_FIELDS | {"raw"}, frozenset({"force"})):
+        tally = loadtest.Tally()
+        tally.binary(len(frames).to_bytes(2, "little") + b"".join(to_binary(f, fields) for f in frames), time.time())
+        assert {sid: seqs.tolist() for sid, seqs in tally.seqs.items()} == {0: [101, 103, 105, 107, 109],
+                                                                            4: [100, 102, 104, 106, 108]}
+
+
 def tally_of(batches) -> "loadtest.Tally":
     tally = loadtest.Tally()
     for seqs in batches:
