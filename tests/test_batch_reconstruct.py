@@ -1,7 +1,7 @@
 """The batched live path against the per-sensor reference.
 
 Sensors of a kind go through one call per step for a whole read (stuck.py,
-fatigue.update_many, the quads' stacked baselines, grid_full.py): every
+the quads' stacked baselines, grid_full.py; fatigue.update_many: test_live_fatigue.py): every
 sensor's frames must be, bit for bit, what the sensor gives when it is
 reconstructed alone one frame at a time — with different calibrations,
 stuck channels, reads that pile up (several frames per sensor), and a
@@ -17,7 +17,6 @@ from service.protocol import Decoder
 from service.readings import Interpreter, Reading
 from service.reconstruct import Reconstructor
 from service.reconstruct import reconstructor as reconstructor_module
-from service.reconstruct.fatigue import HIGH_N, LOW_N, CycleCounter, update_many
 from service.reconstruct.stuck import run_lengths
 
 STUCK_FROM_SEQ = 300  # grid 3's channels 5 and 17 repeat one count from here on, in runs of 70 and 53 frames
@@ -153,25 +152,6 @@ def test_run_lengths_of_several_sensors_equal_a_frame_by_frame_count():
         previous, prior = capacitance[:, start + size - 1], got[:, -1]
         start += size
     assert start == frames
-
-
-def test_update_many_counts_what_each_counter_counts_alone():
-    rng = np.random.default_rng(11)
-    taxels, sensors = 3, 4
-    levels = np.array([0.0, LOW_N - 0.1, (LOW_N + HIGH_N) / 2, HIGH_N + 0.5, np.nan])
-    forces = [levels[rng.integers(0, len(levels), (400, taxels))] for _ in range(sensors)]
-    alone = [CycleCounter(taxels) for _ in range(sensors)]
-    together = [CycleCounter(taxels) for _ in range(sensors)]
-    done = [0] * sensors
-    while any(d < 400 for d in done):
-        counts = [min(int(rng.integers(0, 4)), 400 - d) for d in done]
-        for counter, f, d, c in zip(alone, forces, done, counts):
-            counter.update(f[d:d + c])
-        update_many(together, np.concatenate([f[d:d + c] for f, d, c in zip(forces, done, counts)]), counts)
-        done = [d + c for d, c in zip(done, counts)]
-    for a, b in zip(alone, together):
-        np.testing.assert_array_equal(a.counts, b.counts)
-    assert sum(int(a.counts.sum()) for a in alone) > 10
 
 
 def test_grids_of_different_sizes_in_one_read_get_what_they_get_alone(monkeypatch):
