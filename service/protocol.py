@@ -20,9 +20,10 @@ board that restarted (``board_restarts``; however soon, even if its bytes
 equal an older scan's). Otherwise, when its bytes equal one of the sensor's
 last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else,
 if the clock went back, it is a restart whose INFO was lost (at the same board
-time it is sequenced like any scan). After an INFO, a frame whose clock ran
-on but whose sequence fell back is a restart too (a board that ran for
-less time than it was off). A frame whose sequence is the next one (other
+time it is sequenced like any scan). After an INFO stamped before the
+sensor's last scan (a power-up INFO; a reply to INFO? after a reconnect is
+stamped after it), a frame whose clock ran on but whose sequence fell back
+is a restart too (a board that ran for less time than it was off). A frame whose sequence is the next one (other
 than 0 after 65 535) is in order whatever its clock did: a pause of more
 than half the clock's period (STOP … START) looks like a step back. None of
 these is a gap of 65 000 scans.
@@ -272,11 +273,14 @@ class Decoder:
                             return None
                         restart = step != 0
                 elif state.infos != self._infos and ((t_us < state.t_us and step > RESTART_JUMP_US)
-                                                     or (seq - state.seq) % SEQ_MODULUS >= SEQ_MODULUS // 2):
+                                                     or ((seq - state.seq) % SEQ_MODULUS >= SEQ_MODULUS // 2
+                                                         and 0 < (state.t_us - self._info_t_us) % T_US_MODULUS
+                                                         < _HALF_CLOCK)):
                     # After an INFO the clock fell back towards 0 (a board that had run more
-                    # than half the clock's period: not a forward step), or the clock ran on
-                    # but the sequence started again (a board that had run for less time than
-                    # it was off): a restart, not a gap of 65 000 scans.
+                    # than half the clock's period: not a forward step), or, after an INFO
+                    # stamped before this sensor's last scan (a power-up INFO, not a reply to
+                    # INFO?), the clock ran on but the sequence started again (a board that had
+                    # run for less time than it was off): a restart, not a gap of 65 000 scans.
                     restart = True
                 if restart:
                     sensor_counters.board_restarts += 1

@@ -205,3 +205,6 @@ def test_binary_frames_carry_each_taxels_flags_to_clients_and_the_gateway(frames
             assert "taxel_flags" not in record and "taxel_flags" not in client._from_binary(record, DEFAULT_FIELDS)
     without = decode_binary(struct.pack("<H", 1) + to_binary(flagged[0], frozenset({"force"})))[0]
     assert "taxel_flags" not in without and without["force_N"].shape == (64,)
+    for fields in ({"flags"}, {"raw", "flags"}, {"sigma", "flags"}):  # every record still cut where it ends
+        message = struct.pack("<H", len(chosen)) + b"".join(to_binary(f, frozenset(fields)) for f in chosen)
+        assert [(r["sensor_id"], r["seq"]) for r in decode_binary(message)] == [(f.sensor.id, f.seq) for f in chosen]

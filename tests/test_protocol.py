@@ -275,6 +275,20 @@ def test_the_next_scan_after_a_long_pause_is_in_order(bulk):
     assert (counters.board_restarts, counters.seq_gaps, counters.duplicates) == (0, 0, 0)
 
 
+@pytest.mark.parametrize("bulk", [False, True])
+def test_a_long_outage_then_the_reply_to_info_is_a_gap_not_a_restart(bulk):
+    # A reconnect after 40 s at 1 kHz: the service asks INFO?, the board (still
+    # running) replies stamped now, then scans 40 000 on, whose seq mod 2^16
+    # looks "fallen back". The scans missed are a gap.
+    decoder = BulkDecoder() if bulk else Decoder()
+    before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(60_000, 60_005))
+    after = info(1000 * 100_000) + b"".join(hand_frame(seq=(100_000 + s) % 65536, t_us=1000 * (100_001 + s))
+                                            for s in range(3))
+    frames = [f for f in decoder.feed(before + after) if f.type == FrameType.QUAD]
+    assert not any(f.board_restart for f in frames) and frames[5].gap == 100_000 - 60_004 - 1
+    assert decoder.counters.sensor(1).board_restarts == 0
+
+
 def test_an_info_reply_then_the_next_scan_is_neither_a_restart_nor_a_gap():
     decoder = Decoder()
     before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5))

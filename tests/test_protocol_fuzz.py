@@ -58,8 +58,9 @@ def passed_on(expected):
     equals one of the sensor's last 256 frames, and a restart when the clock
     went back — unless its sequence is the next one (not 0 after 65 535):
     then it is in order. After an INFO, a clock that fell back by more than
-    RESTART_JUMP_US (yet "forward" modulo 2^32) is a restart too, and so is
-    a sequence that fell back (by half its period or more) while the clock ran on."""
+    RESTART_JUMP_US (yet "forward" modulo 2^32) is a restart too, and so,
+    after an INFO stamped before the sensor's last scan, is a sequence that
+    fell back (by half its period or more) while the clock ran on."""
     last, recent, kept = {}, {}, []
     for spec in expected:
         ftype, sensor, flags, seq, t_us, payload = spec
@@ -79,8 +80,9 @@ def passed_on(expected):
                     restart = restart or step != 0
                 elif info_t_us is not None and t_us < last_t_us and step > RESTART_JUMP_US:
                     restart = True  # after an INFO the clock fell back: a restart past half the clock's period
-                elif info_t_us is not None and (seq - last_seq) % 2**16 >= 2**15:
-                    restart = True  # after an INFO the sequence started again: a board up for a short time
+                elif info_t_us is not None and (seq - last_seq) % 2**16 >= 2**15 \
+                        and 0 < (last_t_us - info_t_us) % 2**32 < 2**31:
+                    restart = True  # after a power-up INFO the sequence started again: a board up for a short time
                 if not restart:
                     gap = (seq - last_seq - 1) % 2**16
             last[sensor] = (seq, t_us, None)
