@@ -33,8 +33,8 @@ concatenated; a message starts with the u16 record count:
     f64 scan_stamp (NaN: not mapped) · u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
     m bytes calibration id (ASCII) · u8 b · b bytes board name (ASCII) · f32[n] force · f32[n] sigma (if
     requested) · f32[n'] raw (if requested; n' = channels) · u8[n] taxel flags (a grid's, with the
-    ``flags`` field and forces or σ: n is 0 without either; bits of reconstruct/grid.py's
-    TAXEL_FLAG_NAMES) — NaN = no value.
+    ``flags`` field; bits of reconstruct/grid.py's TAXEL_FLAG_NAMES) — NaN = no value. n is always
+    the frame's force count (forces NaN when not asked for), so a record's size follows from its head.
 Version 4 added the taxel flags: a binary client learns which taxels are
 saturated, stale or corrected, as a JSON one does.
 
@@ -140,10 +140,10 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     for name in frame.flags:
         flag_bits |= _FLAG_BIT.get(name, 0)
     with_sigma = "sigma" in fields
-    with_taxel_flags = "flags" in fields and info.kind == "grid" and ("force" in fields or with_sigma)  # n counts them
+    with_taxel_flags = "flags" in fields and info.kind == "grid"
     field_bits = ((1 if "force" in fields else 0) | (2 if "raw" in fields else 0) | (4 if with_sigma else 0)
                   | (8 if with_taxel_flags else 0))
-    forces = np.asarray(frame.forces_N, dtype="<f4") if "force" in fields or with_sigma else np.empty(0, "<f4")
+    forces = np.asarray(frame.forces_N, dtype="<f4")  # always n values (NaN unless asked for): n sizes the record
     calibration = frame.calibration.encode("ascii", "replace")[:255]
     board = info.board.encode("ascii", "replace")[:255]
     head = _RECORD.pack(BINARY_VERSION, 0 if info.kind == "grid" else 1, info.id, field_bits, frame.seq,
