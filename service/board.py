@@ -130,8 +130,12 @@ class Board:
 
     def save_cycles(self) -> None:
         """Keep every sensor's load-cycle counts in the registry (a failure is logged, never raised)."""
+        # Only the sensors the board describes now: another board on the link left its own sensors' states behind.
+        current = self.pipeline.interpreter.sensors
+        counts = {sid: entry for sid, entry in self.pipeline.reconstructor.cycle_counts().items()
+                  if current.get(sid) == entry[0]}
         try:
-            self.calibrations.save_cycles(self.pipeline.interpreter.board, self.pipeline.reconstructor.cycle_counts())
+            self.calibrations.save_cycles(self.pipeline.interpreter.board, counts)
         except Exception as exc:  # noqa: BLE001 — counts are kept again at the next period
             log.warning("load-cycle counts of board %s not kept: %s", self.name, exc)
 

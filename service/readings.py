@@ -38,7 +38,8 @@ class SensorInfo:
     serial: str | None = None  # the sensor's own identity, when INFO carries one
     board: str = ""  # the name of the board it is on: a sensor's address is board/id
     # Without a serial of its own, a sensor is known by its board's (protocol.md), else the board's model:
-    # another board on the same link makes it another sensor (new tare, its own calibration).
+    # another board on the same link makes it another sensor (new tare, its own calibration). None until
+    # the link's board changed (the first INFO, after data or not, names the board the sensors were on).
     board_identity: str | None = None
 
     @property
@@ -199,6 +200,7 @@ class Interpreter:
         self.max_unannounced_sensors = max_unannounced_sensors
         self._unannounced: set[int] = set()  # sensors known only from their data frames
         self._listed: set[int] = set()  # the sensors the INFO in force describes
+        self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
 
@@ -309,7 +311,7 @@ class Interpreter:
             if info is None:
                 self.rejected["unknown_shape"] += 1
                 return None
-            info = replace(info, board=self.name, board_identity=self.board.get("serial") or self.board.get("board"))
+            info = replace(info, board=self.name, board_identity=self._swapped_to)
             self.sensors[frame.sensor] = info
             self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
@@ -326,17 +328,19 @@ class Interpreter:
             log.warning("ignoring INFO frame: %s", exc)
             return
         board = {k: v for k, v in doc.items() if k != "sensors"}
-        identity = board.get("serial") or board.get("board")
-        if self.board and identity != (self.board.get("serial") or self.board.get("board")):
+        identity, before = board.get("serial") or board.get("board"), self.board.get("serial") or self.board.get("board")
+        if self.board and identity != before:
             log.warning("board %s: INFO now describes board %r (was %r): its sensors without a serial of their own "
-                        "are new sensors, tared afresh", self.name, identity,
-                        self.board.get("serial") or self.board.get("board"))
-            self.sensors.update({sid: replace(info, board_identity=identity)  # in place: interpret_many holds it
-                                 for sid, info in self.sensors.items() if info.serial is None})
+                        "are new sensors, tared afresh; those it does not list are gone", self.name, identity, before)
+            self._swapped_to = identity
+            for sid in [sid for sid in self.sensors if sid not in sensors]:  # in place: interpret_many holds the dict
+                del self.sensors[sid]
+                self._fits.pop(sid, None)
         self.board = board
         if self.board_name is None:
             self.board_name = self.name_board(self.board)
-        self.sensors.update({sid: replace(info, board=self.board_name, board_identity=None if info.serial else identity)
+        self.sensors.update({sid: replace(info, board=self.board_name,
+                                          board_identity=None if info.serial else self._swapped_to)
                              for sid, info in sensors.items()})
         self._unannounced.difference_update(sensors)
         self._listed = set(sensors)

@@ -167,7 +167,7 @@ def test_malformed_info_is_rejected_whole_and_counted_never_raised(doc):
     first = {"board": "old", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 16}]}
     feed(interpreter, info_frame(first), info_frame(doc))
     assert interpreter.rejected["info_invalid"] == 1
-    assert interpreter.sensors == {0: replace(parse_info(orjson.dumps(first))[1][0], board="old", board_identity="old")}
+    assert interpreter.sensors == {0: replace(parse_info(orjson.dumps(first))[1][0], board="old")}
     assert interpreter.board_name == "old"  # named by the first valid INFO, kept
     assert (interpreter.sensors[0].rows, interpreter.sensors[0].cols) == (4, 16)
     assert interpreter.board == {"board": "old"}
@@ -257,3 +257,26 @@ def test_another_board_on_the_same_link_makes_its_serial_less_sensors_new_sensor
     assert max(abs(f.forces_N[2]) for f in after[20:]) < 0.01  # zero against B's own baseline, not A's
     own = [f for f in frames if f.sensor.id == 2][150:]
     assert {f.sensor.board_identity for f in own} == {None} and not any("taring" in f.flags for f in own)
+
+
+def test_the_first_info_after_data_names_the_same_sensors_and_a_swap_drops_the_old_boards_others():
+    """A service that connects to a streaming board sees data before the
+    reply to its INFO?: that INFO describes the sensors it already has (no new
+    tare). A later INFO of another board drops the sensors it does not list."""
+    from service.reconstruct import Reconstructor
+
+    def board_info(serial, ids):
+        return encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(
+            {"board": "b", "serial": serial, "sensors": [{"id": i, "kind": "quad"} for i in ids]}))
+
+    def scans(start, count, ids=(1, 5)):
+        return b"".join(encode_frame(FrameType.QUAD, sid, seq, 1000 * (seq + 1), np.full(4, 2_200_000, "<u4").tobytes())
+                        for seq in range(start, start + count) for sid in ids)
+
+    interpreter, reconstructor = Interpreter(clock=lambda: 0.0, board_name="left"), Reconstructor(tare_frames=20)
+    frames = reconstructor.process_many(interpreter.interpret_many(
+        Decoder().feed(scans(0, 40) + board_info("S1", (1, 5)) + scans(40, 40)), 0.0))
+    assert not any("taring" in f.flags for f in frames[2 * 20:])  # one tare, at the start
+    interpreter.interpret_many(Decoder().feed(board_info("S2", (1,)) + scans(0, 5, (1,))), 0.0)
+    assert sorted(interpreter.sensors) == [1] and interpreter.unlisted == []
+    assert interpreter.sensors[1].board_identity == "S2"
