@@ -22,7 +22,7 @@ from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
-from .record.mcap_reader import read_boards, read_tares
+from .record.mcap_reader import read_numbered, read_tares
 from .record.readers import is_timed_by_host, timed_chunks
 
 __all__ = ["Pacer", "Writer", "export_line", "replay", "replay_boards"]
@@ -71,18 +71,17 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
         return pipeline
 
     paced = not math.isinf(pacer.speed)
-    chunks = read_boards(path) if not hold else ((None, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
+    # A raw capture's reads are not numbered (no tares to place among them).
+    chunks = read_numbered(path) if not hold else ((None, 0, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
     tares = {} if hold else {board: sorted(made, key=lambda tare: tare[0]) for board, made in read_tares(path).items()}
-    reads: dict[str | None, int] = {}
     if hold:
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     t_last = 0.0
-    for board, t_recorded, chunk in chunks:
+    for board, number, t_recorded, chunk in chunks:
         pacer.wait(t_recorded)
         pipeline = pipeline_of(board)
-        fed = reads[board] = reads.get(board, 0) + 1
         pending = tares.get(board)
-        while pending and pending[0][0] < fed:  # made live before this read was decoded
+        while pending and pending[0][0] <= number:  # made live before this read was decoded
             _, sensor_id, judge = pending.pop(0)
             pipeline.retare(sensor_id, judge)
         pipeline.feed(chunk, t_recorded)

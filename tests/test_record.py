@@ -129,9 +129,55 @@ def test_a_damaged_chunk_loses_its_messages_only(tmp_path, caplog):
     whole = list(read_raw(mcap_path))
     with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
         kept = list(read_raw(damaged))
-    assert f"chunk at byte {middle.chunk_start_offset} is damaged" in caplog.text
+    assert f"chunk at byte {middle.chunk_start_offset} (or its index) is damaged" in caplog.text
     assert 0 < len(whole) - len(kept) < len(whole) / 2
     assert set(kept) < set(whole)
+
+
+def test_recordings_without_message_indexes_or_with_a_damaged_one_are_read_whole_but_that(tmp_path, caplog):
+    """Message indexes are optional in MCAP: a file without them is read as a
+    stream; a damaged index loses its chunk's messages only; read numbers
+    stay the recorded ones (a tare's position does not move)."""
+    import base64
+
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, IndexType, Writer
+
+    from service.record import mcap_reader
+
+    def write(path, **options):
+        with open(path, "wb") as stream:
+            writer = Writer(stream, chunk_size=200, compression=CompressionType.NONE, **options)
+            writer.start()
+            schema = writer.register_schema("s", "jsonschema", b"{}")
+            a, b = (writer.register_channel(f"/{name}/raw", "json", schema) for name in "ab")
+            numbers = {a: 0, b: 0}
+            for i in range(40):
+                channel = a if i % 3 else b
+                writer.add_message(channel, 1000 + i, orjson.dumps({"t_host": float(i), "data": base64.b64encode(bytes([i])).decode()}),
+                                   0, numbers[channel])
+                numbers[channel] += 1
+            writer.finish()
+
+    whole = tmp_path / "whole.mcap"
+    write(whole)
+    streamed = [(board, t, data) for board, t, data in
+                ((mcap_reader.raw_board(topic), *mcap_reader._raw_chunk(m)) for topic, m in mcap_reader._messages(whole, None))]
+    assert list(mcap_reader.read_boards(whole)) == streamed and len(streamed) == 40
+    write(tmp_path / "no-index.mcap", index_types=IndexType.CHUNK)
+    assert list(mcap_reader.read_boards(tmp_path / "no-index.mcap")) == streamed
+    with open(whole, "rb") as stream:
+        second = sorted(make_reader(stream).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)[1]
+    damaged = bytearray(whole.read_bytes())
+    offset = next(iter(second.message_index_offsets.values()))
+    damaged[offset + 11 : offset + 15] = b"\xff\xff\xff\x7f"  # a message index claiming 2 GB of entries
+    (tmp_path / "damaged.mcap").write_bytes(bytes(damaged))
+    with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
+        kept = list(mcap_reader.read_numbered(tmp_path / "damaged.mcap"))
+    assert f"chunk at byte {second.chunk_start_offset} (or its index) is damaged" in caplog.text
+    assert 0 < len(kept) < 40
+    numbered = {(board, number): data for board, number, _, data in mcap_reader.read_numbered(whole)}
+    assert all(numbered[(board, number)] == data for board, number, _, data in kept)  # numbers not shifted
 
 
 def test_write_errors_are_reported(tmp_path):

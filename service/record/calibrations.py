@@ -25,13 +25,14 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
         sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
-        used.setdefault(sensor, []).append(doc["id"])
+        if doc["id"]:  # frames made while the sensor had no state name none
+            used.setdefault(sensor, []).append(doc["id"])
         if doc.get("document") is not None:
             found.setdefault(sensor, doc["document"])
         if doc.get("cycles_at_start") is not None:
             cycles.setdefault(sensor, (doc["id"], doc["cycles_at_start"]))
     for sensor, ids in used.items():
-        if len(ids) > 1:  # a replay would give the first one's forces throughout: say so
+        if len(set(ids)) > 1:  # a replay would give the first one's forces throughout: say so
             log.warning("%s: sensor %s changed calibration while recording (%s); the replay reconstructs with the "
                         "first throughout, so its forces after the change differ from the recorded ones",
                         path, sensor, " → ".join(ids))

@@ -99,8 +99,15 @@ def read_boards(path: str | Path) -> Iterator[tuple[str | None, float, bytes]]:
     file order (the order they were received); board None for a one-board
     recording's ``/raw``. A complete recording is read through its index:
     only the raw messages are parsed, not the forces recorded beside them."""
+    return ((board, t, data) for board, _, t, data in read_numbered(path))
+
+
+def read_numbered(path: str | Path) -> Iterator[tuple[str | None, int, float, bytes]]:
+    """``read_boards`` with each read's number on its board (0 for the
+    recording's first: the raw channel's message sequence), which a damaged
+    chunk that lost reads does not shift."""
     for topic, message in _topics_of(path, lambda topic: raw_board(topic) is not False):
-        yield (raw_board(topic), *_raw_chunk(message))
+        yield (raw_board(topic), message.sequence, *_raw_chunk(message))
 
 
 def _topics_of(path: str | Path, wanted) -> Iterator[tuple[str, Message]]:
@@ -116,13 +123,15 @@ def _topics_of(path: str | Path, wanted) -> Iterator[tuple[str, Message]]:
 def _indexed_messages(path: str | Path, wanted) -> Iterator[tuple[str, Message]] | None:
     """(topic, message) of the topics ``wanted`` accepts, in file order,
     from the chunks' message indexes; None for a file without a summary
-    (cut short: read it as a stream)."""
+    (cut short: read it as a stream) or whose summary does not index every
+    chunk's messages (MCAP makes message indexes optional)."""
     try:
         with open(path, "rb") as stream:
             summary = make_reader(stream).get_summary()
     except Exception:  # noqa: BLE001 — no usable summary: the stream reader says what is wrong
         return None
-    if summary is None or not summary.chunk_indexes:
+    if summary is None or not summary.chunk_indexes or not summary.channels or \
+            not all(chunk.message_index_offsets for chunk in summary.chunk_indexes):
         return None
     topics = {cid: channel.topic for cid, channel in summary.channels.items() if wanted(channel.topic)}
     return _chunk_messages(path, sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset), topics)
@@ -132,14 +141,14 @@ def _chunk_messages(path: str | Path, chunk_indexes: list, topics: dict[int, str
     with open(path, "rb") as stream:
         for chunk_index in chunk_indexes:
             found = []
-            for cid, offset in chunk_index.message_index_offsets.items():
-                if cid in topics:
-                    stream.seek(offset + 9)  # past the record's opcode and length
-                    found += [(at, cid) for _, at in MessageIndex.read(ReadDataStream(stream)).records]
-            if not found:
-                continue
-            stream.seek(chunk_index.chunk_start_offset + 9)
             try:
+                for cid, offset in chunk_index.message_index_offsets.items():
+                    if cid in topics:
+                        stream.seek(offset + 9)  # past the record's opcode and length
+                        found += [(at, cid) for _, at in MessageIndex.read(ReadDataStream(stream)).records]
+                if not found:
+                    continue
+                stream.seek(chunk_index.chunk_start_offset + 9)
                 chunk_stream, size = get_chunk_data_stream(Chunk.read(ReadDataStream(stream)), validate_crc=True)
                 data = memoryview(chunk_stream.read(size))
                 messages = []
@@ -148,8 +157,8 @@ def _chunk_messages(path: str | Path, chunk_indexes: list, topics: dict[int, str
                     messages.append((topics[cid], Message.read(ReadDataStream(io.BytesIO(data[at + 9 : at + 9 + length])),
                                                                length)))
             except Exception as exc:  # noqa: BLE001 — whatever the decompressor raises: one chunk lost, not the file
-                log.warning("%s: the chunk at byte %d is damaged (%s): its %d messages skipped", path,
-                            chunk_index.chunk_start_offset, str(exc) or type(exc).__name__, len(found))
+                log.warning("%s: the chunk at byte %d (or its index) is damaged (%s): its messages skipped", path,
+                            chunk_index.chunk_start_offset, str(exc) or type(exc).__name__)
                 continue
             yield from messages
 
