@@ -121,12 +121,38 @@ def test_quads_failing_mid_stream_leave_the_others_as_alone(reads, monkeypatch):
     together, rec, planned = _run(reads, fail=True, monkeypatch=monkeypatch)
     assert len(planned) > 0.5 * len(reads)  # until the failures
     for sid in (0, 1, 3, 5):
-        alone, _, _ = _run(reads, alone=sid, monkeypatch=monkeypatch)
+        alone, reference, _ = _run(reads, alone=sid, monkeypatch=monkeypatch)
         for key, frame in alone.items():
             _assert_same(together[key], frame)
+        counter, own = rec._sensors[sid].cycles, reference._sensors[sid].cycles  # a failed plan counted nothing twice
+        assert counter.counts.tolist() == own.counts.tolist() and counter._armed.tolist() == own._armed.tolist()
     for sid in (2, 4):
         late = [f for (s, _), f in together.items() if s == sid and "reconstruction_error" in f.flags]
         assert late and all(np.isnan(f.forces_N).all() for f in late)
         first = min(f.seq for f in late)
         assert all("reconstruction_error" in f.flags for (s, seq), f in together.items() if s == sid and seq >= first)
     assert set(rec.errors()) == {2, 4}
+
+
+def test_a_plan_that_raises_has_counted_no_load_cycle(reads, monkeypatch):
+    """QuadPlan.frames computes every batch before counting any load cycle:
+    when a later batch raises, the general path that takes over counts the
+    read once, not the earlier batches twice."""
+    rec = Reconstructor(level="full", clock=lambda: 0.0)
+    infos = {r.sensor.id: r.sensor for read in reads for r in read}
+    for sid in (2, 3):
+        rec.set_calibration(infos[sid], {"normal_fit": [-0.0008, 0.031], "shear_fit": [0.0075, 0.0004]})
+    for read in reads[:300]:
+        rec.process_many(read)
+    plan = rec._quad_plan
+    assert plan is not None and len(plan.batches) == 2
+    items = [(rec._sensors[r.sensor.id], r) for r in reads[300]]
+    assert plan.fits(items)
+    from service.reconstruct import quad_batch
+
+    counted = []
+    monkeypatch.setattr(quad_batch, "update_many", lambda counters, *_: counted.extend(counters))
+    monkeypatch.setattr(plan.batches[-1].processor, "process", _boom)
+    with pytest.raises(RuntimeError, match="boom"):
+        plan.frames(items)
+    assert counted == []  # no counter was stepped before the failure

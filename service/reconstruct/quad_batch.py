@@ -125,29 +125,40 @@ class QuadPlan:
         return True
 
     def frames(self, items: list[tuple[object, Reading]]) -> list[ForceFrame]:
-        """The frames of a read that ``fits``, in its order."""
+        """The frames of a read that ``fits``, in its order. Every batch is
+        computed before any load cycle is counted: if one raises, nothing has
+        changed and the general path (which finds the culprit) counts once."""
         readings = [reading for _, reading in items]
         n = len(self.states)
         scans = len(items) // n
         if scans == 1 and self._single:
-            return self._batch_frames(self.batches[0], readings, 1)
-        out: list[ForceFrame | None] = [None] * len(items)
+            return self._apply(self.batches[0], readings, self._computed(self.batches[0], readings, 1), 1)
+        computed = []
         for batch in self.batches:
             # Sensor after sensor, each with its scans in order: the general path's order for a batch.
             places = [p + j * n for p in batch.positions for j in range(scans)]
-            for i, frame in zip(places, self._batch_frames(batch, [readings[i] for i in places], scans)):
+            own = [readings[i] for i in places]
+            computed.append((batch, places, own, self._computed(batch, own, scans)))
+        out: list[ForceFrame | None] = [None] * len(items)
+        for batch, places, own, result in computed:
+            for i, frame in zip(places, self._apply(batch, own, result, scans)):
                 out[i] = frame
         return out
 
-    def _batch_frames(self, batch: _Batch, readings: list[Reading], scans: int) -> list[ForceFrame]:
+    @staticmethod
+    def _computed(batch: _Batch, readings: list[Reading], scans: int) -> tuple:
+        """(forces, quad flags, σ) of a batch's readings, changing nothing."""
         baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
-        counts = None
         if scans > 1:
             baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
-            counts = [scans] * len(batch.states)
         processor = batch.processor
         forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), baseline, noise,
                                                sensitivity)
-        sigma = processor.sigma(forces, noise)
+        return forces, quad_flags, processor.sigma(forces, noise)
+
+    def _apply(self, batch: _Batch, readings: list[Reading], result: tuple, scans: int) -> list[ForceFrame]:
+        """Count the batch's load cycles and make its frames."""
+        forces, quad_flags, sigma = result
+        counts = [scans] * len(batch.states) if scans > 1 else None
         update_many(batch.cycles, forces[:, 2:3], counts or batch.ones)
         return _frames(self.level, batch.states, readings, forces, sigma, quad_flags, counts)

@@ -129,7 +129,7 @@ class Reconstructor(SensorStates):
         if plan is not None and not self._isolation.failing and plan.fits(items):
             try:
                 return plan.frames(items)
-            except Exception:  # noqa: BLE001 — nothing was changed: the general path below finds the culprit
+            except Exception:  # noqa: BLE001 — nothing was changed (QuadPlan.frames): the general path finds the culprit
                 self._quad_plan = None
         groups: dict[int, tuple[SensorState, list[int], list[Reading]]] = {}
         out: list[ForceFrame | None] = [None] * len(items)
