@@ -174,10 +174,13 @@ class Pipeline:
     def retare(self, sensor_id: int, judge: bool) -> None:
         """A recorded tare made again (replay.py): the sensor's baseline
         restarted, without the loaded check the live tare passed; a sensor
-        not seen yet has nothing to restart."""
+        not seen yet (a recording begun while it streamed) tares at its first
+        frame anyway, judged as the recorded tare was."""
         with self._lock:
             if self.reconstructor.kind(sensor_id) is not None:
                 self.reconstructor.tare(sensor_id, judge=judge)
+            else:
+                self.reconstructor.judge_first_tare(sensor_id, judge)
 
     def loaded(self, sensor_id: int | None = None) -> dict[int, list[int]]:
         """{sensor id: taxels} whose latest reading stands above the

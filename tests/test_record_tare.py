@@ -137,3 +137,16 @@ def test_a_calibration_changed_while_recording_is_said_by_the_replay(tmp_path, p
     with caplog.at_level(logging.WARNING, logger="service.record.calibrations"):
         recorded_calibrations(tmp_path / "run.mcap")
     assert f"sensor {pipeline.interpreter.name}/1 changed calibration while recording (builtin-fits34-35 → " in caplog.text
+
+
+def test_a_forced_tare_recorded_before_a_sensors_first_frame_is_judged_as_it_was(pressed):
+    """A recording begun while the board streamed can hold a forced tare
+    (the load is the zero) before a sensor's first recorded frame: the
+    replay's fresh sensor then tares unjudged too, not against the C0 of its
+    calibration."""
+    pipeline = Pipeline(Reconstructor())
+    pipeline.retare(1, judge=False)
+    for i, chunk in reads(pressed[:20_000]):
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    states = pipeline.reconstructor._sensors
+    assert states[1].judge_tare is False and states[0].judge_tare is True

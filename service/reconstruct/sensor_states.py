@@ -57,6 +57,7 @@ class SensorStates:
         self.load_cycles: Callable[[SensorInfo, str], list | None] | None = None  # counts kept for (sensor, calibration)
         self._chosen: dict[int, SensorCalibration] = {}  # set through set_calibration, over ``resolve``
         self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
+        self._first_judge: dict[int, bool] = {}  # a forced tare recorded before the sensor's first frame (replay)
 
     def _calibration_applied(self, sensor_id: int) -> None:
         """A sensor's calibration was replaced (the Reconstructor gives a failing sensor another try)."""
@@ -134,8 +135,14 @@ class SensorStates:
             state = SensorState(info, Baseline(info.channels, self.tare_frames, window),
                                  processor_for(info, self.level, self.mounting, calibration), calibration)
             state.cycles = self._cycles(info, calibration)
+            state.judge_tare = self._first_judge.pop(info.id, True)
             self._sensors[info.id] = state
         return state
+
+    def judge_first_tare(self, sensor_id: int, judge: bool) -> None:
+        """How the tare of a sensor not seen yet is to be judged (a recorded
+        forced tare a replay meets before the sensor's first frame)."""
+        self._first_judge[sensor_id] = judge
 
     def _cycles(self, info: SensorInfo, calibration: SensorCalibration) -> CycleCounter:
         """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0)."""
