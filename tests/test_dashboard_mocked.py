@@ -209,6 +209,17 @@ def test_status_banner_names_each_link_state(service, link, replay, state, words
     assert all(word in text for word in words), text
 
 
+def test_a_degraded_service_says_why_in_the_banner(service):
+    service.health["status"] = "degraded"
+    service.health["problems"] = ["sensor 0: channels [5] have no zero (no plausible reading while it tared): "
+                                  "their forces are null", "sensor 3 stale"]
+    service.open()
+    service.poll()
+    assert service.page.get_attribute("#status", "data-state") == "degraded"
+    text = service.page.text_content("#status")
+    assert "service degraded · sensor 0: channels [5] have no zero" in text and "(+1 more)" in text
+
+
 def test_stats_have_no_stray_separators_without_a_board(service):
     service.health.update(sensors={}, stream={}, latency={"published": {"p99_ms": None}})
     service.open()

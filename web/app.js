@@ -497,8 +497,12 @@ function describeStatus(health) {
   }
   if (state === "stale") return ["stale", `${which}Stale: no data${age}${source}`];
   if (!streamOpen) return ["stale", `Live stream disconnected, reconnecting…${source}`];
-  const degraded = health.status === "degraded" ? " (service degraded)" : "";
-  return health.replay ? ["replay", `Replay${degraded}${source}`] : ["ok", `Live${degraded}${source}`];
+  // Degraded with the link up: say why (the first problem /health names, and how many more).
+  const problems = health.status === "degraded" ? health.problems || [] : [];
+  const why = problems.length ? ` · ${problems[0]}${problems.length > 1 ? ` (+${problems.length - 1} more)` : ""}` : "";
+  const degraded = health.status === "degraded" ? ` (service degraded${why})` : "";
+  if (health.replay) return ["replay", `Replay${degraded}${source}`];
+  return [degraded ? "degraded" : "ok", `Live${degraded}${source}`];
 }
 
 function showStatus(state, text) {
