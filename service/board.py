@@ -23,6 +23,7 @@ from .pipeline import Pipeline
 from .readings import UNNAMED_BOARD
 from .readout import DEFAULT_SILENCE_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
+from .sources.protocol_replay import recorded_tares
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +109,19 @@ class Board:
                                  grid_batch_s=grid_batch_s)
         self.handover: LoopHandover | None = None
         self.readout: Readout | None = None
+        if self.source.startswith("replay://"):
+            self._schedule_recorded_tares()
+
+    def _schedule_recorded_tares(self) -> None:
+        """A recording served through the live path makes its recorded tares
+        again where they were made (else every force after one differs from
+        what was recorded)."""
+        try:
+            tares = recorded_tares(self.source)
+        except (ValueError, OSError) as exc:
+            log.warning("%s: its recorded tares cannot be read (%s); replayed without them", self.source, exc)
+            return
+        self.pipeline.schedule_retares(tares)
 
     @property
     def name(self) -> str:

@@ -110,6 +110,15 @@ class Pipeline:
         self._reconstructed = {"grid": 0, "other": 0}  # reads whose grids / other sensors are reconstructed
         self._lock = threading.Lock()
         self._deferred: deque[tuple[list[Reading], float, int]] = deque()  # (grids, t_host, reads)
+        self.bytes_fed = 0  # bytes of every read so far
+        self._retares: list[tuple[int, int, bool]] = []  # (byte offset, sensor, judged), in order
+
+    def schedule_retares(self, tares: list[tuple[int, int, bool]]) -> None:
+        """Recorded tares (byte offset in the stream, sensor id, judged) to
+        make again where the stream reaches each offset: a recording served
+        through the live path (replay:// gives the offsets: its reads are
+        not cut as they were recorded, its bytes are the same)."""
+        self._retares = sorted(tares, key=lambda tare: tare[0])
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
         """One read: decoded, reconstructed and published as one batch, in arrival order."""
@@ -124,6 +133,9 @@ class Pipeline:
         together. Each sensor's frames stay in order."""
         if not chunks:
             return
+        if self._retares and self._retares[0][0] < self.bytes_fed + sum(len(data) for data, _ in chunks):
+            self._feed_with_retares(chunks, defer)
+            return
         t_host = chunks[-1][1]
         cheap, grids = [], []
         for reading in self._decode(chunks):
@@ -136,6 +148,29 @@ class Pipeline:
         else:
             with self._lock:
                 self._reconstructed["grid"] += len(chunks)
+
+    def _feed_with_retares(self, chunks: list[tuple[bytes, float]], defer: Defer) -> None:
+        """Reads that reach a scheduled tare's offset: the bytes before it
+        decoded and reconstructed (grids waiting included), the tare made,
+        then the rest."""
+        offset = self._retares[0][0]
+        before, after, position, split = [], [], self.bytes_fed, 0
+        for data, t_host in chunks:
+            cut = min(max(offset - position, 0), len(data))
+            if cut:
+                before.append((data[:cut], t_host))
+            if cut < len(data):
+                after.append((data[cut:], t_host))
+            split += 0 < cut < len(data)
+            position += len(data)
+        self.feed_reads(before, defer)
+        with self._lock:
+            self.reads -= split  # a read cut in two is still one read
+        self._reconstruct_deferred()
+        while self._retares and self._retares[0][0] <= self.bytes_fed:
+            _, sensor_id, judge = self._retares.pop(0)
+            self.retare(sensor_id, judge)
+        self.feed_reads(after, defer)
 
     def finish(self, t_host: float) -> list[ForceFrame]:
         """End of a finite stream: decode what is left, release held frames."""
@@ -215,6 +250,7 @@ class Pipeline:
                 listener(data, t_host)
             with self._lock:
                 self.reads += 1
+                self.bytes_fed += len(data)
                 # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.
                 readings += self.interpreter.interpret_many(self.decoder.feed(data), t_host, self.clock)
         return readings

@@ -150,3 +150,52 @@ def test_a_forced_tare_recorded_before_a_sensors_first_frame_is_judged_as_it_was
         pipeline.feed(chunk, 1000.0 + 0.002 * i)
     states = pipeline.reconstructor._sensors
     assert states[1].judge_tare is False and states[0].judge_tare is True
+
+
+def served_forces(path, read_size: int, schedule: bool = True):
+    """The recording through the live path's pieces: its replay:// port read
+    ``read_size`` bytes at a time (not as recorded), fed to a pipeline as
+    the loop feeds one, with the tares recorded_tares gives scheduled."""
+    from service.sources.protocol_replay import Serial, recorded_tares
+
+    url = f"replay://{path}?speed=max"
+    pipeline = Pipeline(Reconstructor())
+    if schedule:
+        pipeline.schedule_retares(recorded_tares(url))
+    frames = []
+    pipeline.listeners.append(frames.extend)
+    port = Serial(url)  # opened; no timeout: an empty read at the end
+    try:
+        t = 1000.0
+        while chunk := port.read(read_size):
+            pipeline.feed_reads([(chunk, t)], lambda work: work())
+            t += 0.002
+    finally:
+        port.close()
+    return {(f.sensor.id, f.seq, f.t_us): f for f in frames}
+
+
+@pytest.mark.parametrize("read_size", [64, 5000])
+def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path, pressed, read_size):
+    """tactile replay --serve (replay://): the recorded tares are made where
+    the stream reaches the bytes of the read they preceded, however the
+    port's reads cut it: every force equals the recorded one, null where it
+    was null; without the schedule they differ after the first tare."""
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for i, chunk in reads(pressed):
+        if i in (300, 700):
+            pipeline.tare(None if i == 300 else 1, force=True)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+
+    def differing(served):
+        assert served.keys() == live.keys()
+        return [key for key, doc in live.items()
+                if doc.get("taxels_N", doc.get("fxyz_N")) != [None if v != v else v for v in served[key].forces_N.tolist()]
+                or doc["flags"] != served[key].flags]
+
+    assert differing(served_forces(tmp_path / "run.mcap", read_size)) == []
+    assert len(differing(served_forces(tmp_path / "run.mcap", read_size, schedule=False))) > 500

@@ -15,8 +15,9 @@ import urllib.parse
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
+from ..record.mcap_reader import boards_in, read_numbered, read_tares
 from ..record.pacing import Pacer, parse_speed
-from ..record.readers import timed_chunks
+from ..record.readers import is_timed_by_host, timed_chunks
 
 
 def parse_replay_url(url: str) -> tuple[str, float, str | None]:
@@ -43,6 +44,30 @@ def check_url(url: str) -> None:
         timed_chunks(path, board=board)
     except FileNotFoundError:
         raise ValueError(f"{url!r}: no such recording: {path}") from None
+
+
+def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
+    """The tares made while the URL's recording was made, as (offset in the
+    bytes this port streams, sensor id, judged): the read each took effect
+    before, placed by the raw channel's read numbers (pipeline.schedule_retares).
+    A raw capture has none."""
+    path, _, board = parse_replay_url(url)
+    if not is_timed_by_host(path):
+        return []
+    if board is None:  # the recording's only board (read_raw refuses several), named or not
+        board = next(iter(boards_in(path)), None)
+    tares = sorted(read_tares(path).get(board, []))
+    if not tares:
+        return []
+    out, position = [], 0
+    for name, number, _, data in read_numbered(path):
+        if name != board:
+            continue
+        while tares and tares[0][0] <= number:
+            _, sensor, judge = tares.pop(0)
+            out.append((position, sensor, judge))
+        position += len(data)
+    return out + [(position, sensor, judge) for _, sensor, judge in tares]
 
 
 class Serial(SerialBase):
