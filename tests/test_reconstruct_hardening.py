@@ -469,3 +469,82 @@ def test_a_quad_electrode_implausible_since_power_up_nulls_its_frames_flagged(le
     for frame in frames[20:]:
         assert np.isnan(frame.forces_N).all() and "out_of_range" in frame.flags
     assert rec.unzeroed(QUAD.id) == [3]
+
+
+def test_a_tare_without_a_glitch_is_the_plain_mean_bit_for_bit():
+    from service.reconstruct.baseline import Baseline
+
+    rng = np.random.default_rng(5)
+    rows = table1().c0_pF + rng.normal(0.0, 0.0012, (100, 64))
+    baseline = Baseline(64)
+    total, total_sq = np.zeros(64), np.zeros(64)
+    for row in rows:
+        baseline.update(row)
+        total += row
+        total_sq += row**2
+    assert not baseline.rejected.any()
+    assert np.array_equal(baseline.value, total / 100)
+    assert np.array_equal(baseline.std, np.sqrt(np.maximum(total_sq / 100 - (total / 100) ** 2, 0.0)))
+
+
+@pytest.mark.parametrize("glitch", [1.5, 3.0, 6.0, 0.6])
+@pytest.mark.parametrize("late", [False, True])
+def test_a_glitch_in_the_tare_window_stays_out_of_the_zero(glitch, late):
+    """One reading of a channel far off the others (a mux settling late,
+    ESD), plausible or not: the zero is the others' mean. ``late``: the
+    channel gets its zero after an open start, the glitch among its own
+    readings."""
+    from service.reconstruct.baseline import Baseline
+
+    rng = np.random.default_rng(6)
+    c0 = table1().c0_pF
+    rows = c0 + rng.normal(0.0, 0.0012, (200, 64))
+    clean, baseline = Baseline(64), Baseline(64)
+    for k, row in enumerate(rows):
+        row = row.copy()
+        if late and k < 100:
+            row[20] = np.nan
+        clean.update(row)
+        if k == (150 if late else 50):
+            row[20] *= glitch
+        baseline.update(row)
+    assert baseline.rejected[20] == 1 and baseline.rejected.sum() == 1
+    expected = np.mean(np.delete(rows[100:200, 20] if late else rows[:100, 20], 50))
+    assert baseline.value[20] == pytest.approx(expected, abs=1e-12)
+    assert baseline.std[20] == pytest.approx(np.std(np.delete(rows[100:200, 20] if late else rows[:100, 20], 50)), rel=1e-6)
+    assert np.array_equal(np.delete(baseline.value, 20), np.delete(clean.value, 20))
+
+
+def test_a_glitch_during_the_auto_tare_neither_hides_a_press_nor_makes_a_load():
+    """A grid taxel and a quad electrode each read once 3× off during the
+    tare; then, at rest, no force and no flag; pressed, the force of a run
+    without the glitch."""
+    c0 = table1().c0_pF
+    quad_c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    rng = np.random.default_rng(8)
+
+    def run(glitch: bool):
+        rec = Reconstructor(level="full")
+        out = {}
+        for seq in range(300):
+            grid = c0 + rng.normal(0.0, 0.0012, 64)
+            quad = quad_c0 + rng.normal(0.0, 0.0005, 4)
+            if glitch and seq == 50:
+                grid[20] *= 3.0
+                quad[2] *= 3.0
+            if seq >= 250:
+                grid[20] *= 1.05
+                quad = quad * 1.05
+            out[seq] = rec.process_many([reading(GRID, grid, seq), reading(QUAD, quad, seq)])
+        return out
+
+    state = rng.bit_generator.state
+    with_glitch = run(True)
+    rng.bit_generator.state = state
+    without = run(False)
+    grid_rest, quad_rest = with_glitch[200]
+    assert abs(grid_rest.forces_N[20]) < 0.05 and grid_rest.taxel_flags[20] == 0 and grid_rest.flags == []
+    assert np.abs(quad_rest.forces_N).max() < 0.05 and quad_rest.flags == []
+    for now, then in zip(with_glitch[280], without[280]):
+        np.testing.assert_allclose(now.forces_N, then.forces_N, atol=2e-3)
+    assert with_glitch[280][0].forces_N[20] > 1.0

@@ -5,6 +5,8 @@ import numpy as np
 
 DEFAULT_TARE_FRAMES = 100
 NOISE_FLOOR_PF = 2e-4  # never trust a tare's noise estimate below 0.2 fF
+OUTLIER_SIGMAS = 6.0  # a tare reading this many robust σ from its channel's median is a glitch, not the zero
+MAD_TO_SIGMA = 1.4826  # σ of normal noise from its median absolute deviation
 
 
 class Baseline:
@@ -21,6 +23,15 @@ class Baseline:
     ``window`` ((channels,) low and high pF, level0.tare_window_pF): a
     reading outside it is implausible (1 aF, the converter's top count) and,
     like a sentinel, takes no part in the mean; None accepts every reading.
+
+    A glitch inside the window (one reading of a mux settling late, ESD:
+    plausible as a capacitance, 50 % off the others) would shift the zero
+    for as long as the tare holds, a phantom load or a hidden one. So each
+    channel's readings are kept, and those more than OUTLIER_SIGMAS robust
+    σ (from the median absolute deviation, at least the noise floor) from
+    the channel's median leave the mean and spread (``rejected`` counts
+    them). Noise never goes that far (≈ 2·10⁻⁹ of readings); a tare
+    without a glitch gives the plain mean, bit for bit.
     """
 
     def __init__(self, channels: int, frames: int = DEFAULT_TARE_FRAMES,
@@ -32,6 +43,8 @@ class Baseline:
         self._sum = np.zeros(channels)
         self._sum_sq = np.zeros(channels)
         self._count = np.zeros(channels, dtype=np.int64)
+        self._samples = np.full((frames, channels), np.nan)  # row k: each channel's k-th valid reading
+        self.rejected = np.zeros(channels, dtype=np.int64)  # glitches left out of this tare, per channel
         self._seen = 0
         self.value = np.full(channels, np.nan)
         self.std = np.full(channels, np.nan)
@@ -47,6 +60,8 @@ class Baseline:
         self._sum[:] = 0.0
         self._sum_sq[:] = 0.0
         self._count[:] = 0
+        self._samples.fill(np.nan)
+        self.rejected = np.zeros_like(self.rejected)
         self._seen = 0
         self.value = np.full_like(self.value, np.nan)
         self.std = np.full_like(self.std, np.nan)
@@ -86,13 +101,39 @@ class Baseline:
             valid = channels & (capacitance_pF >= self.window[0]) & (capacitance_pF <= self.window[1])
         self._sum[valid] += capacitance_pF[valid]
         self._sum_sq[valid] += capacitance_pF[valid] ** 2
+        self._samples[self._count[valid], valid] = capacitance_pF[valid]
         self._count += valid
 
     def _finish(self, channels: np.ndarray) -> None:
         """Set the baseline of ``channels`` (new arrays, so caches keyed on
         them see the change). The spread is the channel's noise floor."""
-        count = np.maximum(self._count, 1)
-        mean = self._sum / count
-        spread = np.sqrt(np.maximum(self._sum_sq / count - mean**2, 0.0))
+        total, total_sq, kept = self._without_glitches(channels)
+        count = np.maximum(kept, 1)
+        mean = total / count
+        spread = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
         self.value = np.where(channels, mean, self.value)
-        self.std = np.where(channels & (self._count > 1), spread, self.std)
+        self.std = np.where(channels & (kept > 1), spread, self.std)
+
+    def _without_glitches(self, channels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sum, sum of squares, count) of each channel's readings with its
+        glitches taken out (the running sums themselves where there are none)."""
+        samples = self._samples[:, channels]
+        if not samples.size or np.isnan(samples).all():
+            return self._sum, self._sum_sq, self._count
+        with np.errstate(invalid="ignore"):
+            median = np.nanmedian(samples, axis=0)
+            deviation = np.abs(samples - median)
+            limit = OUTLIER_SIGMAS * np.maximum(MAD_TO_SIGMA * np.nanmedian(deviation, axis=0), NOISE_FLOOR_PF)
+            glitch = deviation > limit  # NaN (no reading) compares False
+        if not glitch.any():
+            return self._sum, self._sum_sq, self._count
+        good = np.where(glitch | np.isnan(samples), 0.0, samples)  # the channels with a glitch: summed afresh
+        hit = np.flatnonzero(channels)[glitch.any(axis=0)]
+        columns = glitch.any(axis=0)
+        total, total_sq, kept = self._sum.copy(), self._sum_sq.copy(), self._count.copy()
+        total[hit] = good[:, columns].sum(axis=0)
+        total_sq[hit] = (good[:, columns] ** 2).sum(axis=0)
+        kept[hit] -= glitch[:, columns].sum(axis=0)
+        self.rejected = self.rejected.copy()
+        self.rejected[hit] += glitch[:, columns].sum(axis=0)
+        return total, total_sq, kept
