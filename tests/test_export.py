@@ -97,15 +97,18 @@ def test_parquet_holds_the_json_lines_and_opens_in_pandas_and_polars(tmp_path, c
     docs = [orjson.loads(line) for line in (tmp_path / "out.jsonl").read_bytes().splitlines()]
     table = pandas.read_parquet(tmp_path / "out.parquet")
     assert len(polars.read_parquet(tmp_path / "out.parquet")) == len(table) == len(docs)
+    grids = polars.read_parquet(tmp_path / "out.parquet").filter(polars.col("kind") == "grid")
+    taxels = grids["taxels_N"].explode()
+    missing = sum(v is None for d in docs for v in d.get("taxels_N", []))
+    assert missing > 0 and taxels.null_count() == missing and not taxels.is_nan().any()  # nulls, as JSON's
     for doc, row in zip(docs, table.itertuples()):
         assert (row.sensor, row.seq, row.t_us, row.kind, list(row.flags)) == (doc["sensor"], doc["seq"], doc["t_us"],
                                                                              doc["kind"], doc["flags"])
         key, other = ("taxels_N", "fxyz_N") if doc["kind"] == "grid" else ("fxyz_N", "taxels_N")
-        expected = np.array([np.nan if v is None else v for v in doc[key]])
-        np.testing.assert_array_equal(getattr(row, key), expected)
+        as_json = lambda values: [None if v is None or v != v else v for v in values]  # noqa: E731 — pandas: NaN or None
+        assert as_json(getattr(row, key)) == doc[key]
         assert getattr(row, other) is None and row.calibration == doc["calibration"]
-        sigma = np.array([np.nan if v is None else v for v in doc["sigma_N"]], dtype=np.float32)
-        np.testing.assert_array_equal(row.sigma_N, sigma)
+        assert as_json(row.sigma_N) == [None if v is None else float(np.float32(v)) for v in doc["sigma_N"]]
         if doc["kind"] == "grid":
             assert {name: list(hits) for name, hits in row.taxel_flags} == doc["taxel_flags"]
             contact = {k: None if isinstance(v, float) and np.isnan(v) else v for k, v in row.contact.items()}
@@ -164,16 +167,14 @@ def test_parquet_rows_equal_the_json_lines_for_grids_of_two_sizes_and_quads_in_a
         got.validate(full=True)
         for doc, row in zip(docs, got.to_pylist()):
             key, other = ("taxels_N", "fxyz_N") if doc["kind"] == "grid" else ("fxyz_N", "taxels_N")
-            nulls = lambda values: [None if v != v else v for v in values]  # noqa: E731 — NaN is JSON's null
-            assert nulls(row[key]) == doc[key] and row[other] is None
+            assert row[key] == doc[key] and row[other] is None  # JSON's null is Parquet's null, not NaN
             assert (row["board"], row["sensor"], row["seq"], row["t_us"], row["flags"], row["calibration"]) == \
                 (doc["board"], doc["sensor"], doc["seq"], doc["t_us"], doc["flags"], doc["calibration"])
             assert (row["rows"], row["cols"]) == (doc.get("rows"), doc.get("cols"))
-            assert nulls(row["sigma_N"]) == [None if v is None else float(np.float32(v)) for v in doc["sigma_N"]]
+            assert row["sigma_N"] == [None if v is None else float(np.float32(v)) for v in doc["sigma_N"]]
             if doc["kind"] == "grid":
                 assert dict(row["taxel_flags"]) == doc["taxel_flags"]
-                contact = None if row["contact"] is None else {k: None if v != v else v for k, v in row["contact"].items()}
-                assert contact == doc["contact"]
+                assert row["contact"] == doc["contact"]
             else:
                 assert row["taxel_flags"] is None and row["contact"] is None
 

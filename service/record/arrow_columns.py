@@ -46,9 +46,15 @@ def lists(values: pa.Array, sizes: np.ndarray, present: np.ndarray | None = None
                                  children=[values])
 
 
+def floats(values: np.ndarray, type_: pa.DataType = pa.float64()) -> pa.Array:
+    """A float column whose NaNs are nulls (what JSON's null is: no value, not a number)."""
+    values = np.ascontiguousarray(values, dtype=type_.to_pandas_dtype())
+    return numbers(values, type_, ~np.isnan(values))
+
+
 def fixed_lists(values: np.ndarray, type_: pa.DataType, present: np.ndarray | None = None) -> pa.Array:
-    """A fixed-size list column from (N, size) ``values``."""
-    flat = numbers(values.ravel(), type_.value_type)
+    """A fixed-size list column from (N, size) float ``values``, NaN a null."""
+    flat = floats(values.ravel(), type_.value_type)
     return pa.Array.from_buffers(type_, len(values), [_validity(present)], children=[flat])
 
 

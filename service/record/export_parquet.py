@@ -6,14 +6,17 @@ calibration id and the 1-σ of each force:
 
     sensor u8 · seq u16 · t_us u32 · kind string
     rows u16 · cols u16   (grids: the taxels' shape)
-    taxels_N list<f64>    (grids, row-major; NaN = no reading, JSON's null)
+    taxels_N list<f64>    (grids, row-major; null = no reading, as in JSON)
     fxyz_N   list<f64>[3] (quads)
     flags list<string> · taxel_flags map<string, list<i32>> (grids)
     contact struct<total_N f64, cop_x_mm f64, cop_y_mm f64, area_mm2 f64, contacts i32> (grids;
-            null for a frame without any force; the centre of pressure NaN without contact)
-    calibration string · sigma_N list<f32> (null where the frame has none)
+            null for a frame without any force; the centre of pressure null without contact)
+    calibration string · sigma_N list<f32> (null where the frame has none; an element
+            null where its force has no σ)
 
-Forces are the reconstruction's float64, bit for bit. Columns are built per
+Forces are the reconstruction's float64, bit for bit; a value the JSON
+line gives as null is a Parquet null, never NaN (a number to pandas'
+sums, pyarrow's, polars' and DuckDB's null counts). Columns are built per
 batch from numpy buffers (arrow_columns.py: no pandas import, no Python
 object per value) and written in row groups of ROW_GROUP rows, text columns
 dictionary-encoded (the floats' dictionaries cost half the write and saved
@@ -29,7 +32,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..reconstruct import ForceFrame
-from .arrow_columns import fixed_lists, lists, numbers, strings, structs
+from .arrow_columns import fixed_lists, floats, lists, numbers, strings, structs
 from .contact_batch import columns
 
 ROW_GROUP = 65_536
@@ -68,8 +71,9 @@ def _grid_forces(frames: list[ForceFrame], grid: np.ndarray) -> tuple[pa.Array, 
         targets = [rows[k] for k in ks]
         for out, column in zip(found, columns(block, info.rows, info.cols)):
             out[targets] = column
-    contact = structs([numbers(column, field.type) for column, field in zip(found[1:], CONTACT)], CONTACT, ~found[0])
-    return lists(numbers(flat, pa.float64()), sizes, grid), contact
+    contact = structs([floats(column) if field.type == pa.float64() else numbers(column, field.type)
+                       for column, field in zip(found[1:], CONTACT)], CONTACT, ~found[0])
+    return lists(floats(flat), sizes, grid), contact
 
 
 def _quad_forces(frames: list[ForceFrame], grid: np.ndarray) -> pa.Array:
@@ -104,7 +108,7 @@ def _sigma(frames: list[ForceFrame]) -> pa.Array:
     sizes = np.zeros(len(sigma), np.int64)
     sizes[present] = [s.size for s in given]
     values = np.concatenate(given).astype(np.float32, copy=False) if given else np.empty(0, np.float32)
-    return lists(numbers(values, pa.float32()), sizes, present)
+    return lists(floats(values, pa.float32()), sizes, present)
 
 
 def table(frames: list[ForceFrame]) -> pa.Table:
