@@ -26,7 +26,12 @@ stamped after it), a frame whose clock ran on but whose sequence fell back
 is a restart too (a board that ran for less time than it was off). A frame whose sequence is the next one (other
 than 0 after 65 535) is in order whatever its clock did: a pause of more
 than half the clock's period (STOP … START) looks like a step back. None of
-these is a gap of 65 000 scans.
+these is a gap of 65 000 scans. A frame a link delivered late — one of the
+sensor's last 256 scans that was missing (counted in a gap when the next one
+came), its clock behind by no more than those scans take at 1 Hz, no INFO
+since — is no restart either: it is dropped and counted in ``late_frames``
+(the frames after it are in order again; a restart whose INFO was lost
+sends sequence numbers that were not missing).
 Data frames from id 255, the board's own, are dropped (``board_id_data``).
 """
 from __future__ import annotations
@@ -48,6 +53,7 @@ SEQ_MODULUS = 1 << 16
 T_US_MODULUS = 1 << 32
 RECENT_SCANS = 256  # per sensor, fingerprints of its last frames, to recognise a repeat
 RESTART_JUMP_US = 1_000_000  # a clock that jumps more than this after an INFO, back towards 0
+MAX_SCAN_PERIOD_US = 1_000_000  # RATE is at least 1 Hz
 _HALF_CLOCK = 1 << 31  # a board clock step beyond this is a step back (wrapped)
 
 FLAG_SATURATED = 0x01
@@ -97,6 +103,7 @@ class SensorCounters:
     missed_frames: int = 0
     duplicates: int = 0
     board_restarts: int = 0
+    late_frames: int = 0  # delivered out of order by the link: dropped
 
 
 @dataclass(slots=True)
@@ -133,6 +140,7 @@ class StreamCounters:
                     "missed_frames": c.missed_frames,
                     "duplicates": c.duplicates,
                     "board_restarts": c.board_restarts,
+                    "late_frames": c.late_frames,
                 }
                 for sid, c in sorted(self.sensors.items())
             },
@@ -153,10 +161,11 @@ class _SensorState:
     """Where a sensor's sequence stands: its last frame passed on, the INFO
     count then, and fingerprints (hashes of the bytes) of its recent frames."""
 
-    __slots__ = ("seq", "t_us", "infos", "recent")
+    __slots__ = ("seq", "t_us", "infos", "recent", "missing")
 
     def __init__(self) -> None:
         self.recent: deque[int] = deque(maxlen=RECENT_SCANS)
+        self.missing: deque[int] = deque(maxlen=RECENT_SCANS)  # sequence numbers of recent gaps
 
 
 class Decoder:
@@ -271,6 +280,11 @@ class Decoder:
                         if fingerprint in state.recent:
                             sensor_counters.duplicates += 1
                             return None
+                        if seq in state.missing and \
+                                T_US_MODULUS - step <= (state.seq - seq) % SEQ_MODULUS * MAX_SCAN_PERIOD_US:
+                            state.missing.remove(seq)
+                            sensor_counters.late_frames += 1  # a scan the gap before missed, delivered late
+                            return None
                         restart = step != 0
                 elif state.infos != self._infos and ((t_us < state.t_us and step > RESTART_JUMP_US)
                                                      or ((seq - state.seq) % SEQ_MODULUS >= SEQ_MODULUS // 2
@@ -289,6 +303,8 @@ class Decoder:
                     if gap:
                         sensor_counters.seq_gaps += 1
                         sensor_counters.missed_frames += gap
+                        if gap <= RECENT_SCANS:  # one of them may still come, late
+                            state.missing.extend((state.seq + k) % SEQ_MODULUS for k in range(1, gap + 1))
             state.seq, state.t_us, state.infos = seq, t_us, self._infos
             state.recent.append(fingerprint)
             sensor_counters.frames += 1

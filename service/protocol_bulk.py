@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from binascii import crc_hqx
 
-from .protocol import (_CRC, _HALF_CLOCK, _HEADER, _KNOWN_TYPES, CRC_SIZE, HEADER_SIZE, SEQ_MODULUS, SYNC,
+from .protocol import (_CRC, _HALF_CLOCK, _HEADER, _KNOWN_TYPES, CRC_SIZE, HEADER_SIZE, RECENT_SCANS, SEQ_MODULUS, SYNC,
                        T_US_MODULUS, VERSION, Decoder, Frame, FrameType, _length_is_valid)
 
 _DATA = {int(FrameType.GRID): FrameType.GRID, int(FrameType.QUAD): FrameType.QUAD}
@@ -93,6 +93,8 @@ class BulkDecoder(Decoder):
                 if gap:
                     sensor_counter.seq_gaps += 1
                     sensor_counter.missed_frames += gap
+                    if gap <= RECENT_SCANS:  # Decoder._accept's bookkeeping: one of them may still come, late
+                        state.missing.extend((state.seq + k) % SEQ_MODULUS for k in range(1, gap + 1))
                 state.seq, state.t_us = seq, t_us
                 state.recent.append(hash(body))
                 sensor_counter.frames += 1

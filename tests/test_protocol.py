@@ -372,3 +372,20 @@ def test_the_simulator_powering_up_twice_in_a_row_is_one_restart_per_sensor():
     for sensor in (0, 1):
         counters = decoder.counters.sensor(sensor)
         assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)
+
+
+@pytest.mark.parametrize("bulk", [False, True])
+@pytest.mark.parametrize("order", [[249, 251, 250, 252], [249, 251, 252, 253, 250, 254], [249, 252, 250, 251, 253]])
+def test_a_scan_the_link_delivered_late_is_dropped_not_taken_for_a_restart(bulk, order):
+    """Scans reordered on the link: the gap is counted when it opens, the
+    late scan dropped and counted, and the scans after it are in order — no
+    restart (which would also restart the board's clock map)."""
+    decoder = BulkDecoder() if bulk else Decoder()
+    decoder.feed(b"".join(hand_frame(seq=s, t_us=1000 * s, payload=quad_payload(s, 2, 3, 4)) for s in range(200, 249)))
+    frames = decoder.feed(b"".join(hand_frame(seq=s, t_us=1000 * s, payload=quad_payload(s, 2, 3, 4)) for s in order))
+    expected = [s for s in order if s == 249 or s > max(order[: order.index(s)], default=0)]
+    assert [f.seq for f in frames] == expected and not any(f.board_restart for f in frames)
+    counters = decoder.counters.sensor(1)
+    late = len(order) - len(expected)
+    assert (counters.board_restarts, counters.late_frames, counters.duplicates) == (0, late, 0)
+    assert counters.missed_frames == late and decoder.counters.as_dict()["sensors"]["1"]["late_frames"] == late
