@@ -157,6 +157,9 @@ class TactileClient:
         """A decoded binary record in the JSON frame shape."""
         info = self._sensor(record["board"], record["sensor_id"])
         kind = record["kind"]
+        if kind == "grid" and info["rows"] * info["cols"] != len(record["force_N"]):
+            self.sensors()  # the board announced another shape since we last asked
+            info = self._sensor(record["board"], record["sensor_id"])
         frame: dict = {"header": {"board": record["board"], "sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
                                   "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],
                                   "stamp": record["stamp"], "scan_stamp": _none_if_nan(record["scan_stamp"]),
@@ -202,9 +205,8 @@ class TactileClient:
         wanted = DEFAULT_FIELDS if fields is None else frozenset(fields)
         url = self.base_url.replace("http", "ws", 1) + "/ws?" + urllib.parse.urlencode(query)
         if binary:
-            self.sensors()  # rows, cols and channels, which binary records do not carry
+            self.sensors()  # rows and cols, which binary records do not carry
         ws = self._connect(url)
-        channels = {sid: s["rows"] * s["cols"] for sid, s in self._sensors.items()}
         with ws:
             while True:
                 try:
@@ -215,7 +217,7 @@ class TactileClient:
                     raise TactileError(f"stream {url} closed by the service ({exc})") from None
                 except ConnectionClosed as exc:
                     raise TactileError(f"stream {url} lost: {exc}") from None
-                yield from self._frames_in(message, url, channels, wanted)
+                yield from self._frames_in(message, url, wanted)
 
     def _connect(self, url: str):
         """The stream's WebSocket, open; TactileError naming why not."""
@@ -234,13 +236,12 @@ class TactileClient:
         except OSError as exc:
             raise TactileError(f"stream {url}: cannot reach the service: {exc}") from None
 
-    def _frames_in(self, message: str | bytes, url: str, channels: dict[tuple[str, int], int],
-                   wanted: frozenset[str]) -> Iterator[dict]:
+    def _frames_in(self, message: str | bytes, url: str, wanted: frozenset[str]) -> Iterator[dict]:
         """The frames one stream message carries; counts ``dropped`` and keeps
         ``notices`` on the way."""
         if isinstance(message, bytes):
             try:
-                records = decode_binary(message, channels)
+                records = decode_binary(message)
             except Exception as exc:
                 raise TactileError(f"stream {url}: a binary message that does not decode ({exc})") from None
             for record in records:

@@ -181,3 +181,38 @@ def test_a_stream_the_server_refuses_or_drops_is_a_tactile_error():
             next(TactileClient(server.url, timeout=0.3).subscribe())
     finally:
         server.close()
+
+
+def test_a_binary_stream_follows_a_grid_that_changed_shape():
+    """A board's INFO may announce another shape mid-stream: the binary
+    records size themselves (a grid has as many raw channels as forces), and
+    the client asks GET /sensors again for the new rows and cols."""
+    import struct
+
+    from service.fanout.encoding import decode_binary, to_binary
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    def frame(info, seq):
+        n = info.channels if info.kind == "grid" else 3
+        return ForceFrame(info, seq, 1000 * seq, 1.0, np.arange(n) / 10, 10.0 + np.arange(info.channels),
+                          [], "full", np.zeros(n, np.uint8) if info.kind == "grid" else None, "c", np.full(n, 0.01))
+
+    small, large, quad = (SensorInfo(0, "grid", 4, 4, board="b"), SensorInfo(0, "grid", 8, 8, board="b"),
+                         SensorInfo(1, "quad", 2, 2, board="b"))
+    fields = frozenset({"force", "raw", "flags"})
+    frames = [frame(small, 1), frame(quad, 1), frame(large, 2), frame(quad, 2)]
+    message = struct.pack("<H", 4) + b"".join(to_binary(f, fields) for f in frames)
+    records = decode_binary(message)
+    assert [len(r["capacitance_pF"]) for r in records] == [16, 4, 64, 4]
+    np.testing.assert_array_equal(records[2]["capacitance_pF"], np.float32(10.0 + np.arange(64)))
+
+    listings = iter([[{"board": small.board, "id": 0, "rows": 4, "cols": 4}, {"board": quad.board, "id": 1, "rows": 2, "cols": 2}],
+                     [{"board": small.board, "id": 0, "rows": 8, "cols": 8}, {"board": quad.board, "id": 1, "rows": 2, "cols": 2}]])
+    client = TactileClient("http://127.0.0.1:9")
+    client._request = lambda method, path, body=None: {"sensors": next(listings)}
+    client.sensors()
+    got = list(client._frames_in(message, "ws://test", fields))
+    assert [(f.get("rows"), f.get("cols"), len(f["raw"]["capacitance_pF"])) for f in got] == \
+        [(4, 4, 16), (None, None, 4), (8, 8, 64), (None, None, 4)]
+    assert got[2]["header"]["board"] == "b" and len(got[2]["force_N"]) == 64

@@ -160,10 +160,10 @@ def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> byt
     return head + calibration + bytes((len(board),)) + board + forces.tobytes() + sigma + raw + taxel_flags
 
 
-def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> list[dict]:
-    """Parse a binary message (for clients and tests). ``channels`` gives the
-    raw channel count per (board, sensor id) or sensor id (needed only when raw was requested;
-    default: the force count for a grid, 4 for a quad)."""
+def decode_binary(message: bytes) -> list[dict]:
+    """Parse a binary message (for clients and tests). A grid has as many
+    raw channels as forces, a quad 4: each record says its own size, also
+    after a sensor changed shape."""
     (count,) = struct.unpack_from("<H", message, 0)
     pos, out = 2, []
     for _ in range(count):
@@ -184,8 +184,7 @@ def decode_binary(message: bytes, channels: dict[int, int] | None = None) -> lis
             record["sigma_N"] = np.frombuffer(message, "<f4", n, pos)
             pos += 4 * n
         if field_bits & 2:
-            channels = channels or {}
-            m = channels.get((board, sid)) or channels.get(sid, n if kind == 0 else 4)
+            m = n if kind == 0 else 4
             record["capacitance_pF"] = np.frombuffer(message, "<f4", m, pos)
             pos += 4 * m
         if field_bits & 8:
