@@ -146,7 +146,8 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
     field of the wrong JSON type invalidates the whole INFO (the protocol's
     rule); unknown keys are ignored. A sensor of a kind this service does not
     know is left out (logged), so one exotic sensor does not hide the shapes
-    of the others."""
+    of the others; so is one described twice in two ways (the same
+    description twice counts once)."""
     try:
         doc = orjson.loads(payload)
     except orjson.JSONDecodeError as exc:
@@ -159,14 +160,22 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
     if doc.get("rate_hz", 1) <= 0:
         raise ValueError(f"INFO rate_hz {doc['rate_hz']!r} is not positive")
     sensors: dict[int, SensorInfo] = {}
-    seen: set[int] = set()
+    first: dict[int, SensorInfo | None] = {}
+    conflicting: set[int] = set()
     for entry in doc.get("sensors", []):
         info = _parse_sensor(entry)
-        if entry["id"] in seen:
-            raise ValueError(f"INFO announces sensor {entry['id']} twice")
-        seen.add(entry["id"])
+        sid = entry["id"]
+        if sid in first:  # the same description again is harmless; two different ones say nothing sure
+            if info != first[sid]:
+                conflicting.add(sid)
+            continue
+        first[sid] = info
         if info is not None:
-            sensors[info.id] = info
+            sensors[sid] = info
+    for sid in sorted(conflicting):
+        sensors.pop(sid, None)
+        log.warning("INFO describes sensor %s twice, differently: it is left undescribed (its data frames give "
+                    "its shape), the board and its other sensors are taken", sid)
     return doc, sensors
 
 

@@ -1,6 +1,7 @@
 """Structured fuzz of INFO: JSON of every type in every field, against an
 oracle written from protocol.md (a field of the wrong JSON type invalidates
-the whole INFO; unknown keys are ignored)."""
+the whole INFO; unknown keys are ignored; a sensor described twice in two
+ways is left undescribed, the protocol naming no rule for it)."""
 import json
 
 import orjson
@@ -63,22 +64,27 @@ def expected_sensors(doc):
             return None
     if "rate_hz" in doc and not (type(doc["rate_hz"]) in (int, float) and doc["rate_hz"] > 0):
         return None
-    announced, ids = {}, []
+    described, conflicting = {}, set()  # id: (kind, rows, cols, serial), None for a kind not known
     for entry in doc.get("sensors", []):
         if type(entry) is not dict or type(entry.get("id")) is not int or not 0 <= entry["id"] <= 254:
             return None
         if type(entry.get("kind")) is not str or ("serial" in entry and type(entry["serial"]) is not str):
             return None
-        ids.append(entry["id"])
+        description = None
         if entry["kind"] == "quad":
-            announced[entry["id"]] = ("quad", 2, 2, entry.get("serial"))
+            description = ("quad", 2, 2, entry.get("serial"))
         elif entry["kind"] == "grid":
             rows, cols = entry.get("rows"), entry.get("cols")
             # At most 256 channels: a payload is at most 1024 bytes of u32.
             if type(rows) is not int or type(cols) is not int or rows < 1 or cols < 1 or rows * cols > 256:
                 return None
-            announced[entry["id"]] = ("grid", rows, cols, entry.get("serial"))
-    return None if len(set(ids)) != len(ids) else announced
+            description = ("grid", rows, cols, entry.get("serial"))
+        if entry["id"] in described:  # described again: the same counts once, another leaves it undescribed
+            if described[entry["id"]] != description:
+                conflicting.add(entry["id"])
+            continue
+        described[entry["id"]] = description
+    return {sid: d for sid, d in described.items() if d is not None and sid not in conflicting}
 
 
 def table(interpreter):
