@@ -115,16 +115,23 @@ def test_every_out_of_range_case_is_flagged():
     assert {"saturated", "out_of_range", "open_channel"} <= set(last.flags)
 
 
-def test_stuck_channel_is_flagged_stale():
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+def test_a_stuck_channel_is_flagged_stale_and_gives_no_force(level):
+    """A converter that stopped converting repeats one count: after 50 such
+    frames the taxel is stale, its force null (not the old count's force:
+    a stuck channel latched under a load would feed a controller and the
+    contact summary a load that is gone), as a missing one."""
     rng = np.random.default_rng(1)
     frames = []
     for i in range(80):
         counts = 10_000_000 + rng.normal(0, 1000, 64)
-        counts[5] = 10_000_123
+        counts[5] = 10_000_123 if i < 10 else 13_000_000  # latched loaded after the tare
         frames.append(grid_frame(i, counts))
-    out = reconstruct(frames)
+    out = reconstruct(frames, level)
     assert "stale" in out[-1].flags and out[-1].taxel_flag_lists()["stale"] == [5]
-    assert "stale" not in out[20].flags
+    assert "stale" not in out[20].flags and out[20].forces_N[5] > 5.0
+    assert np.isnan(out[-1].forces_N[5]) and np.isnan(out[-1].sigma_N[5])
+    assert out[-1].contact["total_N"] < 1.0 and np.isfinite(np.delete(out[-1].forces_N, 5)).all()
 
 
 def test_quad_out_of_range_and_electrode_fault_are_flagged():

@@ -183,13 +183,15 @@ class GridProcessor:
             from .grid_full import GridJob, process_full  # grid_full builds on this module
 
             return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
-        flags = self._reading_flags(capacitance, baseline, baseline_std)
+        flags, stale = self._reading_flags(capacitance, baseline, baseline_std)
         relative = level0.relative_change(capacitance, baseline)
         if self.level == "level0":  # level0.grid_forces, on the checked ΔC/C0
             implausible = level0.implausible(relative, *self._bounds)
             if implausible is not None:  # no force, flagged
                 relative = np.where(implausible, np.nan, relative)
                 np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+            if stale is not None:
+                relative = np.where(stale, np.nan, relative)
             forces = relative / self.calibration.sensitivity_per_N
             noise = self.noise(baseline, baseline_std)
             return GridResult(forces, flags, level0_sigma(self, forces, noise))
@@ -208,6 +210,8 @@ class GridProcessor:
             if implausible is not None:  # no force, flagged out of range (not saturated)
                 forces[implausible] = np.nan
                 flags[implausible] = (flags[implausible] & ~np.uint8(SATURATED)) | OUT_OF_RANGE
+        if stale is not None:
+            forces[stale] = np.nan
         sigma = table_sigma(self.response, relative, forces, noise, self.response.gain, self.gain_relative_se,
                             self.model_sigma_N, saturated)
         return GridResult(forces, flags, sigma)
@@ -219,15 +223,23 @@ class GridProcessor:
             self._low_flagged_for = (noise, bool(np.all(OUT_OF_RANGE_SIGMAS * noise < -self.plausible[0])))
         return self._low_flagged_for[1]
 
-    def _reading_flags(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray) -> np.ndarray:
-        """No-reading, stale and no-zero bits of (N, n) frames. Flags are set
-        with ``where=`` masks: at 1 kHz the number of numpy calls, not their
-        arithmetic, is the cost."""
+    def _reading_flags(self, capacitance: np.ndarray, baseline: np.ndarray,
+                       baseline_std: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(no-reading, stale and no-zero bits of (N, n) frames, the stale
+        readings' mask or None). A stale reading (a converter that stopped
+        converting repeats an old count) gives no force of now: null, as
+        a missing one. Flags are set with ``where=`` masks: at 1 kHz the
+        number of numpy calls, not their arithmetic, is the cost."""
         flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
+        stale = None
         if self._noisy_board(baseline_std):
-            np.bitwise_or(flags, STALE, out=flags, where=self._stuck(capacitance) >= STUCK_FRAMES)
+            stale = self._stuck(capacitance) >= STUCK_FRAMES
+            if np.count_nonzero(stale):
+                np.bitwise_or(flags, STALE, out=flags, where=stale)
+            else:
+                stale = None
         self.flag_missing_zero(flags, capacitance, baseline)
-        return flags
+        return flags, stale
 
     def flag_missing_zero(self, flags: np.ndarray, capacitance: np.ndarray, baseline: np.ndarray) -> None:
         """A channel the tare gave no zero (baseline NaN: no plausible

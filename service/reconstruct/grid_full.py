@@ -86,8 +86,8 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
         row += end - start
         params.append(p._row_parameters(job.baseline, job.baseline_std))
     capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma) = _stacked_rows(pieces, counts, params)
-    flags = _reading_flags(pieces, rows, capacitance)
-    capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags)
+    flags, stale = _reading_flags(pieces, rows, capacitance)
+    capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags, stale)
     medians, enough = quiet_medians(ratio - 1.0, band)
     drift, suspect = _drift(pieces, rows, t_s, enough, medians)
     scale = 1.0 + drift[:, None]
@@ -135,23 +135,30 @@ def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -
     return capacitance, t_s, stacked if max(counts) == 1 else tuple(np.repeat(a, counts, axis=0) for a in stacked)
 
 
-def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> np.ndarray:
-    """No-reading, stale and no-zero bits of the stacked rows."""
+def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(no-reading, stale and no-zero bits of the stacked rows, the stale
+    readings' mask or None)."""
     flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
     stale = stale_rows(pieces, rows, capacitance)
     if stale is not None:
-        np.bitwise_or(flags, STALE, out=flags, where=stale)
+        if np.count_nonzero(stale):
+            np.bitwise_or(flags, STALE, out=flags, where=stale)
+        else:
+            stale = None
     for (p, job, _), r in zip(pieces, rows):
         p.flag_missing_zero(flags[r], capacitance[r], job.baseline)
-    return flags
+    return flags, stale
 
 
 def _plausible_ratio(pieces: list[Piece], rows: list[slice], counts: list[int], capacitance: np.ndarray,
-                     baseline: np.ndarray, reference: np.ndarray, flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     baseline: np.ndarray, reference: np.ndarray, flags: np.ndarray,
+                     stale: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(capacitance, ratio to the un-leaked reference), implausible readings
     (level0.py) made missing and flagged out of range before any
-    compensation, so they move none of their neighbours. Without leakage
-    the reference is the baseline itself and the test reuses the ratio."""
+    compensation, so they move none of their neighbours; so are ``stale``
+    ones (a converter that stopped converting repeats an old count: no
+    force of now). Without leakage the reference is the baseline itself
+    and the test reuses the ratio."""
     if len(pieces) == 1 or len({p.plausible for p, _, _ in pieces}) == 1:
         low, high = pieces[0][0]._ratio_bounds
     else:
@@ -163,12 +170,14 @@ def _plausible_ratio(pieces: list[Piece], rows: list[slice], counts: list[int], 
         ratio = capacitance / reference
         implausible = level0.implausible(ratio, low, high)
     if implausible is not None:
-        capacitance = np.where(implausible, np.nan, capacitance)
         np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
+    missing = implausible if stale is None else stale if implausible is None else implausible | stale
+    if missing is not None:
+        capacitance = np.where(missing, np.nan, capacitance)
         if not leaky:
-            ratio = np.where(implausible, np.nan, ratio)
+            ratio = np.where(missing, np.nan, ratio)
     if leaky:
-        if implausible is None:
+        if missing is None:
             unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
         else:
             unleaked = [p.crosstalk.unleak(capacitance[r], job.baseline) for (p, job, _), r in zip(pieces, rows)]
