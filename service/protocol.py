@@ -280,7 +280,7 @@ class Decoder:
                         if fingerprint in state.recent:
                             sensor_counters.duplicates += 1
                             return None
-                        if seq in state.missing and \
+                        if step and seq in state.missing and \
                                 T_US_MODULUS - step <= (state.seq - seq) % SEQ_MODULUS * MAX_SCAN_PERIOD_US:
                             state.missing.remove(seq)
                             sensor_counters.late_frames += 1  # a scan the gap before missed, delivered late

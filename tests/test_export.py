@@ -209,3 +209,32 @@ def test_binary_frames_carry_each_taxels_flags_to_clients_and_the_gateway(frames
     for fields in ({"flags"}, {"raw", "flags"}, {"sigma", "flags"}):  # every record still cut where it ends
         message = struct.pack("<H", len(chosen)) + b"".join(to_binary(f, frozenset(fields)) for f in chosen)
         assert [(r["sensor_id"], r["seq"]) for r in decode_binary(message)] == [(f.sensor.id, f.seq) for f in chosen]
+
+
+def test_binary_version_3_records_from_a_service_not_yet_upgraded_still_decode():
+    """A v3 record is a v4 one without taxel flags (n 0 when neither force
+    nor σ was asked for): a gateway or client upgraded first reads it; a v3
+    grid record with raw channels alone cannot be sized and says so."""
+    import struct
+
+    from service.fanout.encoding import _RECORD, decode_binary, to_binary
+
+    sink = Collect()
+    replay(DATA / "press_faults.bin", writer=sink)
+    grid = next(f for f in sink.frames if f.sensor.kind == "grid" and not np.isnan(f.forces_N).all())
+    quad = next(f for f in sink.frames if f.sensor.kind == "quad")
+
+    def as_v3(record: bytes) -> bytes:
+        return bytes([3]) + record[1:]
+
+    fields = frozenset({"force", "sigma", "raw"})
+    v3 = decode_binary(struct.pack("<H", 2) + as_v3(to_binary(grid, fields)) + as_v3(to_binary(quad, fields)))
+    v4 = decode_binary(struct.pack("<H", 2) + to_binary(grid, fields) + to_binary(quad, fields))
+    for old, new in zip(v3, v4):
+        assert old.keys() == new.keys() and old["seq"] == new["seq"]
+        for key in ("force_N", "sigma_N", "capacitance_pF"):
+            np.testing.assert_array_equal(old[key], new[key])
+    raw_only = (_RECORD.pack(3, 0, grid.sensor.id, 2, grid.seq, grid.t_us, 0.0, np.nan, 0, 0, 1) + b"c" + b"\x01b"
+                + np.asarray(grid.capacitance_pF, "<f4").tobytes())  # a v3 grid record: raw alone, n = 0
+    with pytest.raises(ValueError, match="cannot be sized"):
+        decode_binary(struct.pack("<H", 1) + raw_only)

@@ -36,7 +36,10 @@ concatenated; a message starts with the u16 record count:
     ``flags`` field; bits of reconstruct/grid.py's TAXEL_FLAG_NAMES) — NaN = no value. n is always
     the frame's force count (forces NaN when not asked for), so a record's size follows from its head.
 Version 4 added the taxel flags: a binary client learns which taxels are
-saturated, stale or corrected, as a JSON one does.
+saturated, stale or corrected, as a JSON one does. ``decode_binary`` also
+reads version 3 records (no taxel flags; n was 0 when neither force nor σ
+was asked for), so a gateway or client upgraded first still reads a
+service that was not.
 
 The replay export (``tactile replay --export``, the recorder's ``forces``
 topic) is flatter, one object per frame: see ``to_export_dict``.
@@ -61,6 +64,7 @@ FRAME_FLAG_BITS = (
 _FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
 _RECORD = struct.Struct("<BBBBHIddIHB")
 BINARY_VERSION = 4
+READABLE_VERSIONS = (3, 4)  # 3: the same record without taxel flags
 
 
 def sensor_name(frame: ForceFrame) -> str:
@@ -168,8 +172,8 @@ def decode_binary(message: bytes) -> list[dict]:
     pos, out = 2, []
     for _ in range(count):
         version, kind, sid, field_bits, seq, t_us, stamp, scan_stamp, flag_bits, n, m = _RECORD.unpack_from(message, pos)
-        if version != BINARY_VERSION:
-            raise ValueError(f"binary record version {version}, this decoder reads {BINARY_VERSION}")
+        if version not in READABLE_VERSIONS:
+            raise ValueError(f"binary record version {version}, this decoder reads {READABLE_VERSIONS}")
         pos += _RECORD.size
         calibration = message[pos:pos + m].decode("ascii")
         pos += m
@@ -185,6 +189,8 @@ def decode_binary(message: bytes) -> list[dict]:
             pos += 4 * n
         if field_bits & 2:
             m = n if kind == 0 else 4
+            if kind == 0 and n == 0:  # version 3 with raw alone: nothing in the record sizes it
+                raise ValueError(f"a version {version} grid record with raw channels and no forces cannot be sized")
             record["capacitance_pF"] = np.frombuffer(message, "<f4", m, pos)
             pos += 4 * m
         if field_bits & 8:
