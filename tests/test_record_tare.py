@@ -199,3 +199,25 @@ def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path
 
     assert differing(served_forces(tmp_path / "run.mcap", read_size)) == []
     assert len(differing(served_forces(tmp_path / "run.mcap", read_size, schedule=False))) > 500
+
+
+def test_a_board_serving_a_recording_schedules_its_tares(tmp_path, pressed):
+    """The live service's Board for a replay:// source hands the recording's
+    tares to its pipeline (a raw capture has none)."""
+    from service.board import Board, BoardSpec
+    from service.calibration.book import CalibrationBook
+    from service.history import Histories
+
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for i, chunk in reads(pressed):
+        if i == 400:
+            pipeline.tare(1, force=True)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    board = Board(BoardSpec(f"replay://{tmp_path / 'run.mcap'}?speed=max"), CalibrationBook(), Histories())
+    offset = sum(len(chunk) for i, chunk in reads(pressed) if i < 400)
+    assert board.pipeline._retares == [(offset, 1, False)]
+    (tmp_path / "run.bin").write_bytes(pressed)
+    assert Board(BoardSpec(f"replay://{tmp_path / 'run.bin'}"), CalibrationBook(), Histories()).pipeline._retares == []
