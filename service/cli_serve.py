@@ -203,6 +203,8 @@ def _run_http(app, args, token: str | None, what: str) -> int:
     """Serve ``app`` with uvicorn until Ctrl-C; say where once it listens."""
     import uvicorn
 
+    from .api.server_options import SERVER_OPTIONS
+
     url = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
     done = threading.Event()
 
@@ -217,10 +219,9 @@ def _run_http(app, args, token: str | None, what: str) -> int:
     interrupted = []
     try:
         with noting_sigint(interrupted):
-            # No per-message deflate: compressing every 1 kHz message costs more CPU than loopback or a LAN saves.
             # Connections get 1 s to close after Ctrl-C, so that the command ends promptly.
-            uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws_per_message_deflate=False,
-                        timeout_graceful_shutdown=1)
+            uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=1,
+                        **SERVER_OPTIONS)
     finally:
         done.set()
     if interrupted:

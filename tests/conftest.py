@@ -7,6 +7,7 @@ import pytest
 import uvicorn
 
 from service.api.app import create_app
+from service.api.server_options import SERVER_OPTIONS
 from service.live_service import TactileService
 
 
@@ -23,7 +24,8 @@ def served():
     tares = []
     original = service.pipeline.tare
     service.pipeline.tare = lambda sensor_id=None, force=False: tares.append(sensor_id) or original(sensor_id, force)
-    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=free_port(), log_level="warning"))
+    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=free_port(), log_level="warning",
+                                           **SERVER_OPTIONS))  # as tactile serve serves
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 10

@@ -1,4 +1,5 @@
 """What a web page, a rebinding DNS name or an unauthenticated client can do: nothing."""
+import json
 import time
 
 import pytest
@@ -104,6 +105,19 @@ def test_a_calibration_upload_is_checked_physically_and_a_linear_one_works(clien
     assert not client.get("/health").json()["reconstruction"]["errors"]
 
 
+@pytest.mark.parametrize("c0, named", [(1e-300, "c0_pF[0] = 1e-300 pF is outside [0.01, 1000] pF"),
+                                       (1e300, "is outside"), (5e-324, "is outside"), (True, "c0_pF")])
+def test_a_grid_upload_with_an_absurd_c0_is_refused_and_the_sensor_keeps_working(client, c0, named):
+    """A C0 of 1e-300 pF was stored and made active: every taxel read as
+    loaded, no tare was possible, even after a restart (the registry kept it)."""
+    upload = {"sensitivity_pct_per_N": [1.25] * 64, "c0_pF": [c0] * 64}
+    refused = client.put("/sensors/0/calibration", json=upload)
+    assert refused.status_code == 422 and named in str(refused.json()["detail"]), refused.text
+    sensitivity = client.put("/sensors/0/calibration", json={"sensitivity_pct_per_N": [True] * 64})
+    assert sensitivity.status_code == 422 and "sensitivity_pct_per_N" in str(sensitivity.json()["detail"])
+    assert client.get("/sensors/0/calibration").json()["id"] == "builtin-table1"
+
+
 def test_the_same_history_read_within_its_age_is_answered_once():
     from service.api.routes_sensors import RecentReads
 
@@ -126,3 +140,100 @@ def test_heavy_reads_beyond_the_admitted_rate_are_refused_before_the_routes():
     assert [admission.admit() for _ in range(6)] == [True] * 5 + [False]  # the burst, then empty
     now[0] += 0.1  # one token back every 0.1 s
     assert admission.admit() and not admission.admit()
+
+
+def test_no_page_of_another_site_may_frame_the_service(client):
+    """Clickjacking: a hidden frame of the dashboard under a decoy would send
+    the user's click on "Tare all" from the dashboard's own origin."""
+    for path in ("/", "/health", "/nope"):
+        response = client.get(path)
+        assert response.headers["x-frame-options"] == "DENY", path
+        assert response.headers["content-security-policy"] == "frame-ancestors 'none'", path
+    refused = client.post("/tare", headers={"origin": "https://evil.example"})
+    assert refused.status_code == 403 and refused.headers["x-frame-options"] == "DENY"
+
+
+def _raw_request(base_url: str, request: bytes, timeout: float = 5.0) -> bytes:
+    import socket
+    import urllib.parse
+
+    address = urllib.parse.urlsplit(base_url)
+    with socket.create_connection((address.hostname, address.port), timeout=timeout) as sock:
+        try:
+            sock.sendall(request)
+        except OSError:  # the server may answer and close before taking it all
+            pass
+        chunks = []
+        while chunk := sock.recv(65536):
+            chunks.append(chunk)
+            if b"\r\n\r\n" in b"".join(chunks):
+                break
+        return b"".join(chunks)
+
+
+def test_request_headers_are_bounded_before_anything_reads_them(served):
+    """One unauthenticated request with megabytes of headers was read whole
+    (and copied) before the guard could refuse it: 35 MB took the service to
+    621 MB and stalled the stream for 2 s. The server now answers 400 once
+    the headers pass 16 KiB; a browser's ordinary request still passes."""
+    import time
+
+    base_url, _ = served
+    headers = b"".join(b"X-%d: %s\r\n" % (i, b"a" * 60) for i in range(20_000))  # 1.4 MB
+    started = time.monotonic()
+    answer = _raw_request(base_url, b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n" + headers + b"\r\n")
+    assert answer.startswith(b"HTTP/1.1 400") and time.monotonic() - started < 2.0
+    usual = b"".join(b"X-%d: %s\r\n" % (i, b"a" * 60) for i in range(60))  # 4 KB: cookies, user agent, …
+    assert _raw_request(base_url, b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n" + usual + b"\r\n").startswith(b"HTTP/1.1 200")
+
+
+def test_a_websocket_client_cannot_send_large_messages(served):
+    """The service reads a client's messages only to notice it leave: a
+    message over 4 KiB closes that connection (1009) instead of being taken."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    base_url, _ = served
+    with connect(base_url.replace("http", "ws", 1) + "ws?sensors=0") as ws:
+        ws.send(b"x" * 100)
+        ws.recv(timeout=5)  # still streaming
+        ws.send(b"x" * 100_000)
+        with pytest.raises(ConnectionClosed) as closed:
+            for _ in range(10_000):
+                ws.recv(timeout=5)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1009
+
+
+def test_clients_that_never_read_their_history_hold_no_slot(served):
+    """Two history answers nobody reads (a stalled client) held both read
+    slots for as long as their sockets stayed open: every other history read
+    got 429. A slot now bounds only the encoding."""
+    import socket
+    import urllib.parse
+    import urllib.request
+
+    base_url, _ = served
+    address = urllib.parse.urlsplit(base_url)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:  # answers far larger than the sockets' buffers (~12 MB)
+        with urllib.request.urlopen(base_url + "sensors/0/history?seconds=5&max_points=5000&fields=force") as answer:
+            if len(json.loads(answer.read())) >= 3000:
+                break
+        time.sleep(0.3)
+    time.sleep(1.0)  # the admission's tokens come back
+    stalled = []
+    for _ in range(2):
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect((address.hostname, address.port))
+        sock.sendall(b"GET /sensors/0/history?seconds=5&max_points=5000&fields=force,sigma,raw,contact,flags HTTP/1.1\r\n"
+                     b"Host: 127.0.0.1\r\n\r\n")
+        stalled.append(sock)
+    try:
+        assert stalled[0].recv(12) == b"HTTP/1.1 200"  # answered, then never read further
+        time.sleep(0.6)  # the admission's tokens come back
+        with urllib.request.urlopen(base_url + "sensors/1/history?seconds=0.5&max_points=50", timeout=5) as answer:
+            assert answer.status == 200 and len(json.loads(answer.read())) >= 1
+    finally:
+        for sock in stalled:
+            sock.close()

@@ -19,6 +19,14 @@ clients sending large bodies.
 * A state-changing request's body must be ``application/json``, at most
   ``max_body_bytes`` (413, enforced while reading), and strict JSON: NaN
   and Infinity are not JSON (422).
+* No page of another site may frame the service's (clickjacking: a hidden
+  frame of the dashboard under a decoy, the user's click on "Tare all"
+  sent by the dashboard itself, its own origin): every HTTP response says
+  ``X-Frame-Options: DENY`` and ``Content-Security-Policy: frame-ancestors
+  'none'``.
+
+Headers are bounded before this runs: the server parses HTTP with h11 and a
+header limit (server_options.py).
 """
 from __future__ import annotations
 
@@ -67,7 +75,7 @@ class RequestGuard:
         if refusal is None and scope["type"] == "http" and scope["method"] in UNSAFE_METHODS:
             refusal, receive = await self._read_body(headers, receive)
         if refusal is None:
-            await self.app(scope, receive, send)
+            await self.app(scope, receive, _unframeable(send) if scope["type"] == "http" else send)
         elif scope["type"] == "websocket":
             await send({"type": "websocket.close", "code": 1008, "reason": refusal[1][:120]})
         else:
@@ -130,8 +138,21 @@ class RequestGuard:
         return None, replay
 
 
+NOT_FRAMEABLE = [(b"x-frame-options", b"DENY"), (b"content-security-policy", b"frame-ancestors 'none'")]
+
+
+def _unframeable(send):
+    """``send`` with NOT_FRAMEABLE added to the response's headers."""
+    async def sending(message) -> None:
+        if message["type"] == "http.response.start":
+            message = {**message, "headers": [*message.get("headers", ()), *NOT_FRAMEABLE]}
+        await send(message)
+    return sending
+
+
 async def _respond(send, status: int, detail: str) -> None:
     body = orjson.dumps({"detail": detail})
     await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            *NOT_FRAMEABLE]})
     await send({"type": "http.response.body", "body": body})

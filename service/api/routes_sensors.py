@@ -9,7 +9,6 @@ from typing import TYPE_CHECKING
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
-from starlette.background import BackgroundTask
 
 from ..fanout.encoding import FIELDS, to_json_dict
 from ..fanout.history_json import RecentRings
@@ -90,7 +89,7 @@ async def history(
 ) -> Response:
     """A heavy read, bounded three ways so that it never holds up the 1 kHz
     path for long: admitted at a bounded rate (admission.py), at most
-    ``MAX_HEAVY_READS`` encoded or sent at once (429 beyond), and encoded on
+    ``MAX_HEAVY_READS`` encoded at once (429 beyond), and encoded on
     the event loop about ``HISTORY_STEP_BYTES`` at a time (frames encoded
     by a recent read are reused) and sent in pieces, so that the live
     stream's callbacks run between two steps (encoding in a worker thread
@@ -106,14 +105,13 @@ async def history(
     if not gate.acquire(blocking=False):
         raise HTTPException(429, f"{MAX_HEAVY_READS} history reads are running; retry shortly",
                             headers={"Retry-After": "1"})
-    permit = Permit(gate)
     try:
         body = await encoded_history(request.app.state, found, seconds, max_points, wanted)
-    except BaseException:
-        permit.release()
-        raise
-    return StreamingResponse(pieces(body, permit), media_type="application/json",
-                             headers={"Content-Length": str(len(body))}, background=BackgroundTask(permit.release))
+    finally:
+        # The slot bounds the encoding the loop does; sending is the socket's: two clients that never
+        # read their answers held both slots, and every other history read was refused, for as long.
+        gate.release()
+    return StreamingResponse(pieces(body), media_type="application/json", headers={"Content-Length": str(len(body))})
 
 
 async def encoded_history(state, found, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
@@ -128,29 +126,12 @@ async def encoded_history(state, found, seconds: float, max_points: int, wanted:
     return body
 
 
-class Permit:
-    """A heavy-read slot, given back once however the answer ends (sent,
-    or the client gone mid-way)."""
-
-    def __init__(self, gate) -> None:
-        self._gate = gate
-        self._held = True
-
-    def release(self) -> None:
-        if self._held:
-            self._held = False
-            self._gate.release()
-
-
-async def pieces(body: bytes, permit: Permit):
+async def pieces(body: bytes):
     """An answer in 64 KiB pieces: the event loop sends one, serves the live
     stream, then sends the next (a send does not give the loop up by itself)."""
-    try:
-        for start in range(0, len(body), SEND_PIECE_BYTES):
-            yield body[start:start + SEND_PIECE_BYTES]
-            await asyncio.sleep(0)
-    finally:
-        permit.release()
+    for start in range(0, len(body), SEND_PIECE_BYTES):
+        yield body[start:start + SEND_PIECE_BYTES]
+        await asyncio.sleep(0)
 
 
 async def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str],

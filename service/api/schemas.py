@@ -3,7 +3,9 @@ accepts, and the frame messages built by ``service.fanout.encoding``, which
 they document but do not encode (frames are serialised by the fan-out)."""
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, StrictFloat, StrictInt
+
+Number = StrictFloat | StrictInt  # a JSON number: true is no sensitivity, "1.2" no capacitance
 
 
 class RecordRequest(BaseModel):
@@ -14,15 +16,15 @@ class RecordRequest(BaseModel):
 
 
 class GridCalibrationUpload(BaseModel):
-    sensitivity_pct_per_N: list[float] = Field(description="per taxel, row-major, measured 0–10 N slope in %/N")
-    c0_pF: list[float] | None = Field(default=None, description="per taxel, row-major, measured unloaded "
-                                      "capacitance in pF (lets a tare tell a load; table 1's when absent)")
+    sensitivity_pct_per_N: list[Number] = Field(description="per taxel, row-major, measured 0–10 N slope in %/N")
+    c0_pF: list[Number] | None = Field(default=None, description="per taxel, row-major, measured unloaded "
+                                      "capacitance in pF, 0.01–1000 (lets a tare tell a load; table 1's when absent)")
 
 
 class QuadCalibrationUpload(BaseModel):
-    normal_fit: tuple[float, float] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1]; c2 ≤ 0 (0 = linear), "
+    normal_fit: tuple[Number, Number] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1]; c2 ≤ 0 (0 = linear), "
                                              "c1 in (0.001, 1) /N, |c2| ≤ 0.45·c1")
-    shear_fit: tuple[float, float] = Field(description="ΔC/C0 = a F − b F²: [a, b]; a in (0.001, 1) /N, 0 ≤ b ≤ 0.45·a")
+    shear_fit: tuple[Number, Number] = Field(description="ΔC/C0 = a F − b F²: [a, b]; a in (0.001, 1) /N, 0 ≤ b ≤ 0.45·a")
 
 
 class Header(BaseModel):

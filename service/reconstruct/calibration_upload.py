@@ -21,7 +21,7 @@ from .crosstalk import Crosstalk
 from .grid import GridProcessor
 from .level0 import tare_window_pF
 from .quad import QuadProcessor
-from .sensor_calibration import SCHEMA, SensorCalibration, calibration_id, from_document
+from .sensor_calibration import SCHEMA, SensorCalibration, calibration_id, check_c0, from_document
 
 
 def processor_for(info: SensorInfo, level: str, mounting: str,
@@ -93,8 +93,7 @@ def _grid_document(info: SensorInfo, upload: dict, mounting: str) -> dict:
         raise ValueError(f"sensitivity_pct_per_N[{bad[0]}] = {values[bad[0]]} is outside ({low:g}, {high:g}) %/N")
     measured = upload.get("c0_pF") is not None
     c0 = _values(upload, "c0_pF", info.channels) if measured else grid_calibration(info.rows, info.cols).c0_pF
-    if not np.all(c0 > 0):
-        raise ValueError(f"c0_pF[{int(np.flatnonzero(~(c0 > 0))[0])}] must be a positive capacitance")
+    check_c0("c0_pF", c0)
     try:
         response = taxel_response(GridCalibration(info.rows, info.cols, c0, values / 100.0), mounting)
         response.check()
@@ -118,6 +117,8 @@ def _quad_document(upload: dict) -> dict:
 
 
 def _values(upload: dict, name: str, n: int) -> np.ndarray:
+    if isinstance(upload.get(name), list) and any(isinstance(v, bool) for v in upload[name]):
+        raise ValueError(f"{name}: expected a list of numbers, not true/false")
     try:
         values = np.asarray(upload.get(name, []), dtype=float)
     except (TypeError, ValueError):

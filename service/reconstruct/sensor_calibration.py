@@ -45,6 +45,9 @@ BUILTIN_RELATIVE_SE = 0.07
 # Plausible gains: those of the uploadable sensitivities (0.1–10 %/N) on the
 # flat table, whose slope at gain 1 is ~1.25 %/N.
 GAIN_RANGE = (SENSITIVITY_RANGE_PCT_PER_N[0] / 1.25, SENSITIVITY_RANGE_PCT_PER_N[1] / 1.25)
+# A flexible sensor's unloaded taxel: tens of fF to a nF (table 1: 10–11 pF; the quad's electrodes 2.2 pF).
+# Outside, a C0 is a unit slip (F for pF) or garbage: 1e-300 pF made every taxel "loaded", no tare possible.
+C0_RANGE_PF = (0.01, 1000.0)
 
 
 def canonical(document: dict) -> bytes:
@@ -114,11 +117,19 @@ def from_document(document: dict, info: SensorInfo, mounting: str = "flat") -> S
     return _grid(document, cid, info, document.get("mounting") or mounting)
 
 
+def check_c0(name: str, c0: np.ndarray) -> None:
+    """ValueError naming the first C0 outside C0_RANGE_PF."""
+    low, high = C0_RANGE_PF
+    bad = np.flatnonzero(~((c0 >= low) & (c0 <= high)))  # NaN fails both
+    if bad.size:
+        raise ValueError(f"{name}[{bad[0]}] = {c0[bad[0]]:g} pF is outside [{low:g}, {high:g}] pF")
+
+
 def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.ndarray:
     values = taxels.get(name)
     if values is None and missing_ok:
         return np.full(n, np.nan)
-    if not isinstance(values, list) or len(values) != n:
+    if not isinstance(values, list) or len(values) != n or any(isinstance(v, bool) for v in values):
         raise ValueError(f"taxels.{name}: expected a list of {n} numbers")
     try:
         out = np.array([np.nan if v is None and missing_ok else v for v in values], dtype=float)
@@ -143,8 +154,7 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     if bad.size:
         raise ValueError(f"taxels.gain[{bad[0]}] = {gain[bad[0]]} is outside ({low:g}, {high:g})")
     c0 = _numbers(taxels, "c0_pF", n)
-    if np.any(c0 <= 0):
-        raise ValueError(f"taxels.c0_pF[{int(np.argmax(c0 <= 0))}] must be positive")
+    check_c0("taxels.c0_pF", c0)
     se = _numbers(taxels, "gain_se", n, missing_ok=True)
     relative_se = np.where(np.isnan(se), BUILTIN_RELATIVE_SE, np.abs(se) / gain)
     residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
