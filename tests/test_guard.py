@@ -175,7 +175,7 @@ def test_request_headers_are_bounded_before_anything_reads_them(served):
     """One unauthenticated request with megabytes of headers was read whole
     (and copied) before the guard could refuse it: 35 MB took the service to
     621 MB and stalled the stream for 2 s. The server now answers 400 once
-    the headers pass 16 KiB; a browser's ordinary request still passes."""
+    the headers pass 8 KiB; a browser's ordinary request still passes."""
     import time
 
     base_url, _ = served
@@ -237,3 +237,4 @@ def test_clients_that_never_read_their_history_hold_no_slot(served):
     finally:
         for sock in stalled:
             sock.close()
+

@@ -16,7 +16,7 @@ the tests' live servers share (docs/security.md).
 """
 from __future__ import annotations
 
-MAX_HEADER_BYTES = 16 << 10  # request line + headers; a browser's are under 8 KiB
+MAX_HEADER_BYTES = 8 << 10  # request line + headers still arriving; a browser's are a few KiB
 WS_MAX_MESSAGE = 4 << 10
 
 SERVER_OPTIONS = {
