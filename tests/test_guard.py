@@ -238,3 +238,32 @@ def test_clients_that_never_read_their_history_hold_no_slot(served):
         for sock in stalled:
             sock.close()
 
+
+
+def test_a_whole_calibration_document_uploads_as_exported_and_an_edited_one_is_refused(client):
+    """docs/api.md: PUT takes the short forms or a whole document
+    (``tactile calibrations export``: gains with their errors, measured C0,
+    curves). The body's type let only the short forms through."""
+    from service.calibration.registry import sensor_identity
+    from service.reconstruct.calibration_upload import upload_document
+
+    sensors = {s["id"]: s for s in client.get("/sensors").json()["sensors"]}
+    board = client.app.state.service.all_boards[0]
+    info = board.sensors
+
+    def exported(sid, numbers):  # what tactile calibrations export gives for the sensor
+        return upload_document(info[sid], numbers, "flat", sensor_identity(board.info, info[sid]))
+
+    grid = exported(0, {"sensitivity_pct_per_N": [1.3] * 64, "c0_pF": [10.5] * 64})
+    quad = exported(1, {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]})
+    assert grid["schema"] == quad["schema"] == 1 and sensors[0]["kind"] == "grid"
+    for sid, document in ((0, grid), (1, quad)):
+        answer = client.put(f"/sensors/{sid}/calibration", json=document)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["id"] == document["id"] == client.get(f"/sensors/{sid}/calibration").json()["id"]
+    edited = {**grid, "taxels": {**grid["taxels"], "gain": [1.1] * 64}}
+    refused = client.put("/sensors/0/calibration", json=edited)
+    assert refused.status_code == 422 and "does not match the document's content" in refused.json()["detail"]
+    assert client.put("/sensors/0/calibration", json={"schema": 1}).status_code == 422
+    other = client.put("/sensors/1/calibration", json=grid)  # sensor 0's document onto sensor 1
+    assert other.status_code == 422 and "not this sensor" in other.json()["detail"]

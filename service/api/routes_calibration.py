@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from ..board import RemoteBoardError
 from ..pipeline import LoadedAtTare
 from .deps import Addressed, JSONResponse, authorised, find_sensor, get_service, known_sensor
-from .schemas import GridCalibrationUpload, QuadCalibrationUpload
+from .schemas import CalibrationDocumentUpload, GridCalibrationUpload, QuadCalibrationUpload
 
 if TYPE_CHECKING:
     from ..live_service import TactileService
@@ -75,11 +75,14 @@ def tare_all(force: bool = FORCE, board: str | None = Query(None, description="o
 
 @router.put("/sensors/{sensor_id}/calibration", dependencies=MUTATION)
 @router.put("/sensors/{board}/{sensor_id}/calibration", dependencies=MUTATION)
-def upload_calibration(sensor_id: int, body: GridCalibrationUpload | QuadCalibrationUpload, board: str | None = None,
-                       service: TactileService = Depends(get_service)) -> JSONResponse:
+def upload_calibration(sensor_id: int, body: CalibrationDocumentUpload | GridCalibrationUpload | QuadCalibrationUpload,
+                       board: str | None = None, service: TactileService = Depends(get_service)) -> JSONResponse:
     found = find_sensor(service, sensor_id, board)  # after the body is validated: a bad body is 422 for any sensor
     try:
-        document = found.board.set_calibration(found.info, body.model_dump(exclude_none=True))
+        # A document is taken as it is (its id covers every key, null ones too); a short form without its nulls.
+        upload = body.model_dump(by_alias=True) if isinstance(body, CalibrationDocumentUpload) else \
+            body.model_dump(exclude_none=True)
+        document = found.board.set_calibration(found.info, upload)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     except RemoteBoardError as exc:

@@ -27,6 +27,15 @@ class QuadCalibrationUpload(BaseModel):
     shear_fit: tuple[Number, Number] = Field(description="ΔC/C0 = a F − b F²: [a, b]; a in (0.001, 1) /N, 0 ≤ b ≤ 0.45·a")
 
 
+class CalibrationDocumentUpload(BaseModel):
+    """A whole calibration document, as ``tactile calibrations export`` writes
+    it (gains with their errors, measured C0, empirical curves, crosstalk,
+    fatigue): checked field by field when it is applied."""
+
+    model_config = {"extra": "allow"}
+    schema_: StrictInt = Field(alias="schema", description="the document format's version (1)")
+
+
 class Header(BaseModel):
     sensor_id: int
     sensor_name: str

@@ -74,6 +74,11 @@ def upload_document(info: SensorInfo, upload: dict, mounting: str, sensor: dict 
         if given is not None and given != calibration_id(document):
             raise ValueError(f"id: {given} does not match the document's content (which gives "
                              f"{calibration_id(document)}): edited or corrupt")
+        named = (document.get("sensor") or {}).get("key") if isinstance(document.get("sensor"), dict) else None
+        if sensor is not None and named != sensor["key"]:  # the registry would file it under another sensor
+            raise ValueError(f"sensor: this document calibrates {named or 'no named sensor'}, not this sensor "
+                             f"({sensor['key']}); export the document of this sensor, or upload its numbers "
+                             f"in the short form")
     elif info.kind == "grid":
         document = _grid_document(info, upload, mounting)
     else:
