@@ -175,3 +175,30 @@ def test_the_report_lists_the_taxels_not_pressed(tmp_path):
     assert "| r1c6 |" in text and "keep their previous calibration (builtin-table1): r1c7, r1c8, r2c1" in text
     assert (tmp_path / "report" / "response.png").stat().st_size > 10_000
     assert (tmp_path / "report" / "residuals.png").stat().st_size > 5_000
+
+
+def test_a_reference_in_grams_is_not_stored_and_the_error_says_grams(tmp_path, capsys):
+    """Paper 000 weighed with a 0.01 g balance: a reference logged in grams
+    under the force_N header fitted sensitivities ~100× too small, was
+    stored and activated, and then refused by serve and replay (built-in
+    forces, a log line). Nothing is stored now, and the error names it."""
+    from service.calibration.registry import Registry
+    from service.cli import main
+
+    presses = probe_schedule(range(6), seed=1)
+    session_path, reference = files(tmp_path, presses)
+    def in_grams(line: str) -> str:
+        t, _, force = line.partition(",")
+        try:
+            return f"{t},{float(force) / 9.80665e-3!r}"
+        except ValueError:  # the header and comments stay as they are
+            return line
+
+    reference.write_text("\n".join(map(in_grams, reference.read_text().splitlines())) + "\n")
+    registry = tmp_path / "reg.sqlite3"
+    code = main(["calibrate", str(session_path), "--reference", str(reference), "--partial", "--full-scale", "1000",
+                 "--registry", str(registry)])
+    error = capsys.readouterr().err
+    assert code != 0 and "calibration not stored" in error and "grams" in error, error
+    with Registry(registry) as stored:
+        assert [d["id"] for d in stored.list() if not d["id"].startswith("builtin")] == []

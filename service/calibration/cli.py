@@ -10,6 +10,8 @@ import argparse
 import json
 import time
 
+import numpy as np
+
 from ..physics.mountings import MOUNTINGS
 from .registry import Registry
 
@@ -86,6 +88,7 @@ def cmd_calibrate(args) -> int:
         key = registry_key(result)
         previous = registry.active(key, result.session.info.rows, result.session.info.cols)
         doc = document(result, previous)
+        check_usable(doc, result.session.info, args.mounting, "sensitivity_pct_per_N", 1.24, "%/N")
         cid = registry.add(doc, activate=not args.no_activate)
     elapsed = time.perf_counter() - started
     print("\n".join(summary_lines(result)))
@@ -113,12 +116,38 @@ def _calibrate_quad(args, started: float) -> int:
     from .calibrate_quad import calibrate_quad, quad_document, quad_summary
 
     result = calibrate_quad(args.session, args.reference, args.sensor, board=args.board)
+    doc = quad_document(result)
+    check_usable(doc, result.session.info, "flat", "normal_fit", 0.0343, "/N")
     with Registry(args.registry) as registry:
-        cid = registry.add(quad_document(result), activate=not args.no_activate)
+        cid = registry.add(doc, activate=not args.no_activate)
     print("\n".join(quad_summary(result)))
     print(f"stored {cid} for {registry_key(result)} in {registry.path}{'' if args.no_activate else ' (active)'}; "
           f"calibrated in {time.perf_counter() - started:.2f} s")
     return 0
+
+
+def check_usable(doc: dict, info, mounting: str, slope_field: str, paper_slope: float, unit: str) -> None:
+    """ValueError, nothing stored, when the service would refuse to load the
+    calibration (the same checks: ``serve`` fell back to the built-in one
+    with a log line); a slope orders of magnitude off the paper's names the
+    likely cause, a reference in other units than N."""
+    from ..reconstruct.sensor_calibration import calibration_id, from_document
+
+    try:
+        from_document({**doc, "id": calibration_id(doc)}, info, mounting)
+    except ValueError as exc:
+        if slope_field == "normal_fit":
+            slopes = [doc["normal_fit"][1]]  # [c2, c1(, c0)]: the small-force slope
+        else:
+            taxels = doc["taxels"]
+            slopes = [v for v, source in zip(taxels[slope_field], taxels["source"]) if source == "this session" and v]
+        hint = ""
+        ratio = float(np.median(slopes)) / paper_slope if slopes else 1.0
+        if ratio < 0.05 or ratio > 20:
+            hint = (f"; the fitted slopes ({min(slopes):.3g}–{max(slopes):.3g} {unit}) are {1 / ratio if ratio < 1 else ratio:.0f}× "
+                    f"{'below' if ratio < 1 else 'above'} the paper's {paper_slope:g} {unit}: is the reference's force "
+                    f"in {'grams or mN' if ratio < 1 else 'kN or kgf'} rather than N?")
+        raise ValueError(f"calibration not stored: the service could not use it ({exc}){hint}") from None
 
 
 def registry_key(result) -> str:
