@@ -100,3 +100,23 @@ def test_counts_survive_a_restart_and_a_new_calibration_starts_from_zero(tmp_pat
     assert factor == pytest.approx(float(PAPER_001.factor(25)))
     second.set_calibration(QUAD, {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]})
     assert second.fatigue(1)["cycles_max"] == 0  # counts belong to a calibration
+
+
+def test_a_fatigue_factor_follows_the_cycles_counted_within_one_large_batch():
+    """An offline replay feeds megabyte reads (tens of thousands of quad
+    frames): with one fatigue factor per call, a quad cycled 2 000 times read
+    its final 3 N hold as 2.95 N. Calls are sliced, so the factor lags by at
+    most a slice's cycles: the same forces as read by read, within 0.5 %."""
+    cycles = 2000
+    model = QuadModel()
+    fz = np.concatenate([np.zeros(10), np.tile(3.0 * np.sin(np.pi * np.arange(40) / 40) ** 2, cycles), np.full(300, 3.0)])
+    counted = np.concatenate([np.zeros(10), np.repeat(np.arange(cycles), 40), np.full(300, cycles)])
+    relative = model.forward(np.stack([np.zeros_like(fz), np.zeros_like(fz), fz], axis=1))
+    tired = NOMINAL_C0_PF * (1 + relative * PAPER_001.factor(counted)[:, None])
+    readings = [Reading(QUAD, k % 65536, k * 1000, 0.0, 0, 0, c, False, False) for k, c in enumerate(tired)]
+    whole, by_read = Reconstructor(tare_frames=10, level="table"), Reconstructor(tare_frames=10, level="table")
+    at_once = whole.process_many(readings)
+    one_by_one = [f for k in range(0, len(readings), 2) for f in by_read.process_many(readings[k:k + 2])]
+    hold = slice(-250, None)
+    assert np.mean([f.forces_N[2] for f in at_once[hold]]) == pytest.approx(3.0, abs=0.01)
+    np.testing.assert_allclose([f.forces_N[2] for f in at_once[hold]], [f.forces_N[2] for f in one_by_one[hold]], rtol=5e-3)

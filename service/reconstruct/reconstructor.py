@@ -29,6 +29,7 @@ from .quad_batch import QuadBatches, QuadPlan
 from .sensor_states import Resolver, SensorState, SensorStates
 
 log = logging.getLogger(__name__)
+SLICE_READINGS = 1024  # readings per call at most (~0.5 s of a grid and a quad at 1 kHz)
 
 
 class Reconstructor(SensorStates):
@@ -125,6 +126,13 @@ class Reconstructor(SensorStates):
         return frames
 
     def _reconstruct(self, items: list[tuple[SensorState | Exception, Reading]]) -> list[ForceFrame]:
+        """The items' frames; more than SLICE_READINGS (an offline replay's
+        megabyte reads, a held backlog) go through in slices of that many: a
+        quad's fatigue factor is fixed per call, and one 32 000-frame call
+        left a quad cycled 2 000 times compensated as if at 1 635 cycles."""
+        if len(items) > SLICE_READINGS:
+            return [frame for start in range(0, len(items), SLICE_READINGS)
+                    for frame in self._reconstruct(items[start:start + SLICE_READINGS])]
         plan = self._quad_plan
         if plan is not None and not self._isolation.failing and plan.fits(items):
             try:
