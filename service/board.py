@@ -23,7 +23,7 @@ from .pipeline import Pipeline
 from .readings import UNNAMED_BOARD
 from .readout import DEFAULT_SILENCE_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
-from .sources.protocol_replay import recorded_tares
+from .sources.protocol_replay import recorded_baselines, recorded_tares
 
 log = logging.getLogger(__name__)
 
@@ -113,15 +113,16 @@ class Board:
             self._schedule_recorded_tares()
 
     def _schedule_recorded_tares(self) -> None:
-        """A recording served through the live path makes its recorded tares
-        again where they were made (else every force after one differs from
-        what was recorded)."""
+        """A recording served through the live path starts from the zeros it
+        began with and makes its recorded tares again where they were made
+        (else every force after one differs from what was recorded)."""
         try:
-            tares = recorded_tares(self.source)
+            tares, zeros = recorded_tares(self.source), recorded_baselines(self.source)
         except (ValueError, OSError) as exc:
             log.warning("%s: its recorded tares cannot be read (%s); replayed without them", self.source, exc)
             return
         self.pipeline.schedule_retares(tares)
+        self.pipeline.reconstructor.preset_baselines(zeros)
 
     @property
     def name(self) -> str:

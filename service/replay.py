@@ -10,7 +10,10 @@ A raw capture's readings are held until each sensor's auto-tare is
 complete, so every exported frame has forces. A recording is replayed as it
 ran live (the tare window null and flagged), with the tares made while it
 was recorded made again before the same read, so its forces come out bit for
-bit as recorded.
+bit as recorded. One begun on a running service starts from the zeros then
+in force (recorded as ``/baselines``), not from a tare on whatever load it
+begins with; the full level's tracked state (drift, crosstalk estimates)
+starts afresh, so its forces are close to the recorded ones, not equal.
 """
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
-from .record.mcap_reader import read_numbered, read_tares
+from .record.mcap_reader import read_baselines, read_numbered, read_tares
 from .record.readers import is_timed_by_host, timed_chunks
 
 __all__ = ["Pacer", "Writer", "export_line", "replay", "replay_boards"]
@@ -63,17 +66,21 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
     def pipeline_of(board: str | None) -> Pipeline:
         pipeline = pipelines.get(board)
         if pipeline is None:
+            began = zeros.get(board, {})  # a recording begun mid-stream has no INFO: its name then, its zeros
             pipeline = pipelines[board] = Pipeline(
                 Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0,
-                keep_history=False, calibrations=calibrations, map_clock=not hold, board_name=board or only)
+                keep_history=False, calibrations=calibrations, map_clock=not hold,
+                board_name=board or only or began.get("board"))
             if writer is not None:
                 pipeline.listeners.append(writer.write)
+            pipeline.reconstructor.preset_baselines(began.get("sensors", []))
         return pipeline
 
     paced = not math.isinf(pacer.speed)
     # A raw capture's reads are not numbered (no tares to place among them).
     chunks = read_numbered(path) if not hold else ((None, 0, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
     tares = {} if hold else {board: sorted(made, key=lambda tare: tare[0]) for board, made in read_tares(path).items()}
+    zeros = {} if hold else read_baselines(path)  # a recording begun on a running service: the zeros it began with
     if hold:
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     t_last = 0.0

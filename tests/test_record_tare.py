@@ -2,6 +2,7 @@
 replay makes them there again: its forces equal the live ones after them too."""
 import io
 
+import numpy as np
 import orjson
 import pytest
 
@@ -221,3 +222,45 @@ def test_a_board_serving_a_recording_schedules_its_tares(tmp_path, pressed):
     assert board.pipeline._retares == [(offset, 1, False)]
     (tmp_path / "run.bin").write_bytes(pressed)
     assert Board(BoardSpec(f"replay://{tmp_path / 'run.bin'}"), CalibrationBook(), Histories()).pipeline._retares == []
+
+
+@pytest.mark.parametrize("level", ["table", "full"])
+def test_a_recording_begun_on_a_running_service_replays_from_the_zeros_it_began_with(tmp_path, pressed, level):
+    """POST /record/start (the dashboard's Record) attaches to a pipeline
+    whose sensors were tared long before: the replay tared again on the
+    recording's first frames, under whatever load was there (every frame
+    differed, by up to 4 N). The zeros in force are recorded (/baselines)
+    and the replay starts from them: bit for bit at a level without tracked
+    state; at the full level, whose drift and crosstalk estimates start
+    afresh, within a few mN."""
+    from service.record.mcap_reader import read_baselines
+
+    pipeline = Pipeline(Reconstructor(level=level))
+    recorder = None
+    for i, chunk in reads(pressed):
+        if i == 400:  # well after the tare, in the middle of the presses
+            recorder = Recorder(tmp_path / "run.mcap")
+            recorder.attach(pipeline)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    began = read_baselines(tmp_path / "run.mcap")[None]
+    zeros = began["sensors"]
+    assert began["board"] == pipeline.interpreter.name != "board"
+    assert [z["sensor"] for z in zeros] == sorted(pipeline.interpreter.sensors) and len(zeros[0]["baseline_pF"]) == 64
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    out = io.BytesIO()
+    replay(tmp_path / "run.mcap", out, level=level)
+    again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+    # The first recorded read may begin inside a frame whose start only the live decoder had.
+    assert again.keys() <= live.keys() and len(live) - len(again) <= len(zeros) and len(again) > 2000
+    live = {key: live[key] for key in again}
+    assert not any("taring" in d["flags"] for d in again.values())
+
+    def values(doc):
+        return np.array([np.nan if v is None else v for v in doc.get("taxels_N", doc.get("fxyz_N"))])
+
+    worst = max(np.nanmax(np.abs(values(live[key]) - values(again[key])), initial=0.0) for key in live)
+    if level == "table":
+        assert [key for key in live if live[key] != again[key]] == []
+    else:
+        assert worst < 0.02

@@ -68,6 +68,16 @@ class Baseline:
         self._late[:] = False
         self._any_late = False
 
+    def preset(self, value_pF: np.ndarray, std_pF: np.ndarray) -> None:
+        """Take a zero made elsewhere (a recording's, made live before it
+        began) as complete; a channel without one (NaN) waits for its own
+        late zero as here."""
+        self.tare()
+        self.value, self.std = value_pF.copy(), std_pF.copy()
+        self._seen = self.frames
+        self._late = np.isnan(self.value)
+        self._any_late = bool(self._late.any())
+
     def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
         """Take ``values_pF`` (channels,) as the zero of ``channels`` (bool
         mask): a loaded tare's taxels get the calibration's C0. A new array,

@@ -58,6 +58,7 @@ class SensorStates:
         self._chosen: dict[int, SensorCalibration] = {}  # set through set_calibration, over ``resolve``
         self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
         self._first_judge: dict[int, bool] = {}  # a forced tare recorded before the sensor's first frame (replay)
+        self._preset: dict[int, dict] = {}  # zeros a recording began with, for sensors not seen yet (replay)
 
     def _calibration_applied(self, sensor_id: int) -> None:
         """A sensor's calibration was replaced (the Reconstructor gives a failing sensor another try)."""
@@ -136,8 +137,32 @@ class SensorStates:
                                  processor_for(info, self.level, self.mounting, calibration), calibration)
             state.cycles = self._cycles(info, calibration)
             state.judge_tare = self._first_judge.pop(info.id, True)
+            zero = self._preset.pop(info.id, None)
+            if zero is not None and len(zero["baseline_pF"]) == info.channels:
+                state.baseline.preset(_array(zero["baseline_pF"]), _array(zero["std_pF"]))
+                state.tare_judged = True  # judged live, before the recording
+                if zero.get("loaded"):
+                    state.loaded = np.isin(np.arange(info.channels), zero["loaded"])
             self._sensors[info.id] = state
         return state
+
+    def baselines(self) -> list[dict]:
+        """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded}
+        (NaN as None), what a recording begun now stores for its replay."""
+        out = []
+        for sid, state in sorted(self._sensors.items()):
+            if state.baseline.ready:
+                out.append({"sensor": sid, "baseline_pF": _listed(state.baseline.value),
+                            "std_pF": _listed(state.baseline.std),
+                            "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist()})
+        return out
+
+    def preset_baselines(self, zeros: list[dict]) -> None:
+        """Zeros a recording stored (``baselines``) for the sensors it will
+        show: each starts tared with its own when first seen, as it ran live,
+        not with a tare on whatever load the recording begins with."""
+        for zero in zeros:
+            self._preset[int(zero["sensor"])] = zero
 
     def judge_first_tare(self, sensor_id: int, judge: bool) -> None:
         """How the tare of a sensor not seen yet is to be judged (a recorded
@@ -236,3 +261,11 @@ class SensorStates:
             "pending_estimates": processor.estimator.report(),
             "common_mode_drift": processor.drift.drift,
         }
+
+
+def _listed(values: np.ndarray) -> list[float | None]:
+    return [None if v != v else v for v in values.tolist()]
+
+
+def _array(values: list) -> np.ndarray:
+    return np.array([np.nan if v is None else v for v in values], dtype=float)

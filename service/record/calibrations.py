@@ -27,7 +27,9 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
         sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
         if doc["id"]:  # frames made while the sensor had no state name none
             used.setdefault(sensor, []).append(doc["id"])
-        if doc.get("document") is not None:
+        # The first calibration's document only: a sensor that began on a built-in one (no document) and
+        # had one uploaded later replays on the built-in throughout, as the warning below says.
+        if doc.get("document") is not None and used.get(sensor, [None])[0] == doc["id"]:
             found.setdefault(sensor, doc["document"])
         if doc.get("cycles_at_start") is not None:
             cycles.setdefault(sensor, (doc["id"], doc["cycles_at_start"]))

@@ -81,6 +81,18 @@ def read_tares(path: str | Path) -> dict[str | None, list[tuple[int, int, bool]]
     return tares
 
 
+def read_baselines(path: str | Path) -> dict[str | None, dict]:
+    """The zeros in force when the recording began, per board (as
+    ``read_boards`` names them): {"board": its name then, "sensors": [...]};
+    none for a recording that began with its stream (its sensors tare in
+    it, and its INFO names the board)."""
+    zeros: dict[str | None, dict] = {}
+    for topic, message in _topics_of(path, lambda topic: raw_board(topic, "baselines") is not False):
+        doc = orjson.loads(message.data)
+        zeros.setdefault(raw_board(topic, "baselines"), {"board": doc["board"], "sensors": []})["sensors"] += doc["sensors"]
+    return zeros
+
+
 def read_raw(path: str | Path, board: str | None = None) -> Iterator[tuple[float, bytes]]:
     """(host receive time s, bytes) of every read of one board the recording
     holds: ``board`` None, the only board's; ValueError naming the boards

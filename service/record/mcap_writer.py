@@ -51,7 +51,8 @@ class McapLog:
             name: self._writer.register_schema(schema["title"], "jsonschema", schemas.encoded(schema))
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
                                  ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
-                                 ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE))
+                                 ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE),
+                                 ("baselines", schemas.BASELINES))
         }
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -96,6 +97,10 @@ class McapLog:
         self._add(f"{prefix}/tare", "tare", t_host, {
             "board": board, "judge": judge,
             "sensors": [{"sensor": sid, "after_reads": n} for sid, n in sorted(after_reads.items())]})
+
+    def baselines(self, board: str, sensors: list[dict], t_host: float, prefix: str = "") -> None:
+        """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded} when the recording began."""
+        self._add(f"{prefix}/baselines", "baselines", t_host, {"board": board, "sensors": sensors})
 
     def diagnostics(self, t_host: float, diagnostics: dict, prefix: str = "") -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

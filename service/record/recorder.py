@@ -166,6 +166,9 @@ class Recorder:
             after_reads, judge = payload
             self._log.tare(pipeline.interpreter.name, after_reads, judge, t_host, prefix)
             self.messages += 1
+        elif kind == "baselines":
+            self._log.baselines(pipeline.interpreter.name, payload, t_host, prefix)
+            self.messages += 1
         else:
             self._log.diagnostics(t_host, payload, prefix)
             self.messages += 1
@@ -198,6 +201,9 @@ class _Listeners:
         if self.recorder.active:
             if self._first_read is None:  # on the feeding thread, before this read is decoded: its number
                 self._first_read = self.pipeline.reads
+                zeros = self.pipeline.reconstructor.baselines()
+                if zeros:  # a recording begun on a running service: the zeros its replay starts from
+                    self.recorder._queue.put(("baselines", (self.pipeline, zeros), t_host))
             self.recorder._queue.put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:

@@ -45,6 +45,22 @@ CALIBRATION = {
     },
 }
 
+BASELINES = {
+    "title": "tactile.Baselines",
+    "description": "The zeros in force when a recording began on a running service (sensors tared before it): "
+                   "a replay starts from them instead of taring afresh on whatever load the recording begins with",
+    "type": "object",
+    "properties": {
+        "board": {"type": "string"},
+        "sensors": {"type": "array", "items": {"type": "object", "properties": {
+            "sensor": {"type": "integer"},
+            "baseline_pF": {"type": "array", "items": {"type": ["number", "null"]}},
+            "std_pF": {"type": "array", "items": {"type": ["number", "null"]}},
+            "loaded": {"type": "array", "items": {"type": "integer"},
+                       "description": "taxels whose zero is the calibration's C0 (loaded at the tare)"}}}},
+    },
+}
+
 TARE = {
     "title": "tactile.Tare",
     "description": "A tare made while recording (POST /tare): each sensor's baseline restarted before the board's "

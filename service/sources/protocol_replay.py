@@ -15,7 +15,7 @@ import urllib.parse
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from ..record.mcap_reader import boards_in, read_numbered, read_tares
+from ..record.mcap_reader import boards_in, read_baselines, read_numbered, read_tares
 from ..record.pacing import Pacer, parse_speed
 from ..record.readers import is_timed_by_host, timed_chunks
 
@@ -44,6 +44,17 @@ def check_url(url: str) -> None:
         timed_chunks(path, board=board)
     except FileNotFoundError:
         raise ValueError(f"{url!r}: no such recording: {path}") from None
+
+
+def recorded_baselines(url: str) -> list[dict]:
+    """The zeros the URL's recording began with (a recording begun on a
+    running service; reconstructor.preset_baselines), none for a raw capture."""
+    path, _, board = parse_replay_url(url)
+    if not is_timed_by_host(path):
+        return []
+    if board is None:
+        board = next(iter(boards_in(path)), None)
+    return read_baselines(path).get(board, {}).get("sensors", [])
 
 
 def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
