@@ -202,3 +202,9 @@ def test_a_reference_in_grams_is_not_stored_and_the_error_says_grams(tmp_path, c
     assert code != 0 and "calibration not stored" in error and "grams" in error, error
     with Registry(registry) as stored:
         assert [d["id"] for d in stored.list() if not d["id"].startswith("builtin")] == []
+
+
+def test_a_reference_saved_by_a_spreadsheet_with_a_byte_order_mark_is_read(tmp_path):
+    (tmp_path / "r.csv").write_bytes("\ufefft_s,force_N\n0.0,1.5\n0.01,2.5\n".encode())
+    reference = read_reference(tmp_path / "r.csv")
+    assert reference.force_N.tolist() == [1.5, 2.5] and reference.skipped == 0

@@ -212,3 +212,17 @@ def test_without_a_calibration_the_estimator_adopts_within_the_first_isolated_pr
     unloaded = int(np.count_nonzero((truth[window] == 0) & (np.abs(error[window]) > 0.05)))
     print(f"1000 frames from the first press: worst {worst:.3f} N, unloaded samples over 0.05 N: {unloaded}")
     assert worst < 0.06 and unloaded == 0  # with 50 events and 256-frame periods: 0.129 N and 236
+
+
+def test_a_pinned_calibration_of_another_shape_is_reported_not_silently_ignored(caplog):
+    """--calibration FILE names a 4x4 grid's calibration, the sensor with
+    that id is 8x8: it cannot be used, and /health (the book's problems)
+    and the log say so — the user asked for it by name."""
+    from service.calibration.book import CalibrationBook
+    from service.readings import SensorInfo
+
+    book = CalibrationBook(None, [{"id": "abc123", "kind": "grid", "rows": 4, "cols": 4, "sensor": {"sensor_id": 0}}])
+    info = SensorInfo(0, "grid", 8, 8, board="b")
+    assert book.for_sensor({"board": "b"}, info) is None
+    assert book.problems == ["pinned calibration abc123 is for a 4x4 grid; sensor b/0 is a 8x8 grid: not used"]
+    assert "abc123" in caplog.text

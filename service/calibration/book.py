@@ -121,9 +121,16 @@ class CalibrationBook:
                 return document
         for document in self.pinned:
             sensor = document.get("sensor") or {}
-            if sensor.get("sensor_id") == info.id and document.get("kind") == info.kind and (
-                    info.kind == "quad" or (document.get("rows"), document.get("cols")) == (info.rows, info.cols)):
+            if sensor.get("sensor_id") != info.id:
+                continue
+            shape = (document.get("kind"), document.get("rows"), document.get("cols"))
+            if document.get("kind") == info.kind and (info.kind == "quad" or shape[1:] == (info.rows, info.cols)):
                 return document
+            missed = f"pinned calibration {document.get('id')} is for a {_shape(*shape)}; sensor {info.address} " \
+                     f"is a {_shape(info.kind, info.rows, info.cols)}: not used"
+            if missed not in self.problems:  # asked for by name: never set aside silently
+                self.problems.append(missed)
+                log.warning(missed)
         return None
 
     def _active(self, key: str) -> dict | None:
@@ -176,3 +183,7 @@ class CalibrationBook:
             except Exception:  # noqa: BLE001 — only for /health; the problem is reported by lookups
                 return None
         return self._activated[key]
+
+
+def _shape(kind, rows, cols) -> str:
+    return f"{rows}x{cols} grid" if kind == "grid" else str(kind)

@@ -106,7 +106,7 @@ def _three_axis(path: str) -> bool:
     from .reference import HEADER_3D
 
     try:
-        with open(path, encoding="utf-8", errors="replace") as stream:
+        with open(path, encoding="utf-8-sig", errors="replace") as stream:
             return tuple(c.strip() for c in stream.readline().split(",")) == HEADER_3D
     except FileNotFoundError:
         return False  # the grid path says which file is missing

@@ -75,10 +75,11 @@ def parse_reference(text: str, path: str = "<reference>") -> Reference:
 
 
 def read_reference(path: str | Path) -> Reference:
-    """Read a reference CSV (UTF-8); OSError if it cannot be read."""
+    """Read a reference CSV (UTF-8, with or without the byte-order mark a
+    spreadsheet saving "CSV UTF-8" puts first); OSError if it cannot be read."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
     except FileNotFoundError:
         raise FileNotFoundError(f"no such reference file: {path}") from None
     return parse_reference(text, str(path))
