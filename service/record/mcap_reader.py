@@ -29,6 +29,9 @@ def check_mcap(path: str | Path) -> None:
         raise ValueError(f"{path} is not an MCAP recording (it starts with {head!r}, not {MCAP0_MAGIC!r})")
 
 
+_WARNED: set[tuple[str, int, int]] = set()  # (file, size, where) of damage already reported
+
+
 def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, Message]]:
     """(topic, message) in file order: a complete file through its index
     (only the messages asked for are parsed: mcap's readers parse every
@@ -55,8 +58,12 @@ def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, 
                     if topics is None or topic in topics:
                         yield topic, record
         except (McapError, EOFError, struct.error, ValueError) as exc:
-            log.warning("%s ends early, near byte %d of %d (%s): read what was complete, as after a crash",
-                        path, stream.tell(), Path(path).stat().st_size, str(exc) or type(exc).__name__)
+            size, at = Path(path).stat().st_size, stream.tell()
+            if (str(path), size, at) not in _WARNED:  # said once, not once per pass over the file
+                _WARNED.add((str(path), size, at))
+                lost = "" if size - at < 4096 else f"; the {size - at} bytes after it are not read"
+                log.warning("%s cannot be read past byte %d of %d (%s): read what came before it, as after a "
+                            "crash%s", path, at, size, str(exc) or type(exc).__name__, lost)
 
 
 def raw_board(topic: str, channel: str = "raw") -> str | None | bool:
