@@ -15,7 +15,7 @@ builds each line's dict, and times, in a fresh process each:
              to /dev/null
   naive      the naive decoder (service/reports/naive_decoder.py) on the capture
   arithmetic the full level's numpy arithmetic for every grid frame: each
-             sensor's frames after its tare through process_full in blocks
+             sensor's frames (once it is tared) through process_full in blocks
              of 64 frames (the fastest block size here: longer arrays
              leave the caches), the estimator's adoptions switched off,
              min of the rounds, in this process
@@ -95,7 +95,8 @@ def full_level_arithmetic(capture: Path, rounds: int) -> float:
         took = 0.0
         for state, capacitance, t_s in jobs:
             processor = copy.deepcopy(state.processor)
-            processor.frames_to_adoption = lambda: len(capacitance)
+            processor.frames_to_adoption = lambda: len(capacitance)  # no block split at an adoption point
+            processor._advance = lambda frames: None  # and no estimator observing or adopting
             t = time.process_time()
             for start in range(0, len(capacitance), BLOCK):
                 block = slice(start, start + BLOCK)

@@ -40,6 +40,7 @@ from __future__ import annotations
 import http.client
 import math
 import socket
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -48,6 +49,8 @@ from collections.abc import Iterator
 import orjson
 
 from .fanout.encoding import DEFAULT_FIELDS, decode_binary
+
+SHAPES_RETRY_S = 1.0  # GET /sensors again for a grid whose records changed size at most this often
 
 
 class TactileError(RuntimeError):
@@ -83,6 +86,7 @@ class TactileClient:
         self.dropped = 0
         self.notices: list[str] = []
         self._sensors: dict[int, dict] = {}
+        self._shapes_asked = -SHAPES_RETRY_S  # when GET /sensors was last asked for a changed shape
 
     def _request(self, method: str, path: str, body: dict | None = None):
         headers = {"Content-Type": "application/json"}
@@ -157,8 +161,11 @@ class TactileClient:
         """A decoded binary record in the JSON frame shape."""
         info = self._sensor(record["board"], record["sensor_id"])
         kind = record["kind"]
-        if kind == "grid" and info["rows"] * info["cols"] != len(record["force_N"]):
-            self.sensors()  # the board announced another shape since we last asked
+        n = len(record["force_N"])  # 0 in a version 3 record without forces or σ: nothing to compare
+        if kind == "grid" and n and info["rows"] * info["cols"] != n and \
+                time.monotonic() - self._shapes_asked >= SHAPES_RETRY_S:
+            self._shapes_asked = time.monotonic()
+            self.sensors()  # the board announced another shape since we last asked (at most once a second)
             info = self._sensor(record["board"], record["sensor_id"])
         frame: dict = {"header": {"board": record["board"], "sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
                                   "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],

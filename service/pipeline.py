@@ -154,18 +154,15 @@ class Pipeline:
         decoded and reconstructed (grids waiting included), the tare made,
         then the rest."""
         offset = self._retares[0][0]
-        before, after, position, split = [], [], self.bytes_fed, 0
+        before, after, position = [], [], self.bytes_fed
         for data, t_host in chunks:
             cut = min(max(offset - position, 0), len(data))
             if cut:
                 before.append((data[:cut], t_host))
-            if cut < len(data):
+            if cut < len(data):  # a read cut in two counts as two, here and for every byte listener alike
                 after.append((data[cut:], t_host))
-            split += 0 < cut < len(data)
             position += len(data)
         self.feed_reads(before, defer)
-        with self._lock:
-            self.reads -= split  # a read cut in two is still one read
         self._reconstruct_deferred()
         while self._retares and self._retares[0][0] <= self.bytes_fed:
             _, sensor_id, judge = self._retares.pop(0)
@@ -212,10 +209,16 @@ class Pipeline:
         not seen yet (a recording begun while it streamed) tares at its first
         frame anyway, judged as the recorded tare was."""
         with self._lock:
-            if self.reconstructor.kind(sensor_id) is not None:
+            kind = self.reconstructor.kind(sensor_id)
+            if kind is not None:
                 self.reconstructor.tare(sensor_id, judge=judge)
             else:
                 self.reconstructor.judge_first_tare(sensor_id, judge)
+            if self.tare_listeners:  # a recording of this replay records it too
+                done = self._reconstructed
+                before_read = {sensor_id: done["grid" if kind == "grid" else "other"] if kind else min(done.values())}
+                for listener in self.tare_listeners:
+                    listener(before_read, judge)
 
     def loaded(self, sensor_id: int | None = None) -> dict[int, list[int]]:
         """{sensor id: taxels} whose latest reading stands above the

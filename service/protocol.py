@@ -280,8 +280,9 @@ class Decoder:
                         if fingerprint in state.recent:
                             sensor_counters.duplicates += 1
                             return None
-                        if step and seq in state.missing and \
-                                T_US_MODULUS - step <= (state.seq - seq) % SEQ_MODULUS * MAX_SCAN_PERIOD_US:
+                        behind = (state.seq - seq) % SEQ_MODULUS
+                        if step and behind <= RECENT_SCANS and seq in state.missing and \
+                                T_US_MODULUS - step <= behind * MAX_SCAN_PERIOD_US:
                             state.missing.remove(seq)
                             sensor_counters.late_frames += 1  # a scan the gap before missed, delivered late
                             return None
@@ -298,6 +299,7 @@ class Decoder:
                     restart = True
                 if restart:
                     sensor_counters.board_restarts += 1
+                    state.missing.clear()  # the gaps of the run before: none of those scans can still come
                 else:
                     gap = (seq - state.seq - 1) % SEQ_MODULUS
                     if gap:

@@ -241,12 +241,26 @@ def test_clients_that_never_read_their_history_hold_no_slot(served):
 
 
 
-def test_a_whole_calibration_document_uploads_as_exported_and_an_edited_one_is_refused(client):
+@pytest.fixture
+def own_registry_client(tmp_path, monkeypatch):
+    """A service whose uploads go to a registry of its own (not the run's,
+    which later modules' services read)."""
+    monkeypatch.setenv("TACTILE_REGISTRY", str(tmp_path / "registry.sqlite3"))
+    with TestClient(create_app(TactileService("sim://?scene=idle")), base_url="http://localhost:8000") as client:
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and len(client.get("/sensors").json()["sensors"]) < 2:
+            time.sleep(0.02)
+        yield client
+
+
+def test_a_whole_calibration_document_uploads_as_exported_and_an_edited_one_is_refused(own_registry_client):
     """docs/api.md: PUT takes the short forms or a whole document
     (``tactile calibrations export``: gains with their errors, measured C0,
     curves). The body's type let only the short forms through."""
     from service.calibration.registry import sensor_identity
     from service.reconstruct.calibration_upload import upload_document
+
+    client = own_registry_client
 
     sensors = {s["id"]: s for s in client.get("/sensors").json()["sensors"]}
     board = client.app.state.service.all_boards[0]

@@ -80,7 +80,7 @@ def passed_on(expected):
                     restart = info_t_us is not None and 0 < (t_us - info_t_us) % 2**32 < 2**31
                     if not restart and spec in recent[sensor][-256:]:
                         continue
-                    if not restart and step and seq in missing[sensor] \
+                    if not restart and step and (last_seq - seq) % 2**16 <= 256 and seq in missing[sensor] \
                             and 2**32 - step <= (last_seq - seq) % 2**16 * 1_000_000:
                         missing[sensor].remove(seq)
                         continue
@@ -90,7 +90,9 @@ def passed_on(expected):
                 elif info_t_us is not None and (seq - last_seq) % 2**16 >= 2**15 \
                         and 0 < (last_t_us - info_t_us) % 2**32 < 2**31:
                     restart = True  # after a power-up INFO the sequence started again: a board up for a short time
-                if not restart:
+                if restart:
+                    missing[sensor] = []
+                else:
                     gap = (seq - last_seq - 1) % 2**16
                     if 0 < gap <= 256:
                         missing[sensor] = (missing[sensor] + [(last_seq + k) % 2**16 for k in range(1, gap + 1)])[-256:]

@@ -153,9 +153,10 @@ def test_a_forced_tare_recorded_before_a_sensors_first_frame_is_judged_as_it_was
     assert states[1].judge_tare is False and states[0].judge_tare is True
 
 
-def served_forces(path, read_size: int, schedule: bool = True):
+def served_forces(path, read_size: int, schedule: bool = True, merge: int = 1):
     """The recording through the live path's pieces: its replay:// port read
-    ``read_size`` bytes at a time (not as recorded), fed to a pipeline as
+    ``read_size`` bytes at a time (not as recorded), ``merge`` port reads
+    fed to a pipeline as one (as a serial read takes what has piled up), as
     the loop feeds one, with the tares recorded_tares gives scheduled."""
     from service.sources.protocol_replay import Serial, recorded_tares
 
@@ -168,7 +169,7 @@ def served_forces(path, read_size: int, schedule: bool = True):
     port = Serial(url)  # opened; no timeout: an empty read at the end
     try:
         t = 1000.0
-        while chunk := port.read(read_size):
+        while chunk := b"".join(port.read(read_size) for _ in range(merge)):
             pipeline.feed_reads([(chunk, t)], lambda work: work())
             t += 0.002
     finally:
@@ -176,8 +177,8 @@ def served_forces(path, read_size: int, schedule: bool = True):
     return {(f.sensor.id, f.seq, f.t_us): f for f in frames}
 
 
-@pytest.mark.parametrize("read_size", [64, 5000])
-def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path, pressed, read_size):
+@pytest.mark.parametrize("read_size, merge", [(64, 1), (5000, 1), (700, 3)])
+def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path, pressed, read_size, merge):
     """tactile replay --serve (replay://): the recorded tares are made where
     the stream reaches the bytes of the read they preceded, however the
     port's reads cut it: every force equals the recorded one, null where it
@@ -198,8 +199,8 @@ def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path
                 if doc.get("taxels_N", doc.get("fxyz_N")) != [None if v != v else v for v in served[key].forces_N.tolist()]
                 or doc["flags"] != served[key].flags]
 
-    assert differing(served_forces(tmp_path / "run.mcap", read_size)) == []
-    assert len(differing(served_forces(tmp_path / "run.mcap", read_size, schedule=False))) > 500
+    assert differing(served_forces(tmp_path / "run.mcap", read_size, merge=merge)) == []  # merged: reads cut at a tare
+    assert len(differing(served_forces(tmp_path / "run.mcap", read_size, schedule=False, merge=merge))) > 500
 
 
 def test_a_board_serving_a_recording_schedules_its_tares(tmp_path, pressed):
@@ -264,3 +265,35 @@ def test_a_recording_begun_on_a_running_service_replays_from_the_zeros_it_began_
         assert [key for key in live if live[key] != again[key]] == []
     else:
         assert worst < 0.02
+
+
+def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path, pressed):
+    """Recording a served replay (replay:// with a Recorder attached): the
+    replayed tares are tares of that stream too, so the new recording holds
+    them where they took effect and replays as served."""
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "first.mcap")
+    recorder.attach(pipeline)
+    for i, chunk in reads(pressed):
+        if i == 500:
+            pipeline.tare(1, force=True)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    served = Pipeline(Reconstructor())
+    again = Recorder(tmp_path / "second.mcap")
+    again.attach(served)
+    from service.sources.protocol_replay import Serial, recorded_tares
+
+    url = f"replay://{tmp_path / 'first.mcap'}?speed=max"
+    served.schedule_retares(recorded_tares(url))
+    port = Serial(url)
+    t = 1000.0
+    while chunk := port.read(4096):
+        served.feed_reads([(chunk, t)], lambda work: work())
+        t += 0.002
+    port.close()
+    again.stop()
+    assert [(sensor, judge) for _, sensor, judge in read_tares(tmp_path / "second.mcap")[None]] == [(1, False)]
+    first, second = by_frame(recorded_forces(tmp_path / "first.mcap")), by_frame(replayed_forces(tmp_path / "second.mcap"))
+    assert [key for key in first if first[key].get("taxels_N", first[key].get("fxyz_N")) !=
+            second[key].get("taxels_N", second[key].get("fxyz_N"))] == []

@@ -51,6 +51,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     app.state.service = service
     app.state.token = token
     app.state.heavy_reads = threading.BoundedSemaphore(routes_sensors.MAX_HEAVY_READS)
+    app.state.history_sending = 0  # bytes of history answers not sent yet (routes_sensors.MAX_SENDING_BYTES)
     app.state.recent_reads = routes_sensors.RecentReads()
     app.state.recent_rings = RecentRings(routes_sensors.RECENT_RING_BYTES)
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):

@@ -4,9 +4,10 @@ active at once), and which calibration a sensor uses. Mutations need the
 token when one is set."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query
+from pydantic import Field
 
 from ..board import RemoteBoardError
 from ..pipeline import LoadedAtTare
@@ -73,10 +74,15 @@ def tare_all(force: bool = FORCE, board: str | None = Query(None, description="o
     return _tared(service, boards, force)
 
 
+# A document first: it also holds a quad's normal_fit and shear_fit, and a short form would take it, anew.
+CalibrationUpload = Annotated[CalibrationDocumentUpload | GridCalibrationUpload | QuadCalibrationUpload,
+                              Field(union_mode="left_to_right")]
+
+
 @router.put("/sensors/{sensor_id}/calibration", dependencies=MUTATION)
 @router.put("/sensors/{board}/{sensor_id}/calibration", dependencies=MUTATION)
-def upload_calibration(sensor_id: int, body: CalibrationDocumentUpload | GridCalibrationUpload | QuadCalibrationUpload,
-                       board: str | None = None, service: TactileService = Depends(get_service)) -> JSONResponse:
+def upload_calibration(sensor_id: int, body: CalibrationUpload, board: str | None = None,
+                       service: TactileService = Depends(get_service)) -> JSONResponse:
     found = find_sensor(service, sensor_id, board)  # after the body is validated: a bad body is 422 for any sensor
     try:
         # A document is taken as it is (its id covers every key, null ones too); a short form without its nulls.

@@ -30,6 +30,7 @@ router = APIRouter()
 
 MAX_HEAVY_READS = 2
 SEND_PIECE_BYTES = 1 << 16
+MAX_SENDING_BYTES = 64 << 20  # history answers held until their clients take them, all together
 HISTORY_STEP_BYTES = 1 << 13  # JSON encoded between two turns of the event loop (7 frames of an 8x8 grid, ~0.2 ms)
 JOIN_IN_THREAD_BYTES = 1 << 20  # CPython's bytes.join releases the GIL from this size on
 RECENT_RING_BYTES = 64 << 20  # frames' JSON kept for the (sensor, fields) read last, about this much
@@ -89,7 +90,8 @@ async def history(
 ) -> Response:
     """A heavy read, bounded three ways so that it never holds up the 1 kHz
     path for long: admitted at a bounded rate (admission.py), at most
-    ``MAX_HEAVY_READS`` encoded at once (429 beyond), and encoded on
+    ``MAX_HEAVY_READS`` encoded at once and ``MAX_SENDING_BYTES`` waiting
+    for their clients (429 beyond), and encoded on
     the event loop about ``HISTORY_STEP_BYTES`` at a time (frames encoded
     by a recent read are reused) and sent in pieces, so that the live
     stream's callbacks run between two steps (encoding in a worker thread
@@ -111,7 +113,13 @@ async def history(
         # The slot bounds the encoding the loop does; sending is the socket's: two clients that never
         # read their answers held both slots, and every other history read was refused, for as long.
         gate.release()
-    return StreamingResponse(pieces(body), media_type="application/json", headers={"Content-Length": str(len(body))})
+    state = request.app.state
+    if state.history_sending and state.history_sending + len(body) > MAX_SENDING_BYTES:  # clients not reading theirs
+        raise HTTPException(429, f"{state.history_sending >> 20} MB of history answers are still being sent; retry "
+                                 f"shortly", headers={"Retry-After": "1"})
+    state.history_sending += len(body)
+    return StreamingResponse(pieces(body, state), media_type="application/json",
+                             headers={"Content-Length": str(len(body))})
 
 
 async def encoded_history(state, found, seconds: float, max_points: int, wanted: frozenset[str]) -> bytes:
@@ -126,12 +134,17 @@ async def encoded_history(state, found, seconds: float, max_points: int, wanted:
     return body
 
 
-async def pieces(body: bytes):
+async def pieces(body: bytes, state):
     """An answer in 64 KiB pieces: the event loop sends one, serves the live
-    stream, then sends the next (a send does not give the loop up by itself)."""
-    for start in range(0, len(body), SEND_PIECE_BYTES):
-        yield body[start:start + SEND_PIECE_BYTES]
-        await asyncio.sleep(0)
+    stream, then sends the next (a send does not give the loop up by itself).
+    Its bytes count in ``state.history_sending`` until it is sent or its
+    client gone."""
+    try:
+        for start in range(0, len(body), SEND_PIECE_BYTES):
+            yield body[start:start + SEND_PIECE_BYTES]
+            await asyncio.sleep(0)
+    finally:
+        state.history_sending -= len(body)
 
 
 async def encode_history(history, seconds: float, max_points: int, wanted: frozenset[str],

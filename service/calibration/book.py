@@ -119,6 +119,7 @@ class CalibrationBook:
         for document in self.pinned:
             if (document.get("sensor") or {}).get("key") == key:
                 return document
+        misfits = []
         for document in self.pinned:
             sensor = document.get("sensor") or {}
             if sensor.get("sensor_id") != info.id:
@@ -126,9 +127,10 @@ class CalibrationBook:
             shape = (document.get("kind"), document.get("rows"), document.get("cols"))
             if document.get("kind") == info.kind and (info.kind == "quad" or shape[1:] == (info.rows, info.cols)):
                 return document
-            missed = f"pinned calibration {document.get('id')} is for a {_shape(*shape)}; sensor {info.address} " \
-                     f"is a {_shape(info.kind, info.rows, info.cols)}: not used"
-            if missed not in self.problems:  # asked for by name: never set aside silently
+            misfits.append(f"pinned calibration {document.get('id')} is for a {_shape(*shape)}; sensor "
+                           f"{info.address} is a {_shape(info.kind, info.rows, info.cols)}: not used")
+        for missed in misfits:  # asked for by name and none fits: never set aside silently
+            if missed not in self.problems:
                 self.problems.append(missed)
                 log.warning(missed)
         return None

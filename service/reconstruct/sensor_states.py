@@ -166,8 +166,10 @@ class SensorStates:
 
     def judge_first_tare(self, sensor_id: int, judge: bool) -> None:
         """How the tare of a sensor not seen yet is to be judged (a recorded
-        forced tare a replay meets before the sensor's first frame)."""
+        forced tare a replay meets before the sensor's first frame): it
+        tares at its first frame, not from a zero the recording began with."""
         self._first_judge[sensor_id] = judge
+        self._preset.pop(sensor_id, None)
 
     def _cycles(self, info: SensorInfo, calibration: SensorCalibration) -> CycleCounter:
         """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0)."""

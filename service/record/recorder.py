@@ -201,7 +201,8 @@ class _Listeners:
         if self.recorder.active:
             if self._first_read is None:  # on the feeding thread, before this read is decoded: its number
                 self._first_read = self.pipeline.reads
-                zeros = self.pipeline.reconstructor.baselines()
+                with self.pipeline._lock:  # a tare from the API's thread may be resetting one
+                    zeros = self.pipeline.reconstructor.baselines()
                 if zeros:  # a recording begun on a running service: the zeros its replay starts from
                     self.recorder._queue.put(("baselines", (self.pipeline, zeros), t_host))
             self.recorder._queue.put(("raw", (self.pipeline, data), t_host))
