@@ -153,6 +153,20 @@ def test_a_forced_tare_recorded_before_a_sensors_first_frame_is_judged_as_it_was
     assert states[1].judge_tare is False and states[0].judge_tare is True
 
 
+def recorded(path, data: bytes, tares: dict) -> Pipeline:
+    """A recording of ``data`` fed read by read (as ``reads`` cuts it), with a
+    forced tare {read: sensor id, or None for all} made before those reads."""
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(path)
+    recorder.attach(pipeline)
+    for i, chunk in reads(data):
+        if i in tares:
+            pipeline.tare(tares[i], force=True)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    return pipeline
+
+
 def served_forces(path, read_size: int, schedule: bool = True, merge: int = 1):
     """The recording through the live path's pieces: its replay:// port read
     ``read_size`` bytes at a time (not as recorded), ``merge`` port reads
@@ -183,14 +197,7 @@ def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path
     the stream reaches the bytes of the read they preceded, however the
     port's reads cut it: every force equals the recorded one, null where it
     was null; without the schedule they differ after the first tare."""
-    pipeline = Pipeline(Reconstructor())
-    recorder = Recorder(tmp_path / "run.mcap")
-    recorder.attach(pipeline)
-    for i, chunk in reads(pressed):
-        if i in (300, 700):
-            pipeline.tare(None if i == 300 else 1, force=True)
-        pipeline.feed(chunk, 1000.0 + 0.002 * i)
-    recorder.stop()
+    recorded(tmp_path / "run.mcap", pressed, {300: None, 700: 1})
     live = by_frame(recorded_forces(tmp_path / "run.mcap"))
 
     def differing(served):
@@ -210,14 +217,7 @@ def test_a_board_serving_a_recording_schedules_its_tares(tmp_path, pressed):
     from service.calibration.book import CalibrationBook
     from service.history import Histories
 
-    pipeline = Pipeline(Reconstructor())
-    recorder = Recorder(tmp_path / "run.mcap")
-    recorder.attach(pipeline)
-    for i, chunk in reads(pressed):
-        if i == 400:
-            pipeline.tare(1, force=True)
-        pipeline.feed(chunk, 1000.0 + 0.002 * i)
-    recorder.stop()
+    recorded(tmp_path / "run.mcap", pressed, {400: 1})
     board = Board(BoardSpec(f"replay://{tmp_path / 'run.mcap'}?speed=max"), CalibrationBook(), Histories())
     offset = sum(len(chunk) for i, chunk in reads(pressed) if i < 400)
     assert board.pipeline._retares == [(offset, 1, False)]
@@ -271,14 +271,7 @@ def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path
     """Recording a served replay (replay:// with a Recorder attached): the
     replayed tares are tares of that stream too, so the new recording holds
     them where they took effect and replays as served."""
-    pipeline = Pipeline(Reconstructor())
-    recorder = Recorder(tmp_path / "first.mcap")
-    recorder.attach(pipeline)
-    for i, chunk in reads(pressed):
-        if i == 500:
-            pipeline.tare(1, force=True)
-        pipeline.feed(chunk, 1000.0 + 0.002 * i)
-    recorder.stop()
+    recorded(tmp_path / "first.mcap", pressed, {500: 1})
     served = Pipeline(Reconstructor())
     again = Recorder(tmp_path / "second.mcap")
     again.attach(served)
