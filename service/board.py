@@ -117,12 +117,14 @@ class Board:
         began with and makes its recorded tares again where they were made
         (else every force after one differs from what was recorded)."""
         try:
-            tares, zeros = recorded_tares(self.source), recorded_baselines(self.source)
+            tares, began = recorded_tares(self.source), recorded_baselines(self.source)
         except (ValueError, OSError) as exc:
             log.warning("%s: its recorded tares cannot be read (%s); replayed without them", self.source, exc)
             return
         self.pipeline.schedule_retares(tares)
-        self.pipeline.reconstructor.preset_baselines(zeros)
+        self.pipeline.reconstructor.preset_baselines(began.get("sensors", []))
+        if began and self.spec.name is None:  # begun mid-stream, no INFO in it: the name the board had then
+            self.pipeline.interpreter.board_name = began["board"]
 
     @property
     def name(self) -> str:

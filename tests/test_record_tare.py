@@ -220,7 +220,7 @@ def test_a_board_serving_a_recording_schedules_its_tares(tmp_path, pressed):
     recorded(tmp_path / "run.mcap", pressed, {400: 1})
     board = Board(BoardSpec(f"replay://{tmp_path / 'run.mcap'}?speed=max"), CalibrationBook(), Histories())
     offset = sum(len(chunk) for i, chunk in reads(pressed) if i < 400)
-    assert board.pipeline._retares == [(offset, 1, False)]
+    assert board.pipeline._retares == [(offset, 1, False)] and board.pipeline.interpreter.board_name is None
     (tmp_path / "run.bin").write_bytes(pressed)
     assert Board(BoardSpec(f"replay://{tmp_path / 'run.bin'}"), CalibrationBook(), Histories()).pipeline._retares == []
 
@@ -265,6 +265,13 @@ def test_a_recording_begun_on_a_running_service_replays_from_the_zeros_it_began_
         assert [key for key in live if live[key] != again[key]] == []
     else:
         assert worst < 0.02
+    from service.board import Board, BoardSpec  # served live (replay --serve): the same zeros and name
+    from service.calibration.book import CalibrationBook
+    from service.history import Histories
+
+    board = Board(BoardSpec(f"replay://{tmp_path / 'run.mcap'}?speed=max"), CalibrationBook(), Histories())
+    assert board.pipeline.interpreter.board_name == began["board"]
+    assert sorted(board.pipeline.reconstructor._preset) == [z["sensor"] for z in zeros]
 
 
 def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path, pressed):

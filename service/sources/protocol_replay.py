@@ -46,15 +46,17 @@ def check_url(url: str) -> None:
         raise ValueError(f"{url!r}: no such recording: {path}") from None
 
 
-def recorded_baselines(url: str) -> list[dict]:
-    """The zeros the URL's recording began with (a recording begun on a
-    running service; reconstructor.preset_baselines), none for a raw capture."""
+def recorded_baselines(url: str) -> dict:
+    """How the URL's recording began on a running service: {"board": the
+    board's name then, "sensors": the zeros in force (reconstructor.
+    preset_baselines)}; empty for one that began with its stream, or a raw
+    capture."""
     path, _, board = parse_replay_url(url)
     if not is_timed_by_host(path):
-        return []
+        return {}
     if board is None:
         board = next(iter(boards_in(path)), None)
-    return read_baselines(path).get(board, {}).get("sensors", [])
+    return read_baselines(path).get(board, {})
 
 
 def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
