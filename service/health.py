@@ -38,6 +38,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "fatigue": pipeline.reconstructor.fatigue(sid),
             "not_in_info": sid in unlisted,
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
+            "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors

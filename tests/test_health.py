@@ -110,3 +110,20 @@ def test_a_channel_without_a_zero_and_a_sensor_the_info_does_not_list_are_proble
     assert any("sensor 3 sends data but the board's INFO does not list it" in p for p in report["problems"])
     latest = service.pipeline.latest[0]
     assert np.isnan(latest.forces_N[5]) and "out_of_range" in latest.flags
+
+
+def test_readings_left_out_of_a_tare_as_glitches_are_told():
+    """A glitch in the tare window is left out of the zero (baseline.py);
+    /health says which channels lost readings so, since a load let go in
+    the middle of the window is left out the same way."""
+    service = TactileService("sim://")
+    info = orjson.dumps({"board": "b", "serial": "B-2", "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}]})
+    rng = np.random.default_rng(3)
+    scans = []
+    for s in range(150):
+        counts = (10_000_000 + rng.normal(0, 1500, 64)).astype("<u4")
+        if s == 40:
+            counts[20] *= 3
+        scans.append(encode_frame(FrameType.GRID, 0, s, 1000 * (s + 1), counts.tobytes()))
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info) + b"".join(scans), time.time())
+    assert health_report(service)["sensors"]["0"]["tare_glitches"] == {"20": 1}

@@ -90,6 +90,16 @@ class SensorStates:
             self._calibration_applied(info.id)
         return document
 
+    def tare_glitches(self, sensor_id: int) -> dict[int, int]:
+        """{channel: readings left out of its zero as glitches} of the current
+        tare (baseline.py): told, since a step in the window (a load let go
+        mid-tare) is left out the same way."""
+        state = self._sensors.get(sensor_id)
+        if state is None:
+            return {}
+        rejected = state.baseline.rejected
+        return {int(k): int(rejected[k]) for k in np.flatnonzero(rejected)}
+
     def unzeroed(self, sensor_id: int) -> list[int]:
         """Channels the completed tare gave no zero (no plausible reading in
         its window): their forces are null, flagged, until one comes."""
