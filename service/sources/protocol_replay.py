@@ -46,17 +46,22 @@ def check_url(url: str) -> None:
         raise ValueError(f"{url!r}: no such recording: {path}") from None
 
 
+def _recording(url: str) -> tuple[str, str | None] | None:
+    """(MCAP path, the board this port streams: the recording's only one when
+    the URL names none, named or not); None for a raw capture."""
+    path, _, board = parse_replay_url(url)
+    if not is_timed_by_host(path):
+        return None
+    return path, board if board is not None else next(iter(boards_in(path)), None)
+
+
 def recorded_baselines(url: str) -> dict:
     """How the URL's recording began on a running service: {"board": the
     board's name then, "sensors": the zeros in force (reconstructor.
     preset_baselines)}; empty for one that began with its stream, or a raw
     capture."""
-    path, _, board = parse_replay_url(url)
-    if not is_timed_by_host(path):
-        return {}
-    if board is None:
-        board = next(iter(boards_in(path)), None)
-    return read_baselines(path).get(board, {})
+    recording = _recording(url)
+    return {} if recording is None else read_baselines(recording[0]).get(recording[1], {})
 
 
 def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
@@ -64,11 +69,10 @@ def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
     bytes this port streams, sensor id, judged): the read each took effect
     before, placed by the raw channel's read numbers (pipeline.schedule_retares).
     A raw capture has none."""
-    path, _, board = parse_replay_url(url)
-    if not is_timed_by_host(path):
+    recording = _recording(url)
+    if recording is None:
         return []
-    if board is None:  # the recording's only board (read_raw refuses several), named or not
-        board = next(iter(boards_in(path)), None)
+    path, board = recording
     tares = sorted(read_tares(path).get(board, []))
     if not tares:
         return []
