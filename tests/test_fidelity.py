@@ -134,6 +134,35 @@ def test_a_stuck_channel_is_flagged_stale_and_gives_no_force(level):
     assert out[-1].contact["total_N"] < 1.0 and np.isfinite(np.delete(out[-1].forces_N, 5)).all()
 
 
+@pytest.mark.parametrize("level", ["level0", "table", "full"])
+def test_a_stuck_quad_electrode_leaves_its_frames_null_and_stale(level):
+    """A quad's converter latched on one electrode under a load: from the
+    50th repeat on its frames have no forces (each axis combines all four
+    electrodes) and say ``stale``, instead of the latched load's wrench; when
+    the electrode converts again, so do the forces."""
+    c0 = np.full(4, 2_200_000.0)
+    rng = np.random.default_rng(3)
+    latched = c0 * np.array([1.0, 1.0, 1.08, 1.0])
+    frames = []
+    for i in range(130):
+        counts = c0 + rng.normal(0, 1000, 4)
+        if 20 <= i < 100:
+            counts[2] = latched[2]  # the same count 80 frames running: repeats 1..79
+        frames.append(quad_frame(i, counts))
+    out = reconstruct(frames, level)
+    assert [i for i, f in enumerate(out) if "stale" in f.flags] == list(range(70, 100))
+    assert all(np.isnan(out[i].forces_N).all() and np.isnan(out[i].sigma_N).all() for i in range(70, 100))
+    assert np.isfinite(out[69].forces_N).all() and abs(out[69].forces_N[2]) > 0.5  # a load held 49 repeats: believed
+    assert np.isfinite(out[100].forces_N).all() and not out[100].flags
+
+
+def test_a_quiet_quad_converter_is_not_called_stale():
+    """Without noise (a simulated board), equal counts are normal: never stale."""
+    c0 = np.full(4, 2_200_000.0)
+    out = reconstruct([quad_frame(i, c0) for i in range(120)])
+    assert not any("stale" in f.flags for f in out) and np.isfinite(out[-1].forces_N).all()
+
+
 def test_quad_out_of_range_and_electrode_fault_are_flagged():
     c0 = np.array([2_200_000.0] * 4)
     rng = np.random.default_rng(2)

@@ -57,7 +57,7 @@ def test_the_end_of_a_replay_is_finished_not_ok(tmp_path):
 def test_a_sensor_whose_reconstruction_fails_degrades_health_by_name_while_the_others_flow(monkeypatch):
     from service.reconstruct import quad
 
-    def broken(self, capacitance, baseline, noise, sensitivity=1.0):
+    def broken(self, capacitance, baseline, noise, sensitivity=1.0, stale=None):
         raise FloatingPointError("model out of its domain")
 
     service = TactileService("sim://")

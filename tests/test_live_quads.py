@@ -23,6 +23,7 @@ from service.reconstruct.quad_batch import QuadPlan
 
 QUADS = range(6)
 TARE_AT, CALIBRATE_AT, FAIL_AT = 400, 700, 1100  # read numbers
+STUCK_SEQS = range(500, 640)  # quad 3's electrode 2 repeats one count: stale from seq 550 (its 50th repeat)
 RELEASE_FROM_SEQ = 1300  # quad 0 lets go of the scene's load every other 40 frames from here (load cycles)
 
 
@@ -35,7 +36,12 @@ def _with(r: Reading, capacitance: np.ndarray, opened: bool = False) -> Reading:
 
 
 def _faulty(r: Reading) -> Reading:
-    """Quad 1 now and then: an open channel (NaN), an implausible one (1 aF) or a top count."""
+    """Quad 1 now and then: an open channel (NaN), an implausible one (1 aF) or a top count;
+    quad 3's electrode 2 latched for a while (stale)."""
+    if r.sensor.id == 3 and r.seq in STUCK_SEQS:
+        c = r.capacitance_pF.copy()
+        c[2] = 2.31
+        return _with(r, c)
     if r.sensor.id != 1 or r.seq % 37 not in (5, 6, 7):
         return r
     c = r.capacitance_pF.copy()
@@ -114,6 +120,9 @@ def test_planned_reads_give_each_quad_what_it_gets_alone(reads, monkeypatch):
     assert sum(rec.cycle_counts()[0][2]) > 0, "the release counted load cycles (the fatigue factor moved)"
     flagged = [f for (sid, _), f in together.items() if sid == 1 and ("out_of_range" in f.flags or "open_channel" in f.flags)]
     assert flagged and all(np.isnan(f.forces_N).all() for f in flagged)
+    stale = sorted(seq for (sid, seq), f in together.items() if "stale" in f.flags)
+    assert stale == list(range(STUCK_SEQS.start + 50, STUCK_SEQS.stop))
+    assert all(np.isnan(together[(3, seq)].forces_N).all() for seq in stale)
     assert sum("taring" in f.flags for (sid, _), f in together.items() if sid == 5) == 2 * 99  # start-up and the tare (the last reading of each has forces)
 
 

@@ -31,6 +31,7 @@ class Reference:
     skipped: int
     skipped_lines: tuple[int, ...]
     fxyz_N: np.ndarray | None = None  # (k, 3) of a 3-axis log
+    zero_N: tuple[float, ...] | None = None  # the rest level subtracted (reference_zero.py); None: as logged
 
     @property
     def rate_hz(self) -> float:

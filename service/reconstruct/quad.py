@@ -13,7 +13,9 @@ every level — the same rule and flag as a grid taxel's; so is a frame with an
 electrode the tare gave no zero (no plausible reading in its window). ``electrode_fault``
 keeps its meaning: plausible electrodes that disagree with the model (the
 redundant combination R); it and the range flags are not raised on a frame
-without forces.
+without forces. So is a frame with a stale electrode (stuck.py: its converter
+repeated one count STUCK_FRAMES frames running on a board that shows noise):
+null and flagged ``stale``, not its last forces held.
 """
 from __future__ import annotations
 
@@ -39,6 +41,10 @@ class QuadProcessor:
     model: QuadModel = field(default_factory=QuadModel)
     relative_se: tuple[float, float] = (0.0, 0.0)  # σ/value of the normal and shear slopes (sigma.py)
     _noise_for: tuple | None = None
+    _noisy_for: tuple | None = field(default=None, repr=False, compare=False)
+    # (last reading (4,) pF, its electrodes' run lengths (4,)) that the next frames continue (stuck.py).
+    # Written in place only: a QuadPlan's stacked arrays hold them as rows (quad_batch.py).
+    runs: tuple | None = field(default=None, repr=False, compare=False)
     # Processors with equal keys give the same result on the same input, so
     # their sensors' frames can go through one call.
     batch_key: tuple = field(init=False, repr=False, compare=False)
@@ -55,6 +61,20 @@ class QuadProcessor:
         if self._noise_for is None or self._noise_for[0] is not baseline_std:
             self._noise_for = (baseline_std, float(np.sqrt(np.sum((np.fmax(baseline_std, NOISE_FLOOR_PF) / baseline) ** 2)) / 4.0))
         return self._noise_for[1]
+
+    def noisy(self, baseline_std: np.ndarray) -> bool:
+        """Whether the converter shows noise at all (else equal counts in a
+        row are normal and a stuck electrode cannot be told). Once per tare."""
+        if self._noisy_for is None or self._noisy_for[0] is not baseline_std:
+            self._noisy_for = (baseline_std, bool(np.nanmax(baseline_std, initial=0.0) > NOISE_FLOOR_PF))
+        return self._noisy_for[1]
+
+    def runs_before(self) -> tuple[np.ndarray, np.ndarray]:
+        """(last reading (4,) pF, run lengths (4,)) the next frames continue;
+        a NaN reading and no runs before the first."""
+        if self.runs is None:
+            self.runs = (np.full(4, np.nan), np.zeros(4, dtype=np.int64))
+        return self.runs
 
     def sigma(self, forces: np.ndarray, noise: np.ndarray | float) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
@@ -78,11 +98,12 @@ class QuadProcessor:
         return np.sqrt(reading * reading + (forces * se) ** 2)
 
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float,
-                sensitivity: np.ndarray | float = 1.0) -> tuple[np.ndarray, list[list[str]]]:
+                sensitivity: np.ndarray | float = 1.0, stale: np.ndarray | None = None) -> tuple[np.ndarray, list[list[str]]]:
         """Capacitances (N, 4) pF against baselines (4,) or (N, 4) with the
         combinations' noise (scalar or (N,)) → forces (N, 3) and each frame's
         flags. ``sensitivity`` (scalar or (N,)): what load cycles left of it
-        (fatigue.py); ΔC/C0 is divided by it before inversion."""
+        (fatigue.py); ΔC/C0 is divided by it before inversion. ``stale``
+        (N, 4) or None: the electrodes found stale (quad_batch.stale_runs)."""
         relative = relative_change(capacitance, baseline)
         if not np.isscalar(sensitivity) or sensitivity != 1.0:
             relative = relative / (np.asarray(sensitivity)[:, None] if np.ndim(sensitivity) else sensitivity)
@@ -90,21 +111,22 @@ class QuadProcessor:
         if np.isnan(baseline).any():  # an electrode the tare gave no zero reads nothing usable either
             unzeroed = np.isnan(baseline) & ~np.isnan(capacitance)
             bad = unzeroed if bad is None else bad | unzeroed
-        if bad is not None:  # a frame with an implausible electrode has no force
-            frames = bad.any(axis=-1)
-            relative = np.where(frames[..., None], np.nan, relative)
+        # A frame with an implausible or stale electrode has no force.
+        lost = {name: mask.any(axis=-1) for name, mask in (("out_of_range", bad), ("stale", stale)) if mask is not None}
+        if lost:
+            relative = np.where(np.logical_or.reduce(list(lost.values()))[..., None], np.nan, relative)
         if self.level == "level0":  # level0.quad_forces, on the checked ΔC/C0
             forces = quad_axes(relative) / _LEVEL0_SLOPES
-            if bad is None:
+            if not lost:
                 return forces, [[] for _ in range(len(capacitance))]
-            return forces, [["out_of_range"] if hit else [] for hit in frames.tolist()]
-        forces, masks = self.model.inverse(relative)
-        combinations = masks.pop("combinations")
-        masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
-        if bad is not None:
-            masks["out_of_range"] = frames
-        elif not any(np.count_nonzero(mask) for mask in masks.values()):  # the usual case: no flag on any frame
-            return forces, [[] for _ in range(len(forces))]
+            masks = lost
+        else:
+            forces, masks = self.model.inverse(relative)
+            combinations = masks.pop("combinations")
+            masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
+            masks.update(lost)
+            if not lost and not any(np.count_nonzero(mask) for mask in masks.values()):  # the usual case: no flag on any frame
+                return forces, [[] for _ in range(len(forces))]
         names = list(masks)
         table = np.stack([masks[name] for name in names], axis=-1)
         return forces, [[name for name, hit in zip(names, row) if hit] for row in table.tolist()]

@@ -9,7 +9,9 @@ read of the same sensors, each once, whose baselines, processors,
 calibrations and cycle counts are all still the same objects and values,
 goes through it without being grouped again (also k scans of them, which a
 read holds when it waited while the loop was busy). The values are the same either
-way (tests/test_live_quads.py).
+way (tests/test_live_quads.py). Stale electrodes (stuck.py) are counted
+either way: the plan holds its quads' runs as rows of two stacked arrays,
+which each processor's ``runs`` are views of, so one call steps them all.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import numpy as np
 from ..readings import Reading
 from .fatigue import update_many
 from .force_frame import ForceFrame
+from .stuck import STUCK_FRAMES, run_lengths
 
 
 def fatigue_factor(state) -> float:
@@ -30,6 +33,36 @@ def fatigue_factor(state) -> float:
     if state.sensitivity_for is None or state.sensitivity_for[0] != count or state.sensitivity_for[1] is not model:
         state.sensitivity_for = (count, model, float(model.factor(count)))
     return state.sensitivity_for[2]
+
+
+def stale_runs(states: list, capacitance: np.ndarray, counts: list[int]) -> tuple[np.ndarray | None, list]:
+    """Stale electrodes (R, 4) of quads' readings ``capacitance`` (R, 4),
+    ``counts[k]`` rows of ``states[k]`` (None: none stale), and what each
+    sensor's runs become (``keep_runs``); a quad whose converter shows no
+    noise is not counted. Changes nothing."""
+    stale, kept, start = None, [], 0
+    for state, count in zip(states, counts):
+        rows = capacitance[start:start + count]
+        start += count
+        processor = state.processor
+        if not processor.noisy(state.baseline.std):
+            continue
+        last, prior = processor.runs_before()
+        runs = run_lengths(last[None], prior[None], rows[None])[0]
+        kept.append((processor.runs, runs[-1], rows[-1]))
+        hit = runs >= STUCK_FRAMES
+        if np.count_nonzero(hit):
+            if stale is None:
+                stale = np.zeros(capacitance.shape, dtype=bool)
+            stale[start - count:start] = hit
+    return stale, kept
+
+
+def keep_runs(kept: list) -> None:
+    """Store ``stale_runs``' runs, in place (a plan's rows stay its rows)."""
+    for (last, prior), runs, row in kept:
+        last[...] = row
+        prior[...] = runs
 
 
 def _frames(level: str, states: list, readings: list[Reading], forces: np.ndarray, sigma: np.ndarray,
@@ -61,9 +94,11 @@ class QuadBatches:
         if len(readings) != len(members):
             baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
         processor = states[0].processor
-        forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), baseline, noise,
-                                               sensitivity)
+        capacitance = np.array([r.capacitance_pF for r in readings])
+        stale, kept = stale_runs(states, capacitance, counts)
+        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
         sigma = processor.sigma(forces, noise)
+        keep_runs(kept)
         update_many([state.cycles for state in states], forces[:, 2:3], counts)
         return _frames(self.level, states, readings, forces, sigma, quad_flags, counts)
 
@@ -88,6 +123,22 @@ class _Batch:
         self.sensitivity = np.array([fatigue_factor(state) for state in states])
         self.cycles = [state.cycles for state in states]
         self.ones = [1] * len(states)
+        # Runs stacked when every quad's converter shows noise (the usual board); else counted per sensor.
+        self.runs = None
+        if all(state.processor.noisy(state.baseline.std) for state in states):
+            last, prior = (np.array(a) for a in zip(*(state.processor.runs_before() for state in states)))
+            for k, state in enumerate(states):
+                state.processor.runs = (last[k], prior[k])
+            self.runs = (last, prior)
+
+    def stale(self, capacitance: np.ndarray, scans: int) -> tuple[np.ndarray | None, list]:
+        """``stale_runs`` of the batch's readings (sensor after sensor, each with its ``scans``)."""
+        if self.runs is None:
+            return stale_runs(self.states, capacitance, [scans] * len(self.states))
+        block = capacitance.reshape(len(self.states), scans, 4)
+        runs = run_lengths(*self.runs, block)
+        hit = runs >= STUCK_FRAMES
+        return (hit.reshape(capacitance.shape) if np.count_nonzero(hit) else None), [(self.runs, runs[:, -1], block[:, -1])]
 
 
 class QuadPlan:
@@ -147,18 +198,20 @@ class QuadPlan:
 
     @staticmethod
     def _computed(batch: _Batch, readings: list[Reading], scans: int) -> tuple:
-        """(forces, quad flags, σ) of a batch's readings, changing nothing."""
+        """(forces, quad flags, σ, runs to keep) of a batch's readings, changing nothing."""
         baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
         if scans > 1:
             baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
         processor = batch.processor
-        forces, quad_flags = processor.process(np.array([r.capacitance_pF for r in readings]), baseline, noise,
-                                               sensitivity)
-        return forces, quad_flags, processor.sigma(forces, noise)
+        capacitance = np.array([r.capacitance_pF for r in readings])
+        stale, kept = batch.stale(capacitance, scans)
+        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
+        return forces, quad_flags, processor.sigma(forces, noise), kept
 
     def _apply(self, batch: _Batch, readings: list[Reading], result: tuple, scans: int) -> list[ForceFrame]:
-        """Count the batch's load cycles and make its frames."""
-        forces, quad_flags, sigma = result
+        """Keep the batch's runs, count its load cycles and make its frames."""
+        forces, quad_flags, sigma, kept = result
+        keep_runs(kept)
         counts = [scans] * len(batch.states) if scans > 1 else None
         update_many(batch.cycles, forces[:, 2:3], counts or batch.ones)
         return _frames(self.level, batch.states, readings, forces, sigma, quad_flags, counts)
