@@ -4,6 +4,7 @@ from __future__ import annotations
 import time
 
 from .board import Board, calibration_state
+from .history import BELOW_ZERO_S
 from .readout import MIN_STALE_S, LinkState
 
 STALE_SCAN_PERIODS = 20
@@ -25,6 +26,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
+        history = pipeline.history.get(sid)
         age = None if latest is None else now - latest.t_host
         stale = age is None or age > stale_after
         sensors[str(sid)] = {
@@ -39,6 +41,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "not_in_info": sid in unlisted,
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
+            "below_zero": [] if history is None or stale else history.below_zero(),
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors
@@ -68,9 +71,19 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  for sid, s in sensors.items() if (s.get("calibration") or {}).get("problem")]
     problems += [f"sensor {sid}: channels {s['unzeroed_channels']} have no zero (no plausible reading while it "
                  "tared): their forces are null" for sid, s in sensors.items() if s.get("unzeroed_channels")]
+    problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "
+                 f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
+                 f"(POST /sensors/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [f"sensor {sid} sends data but the board's INFO does not list it (its shape is taken from its frames)"
                  for sid, s in sensors.items() if s.get("not_in_info")]
     return problems
+
+
+def _outputs(sensor: dict) -> str:
+    """What reads below zero, for a problem line."""
+    if sensor["kind"] == "quad":
+        return "its normal force reads"
+    return f"taxels {sensor['below_zero']} read"
 
 
 BOARD_FIELDS = ("link", "level", "stream", "rejected", "board_errors", "sensors", "reconstruction", "clock")

@@ -14,11 +14,16 @@ import numpy as np
 
 from .readings import SensorInfo
 from .reconstruct import ForceFrame
+from .reconstruct.grid import OUT_OF_RANGE
 
 # Distinct flag sets seen (a few dozen at most: frame flags are a fixed vocabulary).
 _FLAG_SETS: dict[tuple[str, ...], tuple[str, ...]] = {}
 DEFAULT_BUDGET_BYTES = 256 << 20
 DEFAULT_FRAMES = 5_000  # per sensor: 5 s at 1 kHz (~5.5 MB for an 8x8 grid)
+BELOW_ZERO_S = 1.0
+BELOW_ZERO_SHARE = 0.9  # of the window's frames: noise alone puts a reading below −5σ about once in 3.5 million
+BELOW_ZERO_FRAMES = 20  # fewer frames in the window say nothing
+BELOW_ZERO_POINTS = 100  # frames looked at, evenly spread over the window: /health runs on the event loop
 
 
 class History:
@@ -111,6 +116,24 @@ class History:
             return kept
         picks = np.unique(np.linspace(0, len(kept) - 1, max_points).round().astype(int))
         return kept[picks]
+
+    def below_zero(self, seconds: float = BELOW_ZERO_S) -> list[int]:
+        """Outputs (a grid's taxels, row-major; a quad's 2 for Fz) that read
+        below their tared zero — out of range at force 0 (grid.py, quad.py)
+        — in BELOW_ZERO_SHARE of the frames of the last ``seconds`` (at most
+        BELOW_ZERO_POINTS of them, evenly spread); none with fewer than
+        BELOW_ZERO_FRAMES frames there."""
+        slots = self.window_slots(seconds, BELOW_ZERO_POINTS)
+        if len(slots) < BELOW_ZERO_FRAMES:
+            return []
+        if self._taxel_flags is not None:
+            below = (self._taxel_flags[slots] & OUT_OF_RANGE != 0) & (self._forces[slots] == 0.0)
+        else:
+            flagged = np.array(["normal_out_of_range" in self._flags[i] for i in slots.tolist()])
+            below = (flagged & (self._forces[slots, 2] == 0.0))[:, None]
+        share = np.count_nonzero(below, axis=0) / len(slots)
+        hits = np.flatnonzero(share >= BELOW_ZERO_SHARE).tolist()
+        return hits if self._taxel_flags is not None else [2] * bool(hits)
 
     def numbers(self, slots: np.ndarray) -> np.ndarray:
         """Which frame each written slot holds, counted from the ring's first

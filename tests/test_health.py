@@ -127,3 +127,41 @@ def test_readings_left_out_of_a_tare_as_glitches_are_told():
         scans.append(encode_frame(FrameType.GRID, 0, s, 1000 * (s + 1), counts.tobytes()))
     service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info) + b"".join(scans), time.time())
     assert health_report(service)["sensors"]["0"]["tare_glitches"] == {"20": 1}
+
+
+def test_a_sensor_tared_under_a_load_since_removed_reads_below_zero_and_says_so():
+    """A grid's two taxels and a quad pressed while the service tared, then
+    let go: they read below their zero (grid: out of range at 0 N; quad: Fz 0,
+    normal_out_of_range), and /health names them with what to do."""
+    rng = np.random.default_rng(8)
+    service = TactileService("sim://")
+    grid, quad = np.full(64, 10_660_000.0), np.full(4, 2_200_000.0)
+    pressed_grid, pressed_quad = grid.copy(), quad * 1.05
+    pressed_grid[[9, 10]] *= 1.05
+
+    def frames(seq0, count, grid_counts, quad_counts):
+        out = b""
+        for i in range(seq0, seq0 + count):
+            out += encode_frame(FrameType.GRID, 0, i, i * 1000, (grid_counts + rng.normal(0, 500, 64)).astype("<u4").tobytes())
+            out += encode_frame(FrameType.QUAD, 1, i, i * 1000, (quad_counts + rng.normal(0, 500, 4)).astype("<u4").tobytes())
+        return out
+
+    now = time.time()
+    service.pipeline.feed(frames(0, 150, pressed_grid, pressed_quad), now - 2.0)
+    report = health_report(service)
+    assert report["sensors"]["0"]["below_zero"] == [] and report["sensors"]["1"]["below_zero"] == []
+    released = service.pipeline.feed(frames(150, 200, grid, quad), now)
+    last_grid = [f for f in released if f.sensor.id == 0][-1]
+    last_quad = [f for f in released if f.sensor.id == 1][-1]
+    # The full level's unmixing takes the pressed taxels' neighbours' share back out of them, now and then
+    # below −5σ too: /health names the taxels below their zero in 90 % of the last second's frames.
+    below = last_grid.taxel_flag_lists()["out_of_range"]
+    assert {9, 10} <= set(below) and not last_grid.forces_N[below].any()
+    below = [9, 10]
+    assert "normal_out_of_range" in last_quad.flags and last_quad.forces_N[2] == 0.0
+    report = health_report(service)
+    assert report["sensors"]["0"]["below_zero"] == below and report["sensors"]["1"]["below_zero"] == [2]
+    assert f"sensor 0: taxels {below} read below their tared zero for 1 s: tared under a load since removed? " \
+           "Tare it again unloaded (POST /sensors/0/tare)" in report["problems"]
+    assert any(p.startswith("sensor 1: its normal force reads below its tared zero") for p in report["problems"])
+    assert orjson.dumps(report)

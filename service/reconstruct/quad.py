@@ -13,9 +13,14 @@ every level — the same rule and flag as a grid taxel's; so is a frame with an
 electrode the tare gave no zero (no plausible reading in its window). ``electrode_fault``
 keeps its meaning: plausible electrodes that disagree with the model (the
 redundant combination R); it and the range flags are not raised on a frame
-without forces. So is a frame with a stale electrode (stuck.py: its converter
-repeated one count STUCK_FRAMES frames running on a board that shows noise):
-null and flagged ``stale``, not its last forces held.
+without forces. A frame with a stale electrode (stuck.py: its converter
+repeated one count STUCK_FRAMES frames running on a board that shows noise)
+is also without forces, flagged ``stale``, not its last forces held.
+
+``normal_out_of_range`` marks Z beyond the curve's usable top (Fz held
+there) and, as a grid taxel's ``out_of_range``, Z more than
+OUT_OF_RANGE_SIGMAS noise σ below its zero (Fz 0): no compression reads
+so, a tare made under a load since removed does.
 """
 from __future__ import annotations
 
@@ -25,6 +30,7 @@ import numpy as np
 
 from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N
 from ..physics.quad_model import QuadModel
+from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS
 from .baseline import NOISE_FLOOR_PF
 from .sigma import TARE_FACTOR
 from .level0 import bounds, implausible, plausible_relative, quad_axes, relative_change
@@ -124,6 +130,10 @@ class QuadProcessor:
             forces, masks = self.model.inverse(relative)
             combinations = masks.pop("combinations")
             masks["electrode_fault"] = np.abs(combinations[..., 3]) > FAULT_SIGMAS * noise + FAULT_RELATIVE * np.abs(combinations[..., 2])
+            # Z well below its zero: Fz 0, flagged (module docstring).
+            below = combinations[..., 2] < -OUT_OF_RANGE_SIGMAS * noise
+            if np.count_nonzero(below):
+                masks["normal_out_of_range"] = masks["normal_out_of_range"] | below
             masks.update(lost)
             if not lost and not any(np.count_nonzero(mask) for mask in masks.values()):  # the usual case: no flag on any frame
                 return forces, [[] for _ in range(len(forces))]
