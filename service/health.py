@@ -41,6 +41,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "not_in_info": sid in unlisted,
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
+            "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
             "below_zero": [] if history is None or stale else history.below_zero(),
             **counters["sensors"].get(str(sid), {}),
         }

@@ -548,3 +548,57 @@ def test_a_glitch_during_the_auto_tare_neither_hides_a_press_nor_makes_a_load():
     for now, then in zip(with_glitch[280], without[280]):
         np.testing.assert_allclose(now.forces_N, then.forces_N, atol=2e-3)
     assert with_glitch[280][0].forces_N[20] > 1.0
+
+
+@pytest.mark.parametrize("loaded_frames", [30, 70])
+def test_a_load_let_go_while_taring_begins_the_tare_again(loaded_frames):
+    """A grid taxel and a quad pressed (+5 %, ~4 N and ~2 N) for the first
+    ``loaded_frames`` of the 100-frame auto-tare, then let go: a step, not
+    glitches. The tare begins again on the unloaded readings, so at rest
+    there is no force, none below zero and no flag, and a press reads what
+    it reads on a sensor tared unloaded; /health's restarts say it."""
+    c0 = table1().c0_pF
+    quad_c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    rng = np.random.default_rng(9)
+
+    def run(step: bool):
+        rec = Reconstructor(level="full")
+        out = {}
+        for seq in range(400):
+            grid = c0 + rng.normal(0.0, 0.0012, 64)
+            quad = quad_c0 + rng.normal(0.0, 0.0005, 4)
+            if (step and seq < loaded_frames) or seq >= 350:
+                grid[20] *= 1.05
+                quad = quad * 1.05
+            out[seq] = rec.process_many([reading(GRID, grid, seq), reading(QUAD, quad, seq)])
+        return rec, out
+
+    state = rng.bit_generator.state
+    rec, stepped = run(True)
+    rng.bit_generator.state = state
+    _, clean = run(False)
+    assert rec.tare_restarts(GRID.id) == 1 and rec.tare_restarts(QUAD.id) == 1
+    # The second window is readings 100–199; the one that completes it has forces.
+    assert all("taring" in f.flags for f in stepped[198]) and not any("taring" in f.flags for f in stepped[199])
+    grid_rest, quad_rest = stepped[300]
+    assert abs(grid_rest.forces_N[20]) < 0.05 and grid_rest.taxel_flags[20] == 0 and grid_rest.flags == []
+    assert np.abs(quad_rest.forces_N).max() < 0.05 and quad_rest.flags == []
+    for now, then in zip(stepped[380], clean[380]):
+        np.testing.assert_allclose(now.forces_N, then.forces_N, atol=0.02)
+    assert stepped[380][0].forces_N[20] > 1.0 and stepped[380][1].forces_N[2] > 1.0
+
+
+def test_a_tare_that_keeps_seeing_steps_is_taken_after_the_last_restart():
+    """A channel stepping in every window (something keeps touching it):
+    MAX_RESTARTS windows begun again, then the majority level is its zero."""
+    from service.reconstruct.baseline import MAX_RESTARTS, Baseline
+
+    rng = np.random.default_rng(3)
+    baseline = Baseline(4, frames=50)
+    k = 0
+    while not baseline.update(2.2 * (1.0 + 0.05 * (k % 50 < 20)) + rng.normal(0.0, 0.0005, 4)):
+        k += 1
+    assert k + 1 == 50 * (MAX_RESTARTS + 1) and baseline.restarts == MAX_RESTARTS
+    assert baseline.value == pytest.approx(np.full(4, 2.2), abs=1e-3) and (baseline.rejected == 20).all()
+    baseline.tare()
+    assert baseline.restarts == 0

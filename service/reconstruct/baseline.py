@@ -7,6 +7,9 @@ DEFAULT_TARE_FRAMES = 100
 NOISE_FLOOR_PF = 2e-4  # never trust a tare's noise estimate below 0.2 fF
 OUTLIER_SIGMAS = 6.0  # a tare reading this many robust σ from its channel's median is a glitch, not the zero
 MAD_TO_SIGMA = 1.4826  # σ of normal noise from its median absolute deviation
+STEP_SHARE = 0.1  # a channel with this share of its tare readings left out saw a step (a load), not glitches
+STEP_READINGS = 3  # ... and at least this many (a short window's one glitch is a large share)
+MAX_RESTARTS = 5  # tares begun again for steps before the window is taken as it is
 
 
 class Baseline:
@@ -32,6 +35,12 @@ class Baseline:
     the channel's median leave the mean and spread (``rejected`` counts
     them). Noise never goes that far (≈ 2·10⁻⁹ of readings); a tare
     without a glitch gives the plain mean, bit for bit.
+
+    Glitches are single readings. A channel with STEP_SHARE of its readings
+    left out (and at least STEP_READINGS) saw a step — a load put down or let go while it tared — and
+    the level most of its readings had may be the load's: the tare begins
+    again (``restarts`` counts it), at most MAX_RESTARTS times in a row,
+    after which the window is taken as it is (the majority level).
     """
 
     def __init__(self, channels: int, frames: int = DEFAULT_TARE_FRAMES,
@@ -50,6 +59,7 @@ class Baseline:
         self.std = np.full(channels, np.nan)
         self._late = np.zeros(channels, dtype=bool)
         self._any_late = False  # checked per reading: a bool, not an array scan
+        self.restarts = 0  # windows begun again for a step since the last tare asked for
 
     @property
     def ready(self) -> bool:
@@ -57,6 +67,10 @@ class Baseline:
 
     def tare(self) -> None:
         """Start a fresh baseline over the next ``frames`` readings."""
+        self._begin()
+        self.restarts = 0
+
+    def _begin(self) -> None:
         self._sum[:] = 0.0
         self._sum_sq[:] = 0.0
         self._count[:] = 0
@@ -100,6 +114,10 @@ class Baseline:
         self._seen += 1
         if self.ready:
             self._finish(self._count > 0)
+            if self.restarts < MAX_RESTARTS and np.any((self.rejected > STEP_SHARE * self._count) & (self.rejected >= STEP_READINGS)):
+                self._begin()
+                self.restarts += 1
+                return False
             self._late = self._count == 0
             self._any_late = bool(self._late.any())
         return self.ready

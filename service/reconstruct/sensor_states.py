@@ -92,13 +92,18 @@ class SensorStates:
 
     def tare_glitches(self, sensor_id: int) -> dict[int, int]:
         """{channel: readings left out of its zero as glitches} of the current
-        tare (baseline.py): told, since a step in the window (a load let go
-        mid-tare) is left out the same way."""
+        tare (baseline.py): told, since a step in the window that did not
+        restart it is left out the same way."""
         state = self._sensors.get(sensor_id)
         if state is None:
             return {}
         rejected = state.baseline.rejected
         return {int(k): int(rejected[k]) for k in np.flatnonzero(rejected)}
+
+    def tare_restarts(self, sensor_id: int) -> int:
+        """Tare windows begun again for a step (a load put down or let go) since the last tare."""
+        state = self._sensors.get(sensor_id)
+        return 0 if state is None else state.baseline.restarts
 
     def unzeroed(self, sensor_id: int) -> list[int]:
         """Channels the completed tare gave no zero (no plausible reading in
