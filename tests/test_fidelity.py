@@ -245,3 +245,29 @@ def test_a_sensors_forces_do_not_depend_on_the_other_sensors():
             np.testing.assert_array_equal(together[key][0], f)
             np.testing.assert_array_equal(together[key][1], taxel_flags)
             assert together[key][2] == flags
+
+
+@pytest.mark.parametrize("kind", ["grid", "quad"])
+def test_a_calibration_changed_during_a_stale_run_keeps_the_channel_stale(kind):
+    """The stale count belongs to the converter, not to the calibration: a
+    new one mid-run does not give the latched load's forces 50 frames more."""
+    rng = np.random.default_rng(4)
+    pipeline = Pipeline(Reconstructor(tare_frames=10, hold_until_tared=True, level="full"), clock=lambda: 0.0)
+    out = []
+    for i in range(200):
+        if kind == "grid":
+            counts = 10_000_000 + rng.normal(0, 1000, 64)
+            counts[5] = 10_000_123 if i < 20 else 13_000_000
+            out += pipeline.feed(grid_frame(i, counts), 0.0)
+        else:
+            counts = 2_200_000.0 + rng.normal(0, 1000, 4)
+            if 20 <= i:
+                counts[2] = 2_200_000.0 * 1.08
+            out += pipeline.feed(quad_frame(i, counts), 0.0)
+        if i == 100:
+            info = next(iter(pipeline.interpreter.sensors.values()))
+            upload = ({"sensitivity_pct_per_N": [1.3] * 64} if kind == "grid"
+                      else {"normal_fit": [-0.0008, 0.031], "shear_fit": [0.0075, 0.0004]})
+            pipeline.set_calibration(info, upload)
+    out += pipeline.finish(0.0)
+    assert [i for i, f in enumerate(out) if "stale" in f.flags] == list(range(70, 200))

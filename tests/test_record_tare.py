@@ -297,3 +297,37 @@ def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path
     first, second = by_frame(recorded_forces(tmp_path / "first.mcap")), by_frame(replayed_forces(tmp_path / "second.mcap"))
     assert [key for key in first if first[key].get("taxels_N", first[key].get("fxyz_N")) !=
             second[key].get("taxels_N", second[key].get("fxyz_N"))] == []
+
+
+def test_a_recording_begun_during_a_stale_run_replays_it_as_it_ran(tmp_path):
+    """A grid taxel and a quad electrode repeat one count (a stuck
+    converter) from scan 100 to 259 — stale from 150 — and the recording
+    begins at scan ~180: the replay continues each stale count where the
+    live one stood (recorded with the zeros), not from nothing (its first
+    50 frames then had the latched load's forces)."""
+    from service.protocol import FrameType, encode_frame
+
+    rng = np.random.default_rng(2)
+    grid0, quad0 = np.full(64, 10_660_000.0), np.full(4, 2_200_000.0)
+    scans = []
+    for seq in range(400):
+        grid, quad = grid0 + rng.normal(0, 800, 64), quad0 + rng.normal(0, 800, 4)
+        if 100 <= seq < 260:
+            grid[5], quad[2] = 10_660_000.0 * 1.04, 2_200_000.0 * 1.06  # latched under a load
+        scans.append(encode_frame(FrameType.GRID, 0, seq, 1000 * seq, grid.astype("<u4").tobytes())
+                     + encode_frame(FrameType.QUAD, 1, seq, 1000 * seq, quad.astype("<u4").tobytes()))
+    pipeline = Pipeline(Reconstructor(level="table"))
+    recorder = None
+    for seq, scan in enumerate(scans):
+        if seq == 180:
+            recorder = Recorder(tmp_path / "run.mcap")
+            recorder.attach(pipeline)
+        pipeline.feed(scan, 1000.0 + 0.001 * seq)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    out = io.BytesIO()
+    replay(tmp_path / "run.mcap", out, level="table")
+    again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+    assert again == live and len(live) == 2 * 220
+    stale = sorted((sensor, seq) for (sensor, seq, _), doc in again.items() if "stale" in doc["flags"])
+    assert stale == [(sensor, seq) for sensor in (0, 1) for seq in range(180, 260)]

@@ -165,6 +165,15 @@ class GridProcessor:
             return np.full(n, np.nan), np.zeros(n, dtype=np.int64)
         return self._last_raw, self._same_count
 
+    @property
+    def stale_runs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(last reading (n,) pF, run lengths (n,)) of the stale-channel count, None before a frame."""
+        return None if self._last_raw is None else (self._last_raw, self._same_count)
+
+    def restore_stale_runs(self, last_pF, runs) -> None:
+        """Continue another processor's (or a recording's) stale-channel count."""
+        self._last_raw, self._same_count = np.array(last_pF, dtype=float), np.array(runs, dtype=np.int64)
+
     def _stuck(self, capacitance: np.ndarray, counted: tuple | None = None) -> np.ndarray:
         """Run lengths (N, n) of repeated counts in frames (N, n), continuing
         this sensor's runs (stuck.py); ``counted``: (run lengths, last frame)

@@ -82,6 +82,15 @@ class QuadProcessor:
             self.runs = (np.full(4, np.nan), np.zeros(4, dtype=np.int64))
         return self.runs
 
+    @property
+    def stale_runs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(last reading (4,) pF, run lengths (4,)) of the stale-electrode count, None before a frame."""
+        return self.runs
+
+    def restore_stale_runs(self, last_pF, runs) -> None:
+        """Continue another processor's (or a recording's) stale-electrode count, in new arrays."""
+        self.runs = (np.array(last_pF, dtype=float), np.array(runs, dtype=np.int64))
+
     def sigma(self, forces: np.ndarray, noise: np.ndarray | float) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
         combination noise through the curve's slope at that force, and the

@@ -84,6 +84,9 @@ class SensorStates:
         self._chosen[info.id] = calibration
         state = self._sensors.get(info.id)
         if state is not None:
+            runs = state.processor.stale_runs
+            if runs is not None:  # a converter stuck before the new calibration is still stuck
+                processor.restore_stale_runs(*runs)
             state.processor, state.calibration = processor, calibration
             state.cycles = self._cycles(info, calibration)  # counts belong to a calibration: a new one starts anew
             state.tare_judged = False  # judged again against the new C0
@@ -158,18 +161,24 @@ class SensorStates:
                 state.tare_judged = True  # judged live, before the recording
                 if zero.get("loaded"):
                     state.loaded = np.isin(np.arange(info.channels), zero["loaded"])
+                if zero.get("stale_runs") is not None and len(zero["stale_runs"]) == info.channels:
+                    state.processor.restore_stale_runs(_array(zero["stale_last_pF"]), zero["stale_runs"])
             self._sensors[info.id] = state
         return state
 
     def baselines(self) -> list[dict]:
-        """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded}
+        """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
+        and where its stale-channel count stands: stale_last_pF, stale_runs}
         (NaN as None), what a recording begun now stores for its replay."""
         out = []
         for sid, state in sorted(self._sensors.items()):
             if state.baseline.ready:
-                out.append({"sensor": sid, "baseline_pF": _listed(state.baseline.value),
-                            "std_pF": _listed(state.baseline.std),
-                            "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist()})
+                zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
+                        "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist()}
+                runs = state.processor.stale_runs
+                if runs is not None:
+                    zero |= {"stale_last_pF": _listed(runs[0]), "stale_runs": runs[1].tolist()}
+                out.append(zero)
         return out
 
     def preset_baselines(self, zeros: list[dict]) -> None:

@@ -57,7 +57,11 @@ BASELINES = {
             "baseline_pF": {"type": "array", "items": {"type": ["number", "null"]}},
             "std_pF": {"type": "array", "items": {"type": ["number", "null"]}},
             "loaded": {"type": "array", "items": {"type": "integer"},
-                       "description": "taxels whose zero is the calibration's C0 (loaded at the tare)"}}}},
+                       "description": "taxels whose zero is the calibration's C0 (loaded at the tare)"},
+            "stale_last_pF": {"type": "array", "items": {"type": ["number", "null"]},
+                              "description": "each channel's last reading, where its stale count stands"},
+            "stale_runs": {"type": "array", "items": {"type": "integer"},
+                           "description": "frames each channel had repeated that reading (stale at 50)"}}}},
     },
 }
 
