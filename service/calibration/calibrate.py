@@ -19,7 +19,7 @@ from .alignment import Alignment, align, total_response
 from .crosstalk_session import session_crosstalk, unleaked
 from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, read_reference
-from .reference_zero import zeroed
+from .reference_zero import zero_said, zeroed
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
 from .session import BoardSession, file_sha256, load_session
 
@@ -51,10 +51,12 @@ class Calibration:
 
 
 def calibrate(session_path, reference_path, sensor_id: int | None = None, full_scale_N: float = FULL_SCALE_N,
-              mounting: str = "flat", allow_partial: bool = False, board: str | None = None) -> Calibration:
+              mounting: str = "flat", allow_partial: bool = False, board: str | None = None,
+              zero_reference: bool = False) -> Calibration:
     """Calibrate one grid; ValueError naming every bad taxel unless
     ``allow_partial`` (then they keep their previous calibration).
-    ``board``: the board's name in the service (session.load_session)."""
+    ``board``: the board's name in the service (session.load_session);
+    ``zero_reference``: subtract the reference's rest level (reference_zero.py)."""
     clock, timings = time.perf_counter(), {}
 
     def lap(name: str) -> None:
@@ -63,7 +65,7 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         timings[name], clock = now - clock, now
 
     session = load_session(session_path, sensor_id, board=board)
-    reference = zeroed(read_reference(reference_path))
+    reference = zeroed(read_reference(reference_path), zero_reference)
     lap("read")
     rows, cols = session.info.rows, session.info.cols
     crosstalk = session_crosstalk(session.capacitance_pF, rows, cols)
@@ -137,7 +139,8 @@ def document(result: Calibration, previous: dict | None = None, created: str | N
         "alignment": a.as_dict(),
         **({"crosstalk": result.crosstalk} if result.crosstalk is not None else {}),
         "statistics": {"presses": len(result.presses), "flagged_presses": len(result.flagged_presses),
-                       "reference_noise_N": result.reference_noise_N, "reference_zero_N": result.reference.zero_N[-1],
+                       "reference_noise_N": result.reference_noise_N, "reference_rest_N": None if result.reference.zero_N is None else result.reference.zero_N[-1],
+                       "reference_rest_subtracted": result.reference.zero_subtracted,
                        "reference_skipped_lines": result.reference.skipped,
                        "taxels_fitted": sorted(result.fits), "taxels_failed": {str(t): m for t, m in result.problems.items()},
                        "residual_rms_N_median": float(np.median([f.residual_rms_N for f in result.fits.values()]))},
@@ -154,7 +157,7 @@ def summary_lines(result: Calibration) -> list[str]:
              f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f} "
              f"(runner-up lag {a.runner_up_lag_s:+.2f} s: {a.runner_up:.3f} against {a.coarse_best:.3f})",
              f"presses: {len(result.presses)} ({len(result.flagged_presses)} set aside), reference noise "
-             f"{result.reference_noise_N:.4f} N, its zero at rest {result.reference.zero_N[-1]:+.4f} N (subtracted)",
+             f"{result.reference_noise_N:.4f} N, {zero_said(result.reference)}",
              "crosstalk: " + ("too few isolated presses to measure" if result.crosstalk is None else
                               f"mechanical {result.crosstalk['mechanical']:+.4f}, multiplexer leakage "
                               f"{result.crosstalk['electrical']:.4f} ({result.crosstalk['events']} isolated frames)"),

@@ -11,7 +11,7 @@ from . import registry
 from .alignment import Alignment, align, total_response
 from .quad_fit import QuadFit, fit_quad
 from .reference import Reference, read_reference
-from .reference_zero import zeroed
+from .reference_zero import zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
 
 
@@ -25,7 +25,7 @@ class QuadCalibration:
 
 
 def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
-                   board: str | None = None) -> QuadCalibration:
+                   board: str | None = None, zero_reference: bool = False) -> QuadCalibration:
     """Align the clocks on the normal force (the electrodes' summed response
     is the normal curve: shear cancels in it), then fit (quad_fit.py).
     ``board``: the board's name in the service (session.load_session)."""
@@ -34,7 +34,7 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
     reference = read_reference(reference_path)
     if reference.fxyz_N is None:
         raise ValueError(f"{reference.path}: a quad calibration needs a 3-axis reference 't_s,fx_N,fy_N,fz_N'")
-    reference = zeroed(reference)
+    reference = zeroed(reference, zero_reference)
     read = time.perf_counter()
     alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
     t_ref_board = alignment.to_board(reference.t_s)
@@ -63,17 +63,17 @@ def quad_document(result: QuadCalibration, created: str | None = None) -> dict:
         "alignment": result.alignment.as_dict(),
         "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
                        "reference_skipped_lines": result.reference.skipped,
-                       "reference_zero_N": dict(zip("xyz", result.reference.zero_N))},
+                       "reference_rest_N": dict(zip("xyz", result.reference.zero_N or (None,) * 3)),
+                       "reference_rest_subtracted": result.reference.zero_subtracted},
     }
 
 
 def quad_summary(result: QuadCalibration) -> list[str]:
     a, fit = result.alignment, result.fit
     c2, c1 = fit.normal
-    zero = ", ".join(f"F{axis} {value:+.4f}" for axis, value in zip("xyz", result.reference.zero_N))
     return [f"session {result.session.path}: {len(result.session.t_s)} frames of quad {result.session.info.id}; "
             f"reference {result.reference.path}: {len(result.reference.t_s)} samples, {result.reference.skipped} lines skipped; "
-            f"its zero at rest {zero} N (subtracted)",
+            f"{zero_said(result.reference)}",
             f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f}",
             f"normal: ΔC/C0 = {c2:.6f}·F² + {c1:.5f}·F  (± {fit.normal_se[0]:.1e}, {fit.normal_se[1]:.1e})",
             f"shear:  ΔC/C0 = {fit.shear[0]:.5f}·F − {fit.shear[1]:.6f}·F²  (± {fit.shear_se[0]:.1e}, {fit.shear_se[1]:.1e})",

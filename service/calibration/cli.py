@@ -38,6 +38,9 @@ def add_parsers(subparsers) -> None:
     cal.add_argument("--full-scale", type=float, default=10.0, metavar="N", help="full scale in N (default: %(default)s)")
     cal.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
                      help="model table's mounting (default: %(default)s)")
+    cal.add_argument("--zero-reference", action="store_true",
+                     help="subtract the level the reference rests at between loads (an instrument not zeroed "
+                          "before the session); without it, a reference resting off 0 is refused")
     cal.add_argument("--partial", action="store_true",
                      help="store the taxels that fit even if others fail (those keep their previous calibration)")
     cal.add_argument("--no-activate", action="store_true", help="store without making it the sensor's active one")
@@ -83,7 +86,7 @@ def cmd_calibrate(args) -> int:
     if _three_axis(args.reference):
         return _calibrate_quad(args, started)
     result = calibrate(args.session, args.reference, args.sensor, args.full_scale, args.mounting, args.partial,
-                       board=args.board)
+                       board=args.board, zero_reference=args.zero_reference)
     with Registry(args.registry) as registry:
         key = registry_key(result)
         previous = registry.active(key, result.session.info.rows, result.session.info.cols)
@@ -115,7 +118,8 @@ def _three_axis(path: str) -> bool:
 def _calibrate_quad(args, started: float) -> int:
     from .calibrate_quad import calibrate_quad, quad_document, quad_summary
 
-    result = calibrate_quad(args.session, args.reference, args.sensor, board=args.board)
+    result = calibrate_quad(args.session, args.reference, args.sensor, board=args.board,
+                            zero_reference=args.zero_reference)
     doc = quad_document(result)
     check_usable(doc, result.session.info, "flat", "normal_fit", 0.0343, "/N")
     with Registry(args.registry) as registry:

@@ -31,7 +31,8 @@ class Reference:
     skipped: int
     skipped_lines: tuple[int, ...]
     fxyz_N: np.ndarray | None = None  # (k, 3) of a 3-axis log
-    zero_N: tuple[float, ...] | None = None  # the rest level subtracted (reference_zero.py); None: as logged
+    zero_N: tuple[float, ...] | None = None  # the rest level per force column (reference_zero.py); None: not looked at
+    zero_subtracted: bool = False  # zero_N was subtracted (--zero-reference), else the log is as written
 
     @property
     def rate_hz(self) -> float:
