@@ -602,3 +602,28 @@ def test_a_tare_that_keeps_seeing_steps_is_taken_after_the_last_restart():
     assert baseline.value == pytest.approx(np.full(4, 2.2), abs=1e-3) and (baseline.rejected == 20).all()
     baseline.tare()
     assert baseline.restarts == 0
+
+
+def test_an_offline_replay_holds_a_bounded_backlog_behind_a_sensor_that_never_tares(monkeypatch):
+    """A quad sends 50 frames (its tare needs 100) and stops; the grid runs
+    on. Held in arrival order behind the quad's, the grid's readings piled up
+    until the end of the log (2.8 GB for 300 s); now at most HOLD_READINGS
+    wait: past it the quad's go out null and flagged taring, the grid's with
+    forces, in order."""
+    monkeypatch.setattr(reconstructor_module, "HOLD_READINGS", 500)
+    rng = np.random.default_rng(11)
+    rec = Reconstructor(hold_until_tared=True, level="table")
+    out, most = [], 0
+    for seq in range(3000):
+        batch = [reading(GRID, table1().c0_pF + rng.normal(0.0, 0.0012, 64), seq)]
+        if seq < 50:
+            batch.append(reading(QUAD, quad_counts(rng), seq))
+        out += rec.process_many(batch)
+        most = max(most, len(rec._held))
+    out += rec.flush()
+    assert most <= 501 and len(out) == 3050
+    quads = [f for f in out if f.sensor.id == QUAD.id]
+    grids = [f for f in out if f.sensor.id == GRID.id]
+    assert len(quads) == 50 and all("taring" in f.flags and np.isnan(f.forces_N).all() for f in quads)
+    assert [f.seq for f in grids] == list(range(3000)) and not any("taring" in f.flags for f in grids)
+    assert all(np.isfinite(f.forces_N).all() for f in grids)

@@ -29,6 +29,7 @@ from .quad_batch import QuadBatches, QuadPlan
 from .sensor_states import Resolver, SensorState, SensorStates
 
 log = logging.getLogger(__name__)
+HOLD_READINGS = 100_000  # ~100 MB of readings; 6 s of 16 grids at 1 kHz
 SLICE_READINGS = 1024  # readings per call at most (~0.5 s of a grid and a quad at 1 kHz)
 
 
@@ -39,7 +40,12 @@ class Reconstructor(SensorStates):
     its forces are null and flagged ``taring``. With ``hold_until_tared``
     (offline replay) readings are held until their sensor's baseline is ready
     and then released with forces, in arrival order, so no frame of a log
-    lacks a value and the export keeps the order of the stream.
+    lacks a value and the export keeps the order of the stream. At most
+    HOLD_READINGS are held: a sensor that never completes its tare (it sent
+    fewer frames than the window, then stopped) held every other sensor's
+    readings behind its own until the end (2.8 GB for 300 s of a grid);
+    past the limit the oldest go out, a taring sensor's null and flagged
+    ``taring`` as they would live.
     """
 
     def __init__(self, tare_frames: int = DEFAULT_TARE_FRAMES, hold_until_tared: bool = False,
@@ -97,10 +103,13 @@ class Reconstructor(SensorStates):
         if not self.hold_until_tared:
             return self._reconstruct(pending) if not taring else self._with_taring(pending, taring)
         self._held.extend(pending)
-        release = []
-        while self._held and (isinstance(self._held[0][0], Exception) or self._held[0][0].baseline.ready):
+        release, taring = [], []
+        while self._held and (isinstance(self._held[0][0], Exception) or self._held[0][0].baseline.ready
+                              or len(self._held) > HOLD_READINGS):
+            if not isinstance(self._held[0][0], Exception) and not self._held[0][0].baseline.ready:
+                taring.append(len(release))
             release.append(self._held.popleft())
-        return self._reconstruct(release)
+        return self._with_taring(release, taring) if taring else self._reconstruct(release)
 
     def _with_taring(self, pending: list[tuple[SensorState | Exception, Reading]], taring: list[int]) -> list[ForceFrame]:
         """A batch that holds readings of a tare window: those go out null
