@@ -31,7 +31,11 @@ sensor's last 256 scans that was missing (counted in a gap when the next one
 came), its clock behind by no more than those scans take at 1 Hz, no INFO
 since — is no restart either: it is dropped and counted in ``late_frames``
 (the frames after it are in order again; a restart whose INFO was lost
-sends sequence numbers that were not missing).
+sends sequence numbers that were not missing). Any other frame whose
+sequence number is the last one passed on or up to 256 before it, with
+other bytes, sooner than a gap of ~65 000 scans could take, is none of the
+protocol's frames: dropped and counted in ``conflicting``, not taken for
+such a gap.
 Data frames from id 255, the board's own, are dropped (``board_id_data``).
 """
 from __future__ import annotations
@@ -54,6 +58,7 @@ T_US_MODULUS = 1 << 32
 RECENT_SCANS = 256  # per sensor, fingerprints of its last frames, to recognise a repeat
 RESTART_JUMP_US = 1_000_000  # a clock that jumps more than this after an INFO, back towards 0
 MAX_SCAN_PERIOD_US = 1_000_000  # RATE is at least 1 Hz
+MIN_SCAN_PERIOD_US = 200  # and at most 5 000 Hz
 _HALF_CLOCK = 1 << 31  # a board clock step beyond this is a step back (wrapped)
 
 FLAG_SATURATED = 0x01
@@ -104,6 +109,7 @@ class SensorCounters:
     duplicates: int = 0
     board_restarts: int = 0
     late_frames: int = 0  # delivered out of order by the link: dropped
+    conflicting: int = 0  # a scan number already passed on, other bytes (not a repeat, restart or late scan): dropped
 
 
 @dataclass(slots=True)
@@ -141,6 +147,7 @@ class StreamCounters:
                     "duplicates": c.duplicates,
                     "board_restarts": c.board_restarts,
                     "late_frames": c.late_frames,
+                    "conflicting": c.conflicting,
                 }
                 for sid, c in sorted(self.sensors.items())
             },
@@ -301,7 +308,13 @@ class Decoder:
                     sensor_counters.board_restarts += 1
                     state.missing.clear()  # the gaps of the run before: none of those scans can still come
                 else:
-                    gap = (seq - state.seq - 1) % SEQ_MODULUS
+                    forward = (seq - state.seq) % SEQ_MODULUS
+                    if conflicting(forward, step):
+                        # The scan just passed on or one shortly before, with other bytes: the protocol has no
+                        # such frame (a repeat is identical). Not a gap of 65 535 scans, nor published twice.
+                        sensor_counters.conflicting += 1
+                        return None
+                    gap = (forward - 1) % SEQ_MODULUS
                     if gap:
                         sensor_counters.seq_gaps += 1
                         sensor_counters.missed_frames += gap
@@ -315,6 +328,16 @@ class Decoder:
             self._info_t_us = t_us
         self.counters.frames += 1
         return Frame(frame_type, sensor, flags, seq, t_us, body[HEADER_SIZE - 2 :], gap, restart)
+
+
+def conflicting(forward: int, step: int) -> bool:
+    """Whether a data frame ``forward`` scans on from its sensor's last
+    (mod 65 536) with the board clock ``step`` µs on is the scan just passed
+    on, or one shortly before it, sent again with other bytes: a sequence
+    that did not advance (or fell back by up to RECENT_SCANS) in less time
+    than as many scans as a gap would mean take at the fastest rate."""
+    behind = forward == 0 or forward > SEQ_MODULUS - RECENT_SCANS
+    return behind and step < ((forward - 1) % SEQ_MODULUS) * MIN_SCAN_PERIOD_US
 
 
 def encode_frame(

@@ -15,7 +15,7 @@ from __future__ import annotations
 from binascii import crc_hqx
 
 from .protocol import (_CRC, _HALF_CLOCK, _HEADER, _KNOWN_TYPES, CRC_SIZE, HEADER_SIZE, RECENT_SCANS, SEQ_MODULUS, SYNC,
-                       T_US_MODULUS, VERSION, Decoder, Frame, FrameType, _length_is_valid)
+                       T_US_MODULUS, VERSION, Decoder, Frame, FrameType, _length_is_valid, conflicting)
 
 _DATA = {int(FrameType.GRID): FrameType.GRID, int(FrameType.QUAD): FrameType.QUAD}
 _PAYLOAD_AT = HEADER_SIZE - 2  # the payload's offset in a frame's body (all but sync and crc)
@@ -86,8 +86,9 @@ class BulkDecoder(Decoder):
             state = states.get(sensor)
             frame_type = _DATA.get(ftype)
             step = 0 if state is None else (t_us - state.t_us) % T_US_MODULUS
-            if frame_type is not None and 0 < step <= _HALF_CLOCK and state.infos == infos:
-                # A sensor's next scan: its clock ran forward and no INFO came since its last frame.
+            if frame_type is not None and 0 < step <= _HALF_CLOCK and state.infos == infos and \
+                    not conflicting((seq - state.seq) % SEQ_MODULUS, step):
+                # A sensor's next scan: its clock ran forward, its sequence did not fall back, no INFO came since.
                 sensor_counter = per_sensor[sensor]
                 gap = (seq - state.seq - 1) % SEQ_MODULUS
                 if gap:

@@ -342,11 +342,28 @@ def test_a_restart_whose_info_was_lost_is_still_a_restart_when_the_bytes_differ(
     assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)
 
 
-def test_a_repeat_differs_from_its_original_in_no_byte():
-    # Same seq and board time, other flags: not the same frame, so not a repeat.
+@pytest.mark.parametrize("again", [{"flags": FLAG_OVERRUN}, {"t_us": 7500}, {"payload": bytes(range(16))},
+                                   {"seq": 5, "t_us": 7200}])
+@pytest.mark.parametrize("bulk", [False, True])
+def test_a_scan_sent_again_with_other_bytes_is_conflicting_not_a_repeat_nor_65535_missed(again, bulk):
+    """Same seq (or one shortly before) and other bytes — other flags, a
+    later clock, other counts: not a repeat (a repeat is identical), and no
+    gap of 65 535 scans either: dropped, counted in ``conflicting``, and the
+    scan not passed on twice. The scans after it are in order."""
+    decoder = BulkDecoder() if bulk else Decoder()
+    frames = decoder.feed(hand_frame(seq=6, t_us=6000) + hand_frame(seq=7, t_us=7000)
+                          + hand_frame(**{"seq": 7, "t_us": 7000, **again}) + hand_frame(seq=8, t_us=8000))
+    counters = decoder.counters.as_dict()["sensors"]["1"]
+    assert [f.seq for f in frames] == [6, 7, 8] and not any(f.gap for f in frames)
+    assert (counters["conflicting"], counters["duplicates"], counters["seq_gaps"], counters["missed_frames"]) == (1, 0, 0, 0)
+
+
+def test_a_real_gap_of_nearly_a_whole_sequence_is_still_a_gap():
+    """65 400 scans missed over 65.4 s (a link down that long at 1 kHz):
+    the sequence looks 136 behind, but the clock says a gap that long."""
     decoder = Decoder()
-    frames = decoder.feed(hand_frame(seq=7, t_us=7000) + hand_frame(seq=7, t_us=7000, flags=FLAG_OVERRUN))
-    assert len(frames) == 2 and decoder.counters.sensor(1).duplicates == 0
+    frames = decoder.feed(hand_frame(seq=100, t_us=100_000) + hand_frame(seq=(100 + 65_401) % 65_536, t_us=65_501_000))
+    assert len(frames) == 2 and frames[1].gap == 65_400 and decoder.counters.sensor(1).conflicting == 0
 
 
 def test_a_repeat_after_an_info_reply_is_still_a_repeat():
