@@ -29,7 +29,7 @@ from .quad_batch import QuadBatches, QuadPlan
 from .sensor_states import Resolver, SensorState, SensorStates
 
 log = logging.getLogger(__name__)
-HOLD_READINGS = 100_000  # ~100 MB of readings; 6 s of 16 grids at 1 kHz
+HOLD_READINGS = 20_000  # ~20 MB of readings, and as many frames released at the end; 20 s of a grid at 1 kHz
 SLICE_READINGS = 1024  # readings per call at most (~0.5 s of a grid and a quad at 1 kHz)
 
 

@@ -49,6 +49,9 @@ def encode_lines(frames: list[ForceFrame]) -> bytes:
     return b"\n".join(lines)
 
 
+LINES_PER_WRITE = 4096  # a large batch (a replay's held frames released at its end) is encoded a part at a time
+
+
 class JsonLines:
     """``write(frames)`` appends their lines to ``stream``."""
 
@@ -56,8 +59,8 @@ class JsonLines:
         self._stream = stream
 
     def write(self, frames: list[ForceFrame]) -> None:
-        if frames:
-            self._stream.write(encode_lines(frames))
+        for start in range(0, len(frames), LINES_PER_WRITE):
+            self._stream.write(encode_lines(frames[start:start + LINES_PER_WRITE]))
 
     def close(self) -> None:
         """Nothing is held back; the stream is its owner's to close."""
