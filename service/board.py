@@ -91,6 +91,7 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
                                                                                             calibration.id),
         "problem": reconstructor.calibration_problems.get(sid),
         "loaded_at_tare": reconstructor.loaded_at_tare(sid),
+        "below_c0": reconstructor.below_c0(sid),
     }
 
 

@@ -70,6 +70,10 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  for sid, error in errors.items() if error["active"]]
     problems += [f"sensor {sid} uses the built-in calibration: its own could not be used ({s['calibration']['problem']})"
                  for sid, s in sensors.items() if (s.get("calibration") or {}).get("problem")]
+    problems += [f"sensor {sid}: taxels {s['calibration']['below_c0']} read below the C0 of calibration "
+                 f"{s['calibration']['id']} at the tare: it is not this sensor's as it is now (made on another "
+                 "sensor, or C0 drifted), so loaded taxels cannot be told" for sid, s in sensors.items()
+                 if (s.get("calibration") or {}).get("below_c0")]
     problems += [f"sensor {sid}: channels {s['unzeroed_channels']} have no zero (no plausible reading while it "
                  "tared): their forces are null" for sid, s in sensors.items() if s.get("unzeroed_channels")]
     problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "

@@ -226,3 +226,33 @@ def test_a_pinned_calibration_of_another_shape_is_reported_not_silently_ignored(
     assert book.for_sensor({"board": "b"}, info) is None
     assert book.problems == ["pinned calibration abc123 is for a 4x4 grid; sensor b/0 is a 8x8 grid: not used"]
     assert "abc123" in caplog.text
+
+
+def test_a_calibration_made_on_another_sensor_judges_no_taxel_loaded_and_says_so(calibrated):
+    """The calibrated sensor's document applied to the built-in simulator's
+    grid (table 1's C0, not this one's: ±5 %): half its taxels read above
+    that C0 and half below. Taken as loaded, 34 taxels got the other
+    sensor's C0 as zero and 77 N of phantom contact with /health ok; now the
+    taxels below C0 — no load does that — void the judgement and /health
+    says the calibration is not this sensor's."""
+    from service.health import health_report
+    from service.live_service import TactileService
+    from firmware_sim.board import BoardConfig, capture
+    from firmware_sim.sensors import SimGrid
+
+    _, registry_path, cid = calibrated
+    with reg.Registry(registry_path) as registry:
+        doc = registry.get(cid)
+    service = TactileService("sim://")
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0)], scene="idle"), 0.5)
+    pipeline = service.pipeline
+    pipeline.feed(data[:2000], 1000.0)
+    pipeline.set_calibration(pipeline.interpreter.sensors[0], doc)
+    frames = pipeline.feed(data[2000:], 1000.0)
+    rec = pipeline.reconstructor
+    assert rec.loaded_at_tare(0) == [] and len(rec.below_c0(0)) > 10
+    last = [f for f in frames if f.sensor.id == 0][-1]
+    assert "loaded_at_tare" not in last.flags and last.contact["total_N"] < 0.5
+    problems = health_report(service)["problems"]
+    assert any(p.startswith(f"sensor 0: taxels {rec.below_c0(0)[:3]}"[:-1]) and f"C0 of calibration {cid}" in p
+               for p in problems)

@@ -15,6 +15,14 @@ A compressive taxel cannot read below its zero, so only an excess counts.
 With table 1's mean sensitivity (1.25 %/N) the threshold, 4 × 0.1 % of C0,
 is a load of about 0.3 N: a lighter grip passes as unloaded. Only taxels
 whose C0 was measured (``SensorCalibration.measured``) are judged.
+
+Nothing reads below its zero, so taxels whose tared mean stands *below*
+the calibration's C0 by as much say the C0 is not this sensor's as it is
+now: a calibration made on another sensor of the same shape (the built-in
+simulator against a calibrated one: half the taxels above C0, half below,
+and 34 "loaded" taxels made 77 N of phantom contact), or C0 drifted past
+the allowance. With MISMATCH_TAXELS of them (or MISMATCH_SHARE of the
+judged ones) no taxel is judged loaded: ``judge`` says why.
 """
 from __future__ import annotations
 
@@ -24,6 +32,27 @@ from .baseline import NOISE_FLOOR_PF
 
 C0_DRIFT_RELATIVE = 1e-3
 LOADED_SIGMAS = 4.0
+MISMATCH_TAXELS = 2
+MISMATCH_SHARE = 0.05
+
+
+def _sigma(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
+    noise = np.fmax(np.nan_to_num(std_pF, nan=NOISE_FLOOR_PF), NOISE_FLOOR_PF) / np.sqrt(max(frames, 1))
+    return np.hypot(noise, C0_DRIFT_RELATIVE * c0_pF)
+
+
+def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
+          frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(loaded (n,) bool, below (n,) bool): ``loaded_taxels``, or none
+    loaded when the taxels below C0 by as much (``below``) show the
+    calibration's C0 is not this sensor's (module docstring)."""
+    sigma = _sigma(c0_pF, std_pF, frames)
+    with np.errstate(invalid="ignore"):
+        below = measured & (c0_pF - mean_pF > LOADED_SIGMAS * sigma)
+        loaded = measured & (mean_pF - c0_pF > LOADED_SIGMAS * sigma)
+    if np.count_nonzero(below) >= max(MISMATCH_TAXELS, MISMATCH_SHARE * np.count_nonzero(measured)):
+        loaded = np.zeros_like(loaded)
+    return loaded, below
 
 
 def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
@@ -32,7 +61,4 @@ def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, 
     ``std_pF`` (n,), stands above the calibration's C0 (n,) by more than
     LOADED_SIGMAS combined σ; False where C0 was not measured or the mean
     is missing."""
-    noise = np.fmax(np.nan_to_num(std_pF, nan=NOISE_FLOOR_PF), NOISE_FLOOR_PF) / np.sqrt(max(frames, 1))
-    sigma = np.hypot(noise, C0_DRIFT_RELATIVE * c0_pF)
-    with np.errstate(invalid="ignore"):
-        return measured & (mean_pF - c0_pF > LOADED_SIGMAS * sigma)
+    return judge(c0_pF, measured, mean_pF, std_pF, frames)[0]

@@ -11,7 +11,7 @@ against the calibration's C0 (loaded_tare.py).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -21,7 +21,7 @@ from .baseline import Baseline
 from .calibration_upload import processor_for, tare_window, upload_document
 from .fatigue import CycleCounter
 from .grid import GridProcessor
-from .loaded_tare import loaded_taxels
+from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
 from .sensor_calibration import SensorCalibration, builtin, from_document
 
@@ -43,6 +43,7 @@ class SensorState:
     loaded: np.ndarray | None = None  # (n,) taxels loaded at tare (their zero is the calibration's C0)
     cycles: CycleCounter | None = None  # load cycles per taxel (a quad: of Fz), fatigue.py
     sensitivity_for: tuple | None = None  # (cycles, model, factor): a quad's fatigue factor, kept until the count moves
+    below_c0: list = field(default_factory=list)  # taxels below the calibration's C0 at the last tare (loaded_tare.py)
 
 
 class SensorStates:
@@ -236,7 +237,7 @@ class SensorStates:
                 raise KeyError(sid)
             state = self._sensors[sid]
             state.baseline.tare()
-            state.tare_judged, state.judge_tare, state.loaded = False, judge, None
+            state.tare_judged, state.judge_tare, state.loaded, state.below_c0 = False, judge, None, []
             if isinstance(state.processor, GridProcessor):
                 state.processor.reset()
         return ids
@@ -252,6 +253,12 @@ class SensorStates:
         std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
         return np.flatnonzero(loaded_taxels(calibration.tare_c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
 
+    def below_c0(self, sensor_id: int) -> list[int]:
+        """Taxels that read below the calibration's C0 at the last tare, enough of them to say it is not this
+        sensor's C0 (loaded_tare.py); empty otherwise."""
+        state = self._sensors.get(sensor_id)
+        return [] if state is None else state.below_c0
+
     def loaded_at_tare(self, sensor_id: int) -> list[int]:
         """Taxels whose zero is the calibration's C0 since the last tare."""
         state = self._sensors.get(sensor_id)
@@ -264,7 +271,11 @@ class SensorStates:
         if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
             return
         baseline = state.baseline
-        loaded = loaded_taxels(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
+        loaded, below = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
+        state.below_c0 = np.flatnonzero(below).tolist() if not loaded.any() and below.any() else []
+        if state.below_c0:
+            log.warning("sensor %d: taxels %s read below the calibration's C0 at the tare: its C0 is not this "
+                        "sensor's as it is now, so no taxel is judged loaded", state.info.id, state.below_c0)
         if loaded.any():
             baseline.substitute(loaded, calibration.tare_c0_pF)
             state.loaded = loaded
