@@ -256,3 +256,18 @@ def test_a_calibration_made_on_another_sensor_judges_no_taxel_loaded_and_says_so
     problems = health_report(service)["problems"]
     assert any(p.startswith(f"sensor 0: taxels {rec.below_c0(0)[:3]}"[:-1]) and f"C0 of calibration {cid}" in p
                for p in problems)
+
+
+def test_pinning_the_builtin_compares_against_it_whatever_the_registry_holds(calibrated, validation, tmp_path):
+    """``--calibration builtin-table1`` was silently ignored (the registry's
+    active calibration was used on every line): it now pins the built-in for
+    the grids; ``builtin-fits34-35`` for quads, which the registry did not know."""
+    _, registry_path, cid = calibrated
+    pinned = exported(validation.raw, tmp_path, book_from_options(str(registry_path), ["builtin-table1"]))
+    active = exported(validation.raw, tmp_path, book_from_options(str(registry_path), None))
+    assert {line["calibration"] for line in active if line["kind"] == "grid"} == {cid}
+    assert {line["calibration"] for line in pinned if line["kind"] == "grid"} == {"builtin-table1"}
+    book = book_from_options(str(registry_path), ["builtin-fits34-35", "builtin-mean-4x4"])
+    assert [d["id"] for d in book.pinned] == ["builtin-fits34-35", "builtin-mean-4x4"]
+    with pytest.raises(ValueError, match="--calibration builtin-tabel1: no such built-in calibration"):
+        book_from_options(str(registry_path), ["builtin-tabel1"])

@@ -8,7 +8,10 @@ In this order, the first that has one for the sensor:
 2. ``pinned``: ``--calibration ID|FILE`` documents, matched to the sensor
    whose identity (registry.sensor_identity) they were made for, else to the
    sensor of the same id and shape (a calibration made through one board,
-   used through another);
+   used through another); a built-in id (``builtin-table1``,
+   ``builtin-mean-RxC`` for grids, ``builtin-fits34-35`` for quads) pins the
+   built-in calibration for every sensor of its kind not pinned otherwise
+   (to compare against it);
 3. the registry's active calibration of the sensor's identity;
 4. none: the reconstruction's built-in one (table 1, fits 34/35), which
    every frame then names.
@@ -26,8 +29,10 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 
+from ..physics.paper_data import BUILTIN_GRID_ID, BUILTIN_QUAD_ID
 from ..readings import SensorInfo
 from ..reconstruct.sensor_calibration import SensorCalibration, from_document
 from .registry import Registry, UnknownCalibration, sensor_identity
@@ -42,6 +47,12 @@ def load_pinned(values: list[str], registry_path: str | Path | None) -> list[dic
     documents = []
     for value in values:
         path = Path(value)
+        if value.startswith("builtin-") and not path.is_file():
+            if value not in (BUILTIN_GRID_ID, BUILTIN_QUAD_ID) and not re.fullmatch(r"builtin-mean-\d+x\d+", value):
+                raise ValueError(f"--calibration {value}: no such built-in calibration (known: {BUILTIN_GRID_ID}, "
+                                 f"builtin-mean-RxC for other grids, {BUILTIN_QUAD_ID})")
+            documents.append({"id": value, "kind": "quad" if value == BUILTIN_QUAD_ID else "grid"})
+            continue
         if path.is_file():
             try:
                 document = json.loads(path.read_text())
@@ -129,6 +140,9 @@ class CalibrationBook:
                 return document
             misfits.append(f"pinned calibration {document.get('id')} is for a {_shape(*shape)}; sensor "
                            f"{info.address} is a {_shape(info.kind, info.rows, info.cols)}: not used")
+        for document in self.pinned:
+            if str(document.get("id", "")).startswith("builtin-") and document.get("kind") == info.kind:
+                return document
         for missed in misfits:  # asked for by name and none fits: never set aside silently
             if missed not in self.problems:
                 self.problems.append(missed)
