@@ -214,12 +214,14 @@ class TactileClient:
         if binary:
             self.sensors()  # rows and cols, which binary records do not carry
         ws = self._connect(url)
+        told = len(self.notices)
         with ws:
             while True:
                 try:
                     message = ws.recv(timeout=timeout)
                 except TimeoutError:
-                    raise TactileError(f"no message from {url} within {timeout} s") from None
+                    said = f" (the service said: {'; '.join(self.notices[told:])})" if self.notices[told:] else ""
+                    raise TactileError(f"no message from {url} within {timeout} s{said}") from None
                 except ConnectionClosedOK as exc:
                     raise TactileError(f"stream {url} closed by the service ({exc})") from None
                 except ConnectionClosed as exc:
