@@ -79,7 +79,7 @@ def test_write_docs_writes_the_table_and_the_figure(tmp_path, module, result, na
 ])
 def test_without_matplotlib_write_docs_fails_clearly_and_writes_nothing(tmp_path, monkeypatch, module, result, png):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
-    with pytest.raises(plotting.PlottingUnavailable, match=rf"{png}.*matplotlib.*pip install \"tactile\[docs\]\""):
+    with pytest.raises(plotting.PlottingUnavailable, match=rf"{png}.*matplotlib.*pip install -e \"\.\[docs\]\" in the source tree"):
         module.write_docs(result, tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
@@ -90,5 +90,5 @@ def test_bench_out_without_matplotlib_is_a_cli_error(tmp_path, monkeypatch, caps
     assert main(["bench", "--seconds", "0.1", "--out", str(tmp_path / "docs")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("tactile bench: error: writing bench.png needs matplotlib")
-    assert 'pip install "tactile[docs]"' in err
+    assert 'pip install -e ".[docs]" in the source tree' in err
     assert not (tmp_path / "docs").exists()

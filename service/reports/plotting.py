@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-INSTALL_HINT = 'pip install "tactile[docs]"'
+INSTALL_HINT = 'pip install -e ".[docs]" in the source tree'  # "tactile" on PyPI is another package
 DPI = 110
 PANEL_SIZE_IN = (5.0, 4.0)
 
