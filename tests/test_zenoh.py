@@ -270,3 +270,15 @@ def test_without_a_config_or_listen_endpoint_the_service_is_reachable_from_loopb
     assert config.get_json("scouting/multicast/enabled") == "false" and "127.0.0.1" in note
     config, note = zenoh_config(Namespace(zenoh="", zenoh_listen=["tcp/0.0.0.0:7448"], **options))
     assert config.get_json("listen/endpoints") == '["tcp/0.0.0.0:7448"]' and note is None
+
+
+def test_a_second_service_on_the_same_zenoh_port_is_told_how_to_run_beside_the_first():
+    from service.net.zenoh_config import open_session
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    first = open_session(session_config(listen=[endpoint], multicast=False))
+    try:
+        with pytest.raises(OSError, match=rf'cannot listen on \["{endpoint}"\]: address already in use .*--zenoh-listen'):
+            open_session(session_config(listen=[endpoint], multicast=False))
+    finally:
+        first.close()

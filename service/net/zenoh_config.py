@@ -73,4 +73,10 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
-        raise OSError(f"zenoh session: {exc}") from None
+        text = str(exc)
+        if "in use" in text:  # Zenoh's message names its Rust sources; what a user needs is the way out
+            listening = config.get_json("listen/endpoints")
+            raise OSError(f"zenoh session: cannot listen on {listening}: address already in use (another tactile "
+                          "service with --zenoh on this host?); give this one its own, e.g. --zenoh-listen "
+                          "tcp/127.0.0.1:7448, and a gateway or client both endpoints") from None
+        raise OSError(f"zenoh session: {text}") from None
