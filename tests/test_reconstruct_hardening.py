@@ -627,3 +627,24 @@ def test_an_offline_replay_holds_a_bounded_backlog_behind_a_sensor_that_never_ta
     assert len(quads) == 50 and all("taring" in f.flags and np.isnan(f.forces_N).all() for f in quads)
     assert [f.seq for f in grids] == list(range(3000)) and not any("taring" in f.flags for f in grids)
     assert all(np.isfinite(f.forces_N).all() for f in grids)
+
+
+@pytest.mark.parametrize("clock", ["steady", "wraps", "restarts"])
+def test_a_frozen_drift_estimate_is_suspect_after_10_s_whatever_the_board_clock_does(clock):
+    """A plate over the whole grid freezes the drift estimate; its frames are
+    drift-suspect 10 s later. The board clock (u32 µs) wrapping 5 s into the
+    freeze, or the board restarting then (clock from 0 after 600 s), kept
+    the flag off until the clock caught up again: 71.6 min, or 10 min."""
+    from service.reconstruct.drift import T_WRAP_S, DriftTracker
+
+    start = {"steady": 100.0, "wraps": T_WRAP_S - 5.0, "restarts": 595.0}[clock]
+    times = [start + 0.001 * k for k in range(15_000)]
+    if clock != "steady":
+        times = [t if t < start + 5.0 else (t - T_WRAP_S if clock == "wraps" else t - start - 5.0) for t in times]
+    tracker = DriftTracker()
+    flags = []
+    for chunk in range(0, len(times), 7):  # a few frames a call, as reads come
+        ts = times[chunk:chunk + 7]
+        flags += [suspect for _, suspect in tracker.follow(ts, [False] * len(ts), [0.0] * len(ts))]
+    first = flags.index(True)
+    assert abs(first - 10_000) <= 1 and all(flags[first:])

@@ -11,12 +11,22 @@ estimate is frozen while fewer than half the valid taxels are unloaded (a
 plate over the whole array — a uniform press and a drift cannot be told
 apart), and frames are flagged ``drift_suspect`` once that has lasted
 ``suspect_after_s``, or while the drift exceeds ``max_drift``.
+
+Times are the board's clock, which wraps every 2³² µs and starts again
+from 0 when the board restarts: followed as one unwrapped time (a step back
+within MAX_WRAP_STEP_S of the wrap is the wrap; any other step back, a
+restart, continues from the last frame's time), so neither keeps a frozen
+estimate unflagged until the clock catches up again (71.6 min after a
+wrap, as long as the board had run before a restart).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+
+T_WRAP_S = 2**32 * 1e-6
+MAX_WRAP_STEP_S = 1.0  # a step back this close to the wrap is the wrap (scans come at least once a second)
 
 
 def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -65,11 +75,12 @@ class DriftTracker:
     max_drift: float = 0.01
     suspect_after_s: float = 10.0
     drift: float = 0.0
-    _last_t: float | None = None
-    _frozen_since: float | None = None
+    _last_t: float | None = None  # the last frame's board time as sent (s)
+    _frozen_since: float | None = None  # unwrapped (board time + _offset)
+    _offset: float = 0.0  # unwrapped − sent: 0 until the clock wraps or the board restarts
 
     def reset(self) -> None:
-        self.drift, self._last_t, self._frozen_since = 0.0, None, None
+        self.drift, self._last_t, self._frozen_since, self._offset = 0.0, None, None, 0.0
 
     def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
         """Advance through frames at times ``t_s`` given their quiet medians
@@ -80,17 +91,20 @@ class DriftTracker:
         dt = t − last (clipped to [0, tau_s]); one loop with locals, as an
         offline replay steps every frame of a log through it."""
         tau, suspect_after, max_drift = self.tau_s, self.suspect_after_s, self.max_drift
-        drift, last, frozen_since = self.drift, self._last_t, self._frozen_since
+        drift, last, frozen_since, offset = self.drift, self._last_t, self._frozen_since, self._offset
         out = []
         for t, ok, median in zip(t_s, enough, medians):
+            if last is not None and t < last:  # the clock wrapped, or the board restarted (module docstring)
+                offset += T_WRAP_S if t + T_WRAP_S - last <= MAX_WRAP_STEP_S else last - t
             dt = 0.0 if last is None else min(max(t - last, 0.0), tau)
             last = t
+            now = t + offset
             if ok:
                 drift += (median - drift) * (dt / tau)
                 frozen_since = None
             elif frozen_since is None:
-                frozen_since = t
-            out.append((drift, (frozen_since is not None and t - frozen_since >= suspect_after)
+                frozen_since = now
+            out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after)
                         or abs(drift) > max_drift))
-        self.drift, self._last_t, self._frozen_since = drift, last, frozen_since
+        self.drift, self._last_t, self._frozen_since, self._offset = drift, last, frozen_since, offset
         return out

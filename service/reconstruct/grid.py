@@ -129,7 +129,7 @@ class GridProcessor:
         written in place, so this costs a few attribute reads."""
         drift, estimator, crosstalk = self.drift, self.estimator, self.crosstalk
         state = (self._last_raw, self._same_count, self._frames_seen, self._sampled, len(self._sampled),
-                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since)
+                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since, drift._offset)
         if estimator is None:
             return state
         m, e = estimator.mechanical, estimator.electrical
@@ -139,11 +139,11 @@ class GridProcessor:
     def rollback(self, checkpoint: tuple) -> None:
         """Back to a ``checkpoint`` taken before a batch."""
         (self._last_raw, self._same_count, self._frames_seen, sampled, length, self.adopted_events,
-         self.drift.drift, self.drift._last_t, self.drift._frozen_since) = checkpoint[:9]
+         self.drift.drift, self.drift._last_t, self.drift._frozen_since, self.drift._offset) = checkpoint[:10]
         del sampled[length:]
         self._sampled = sampled
-        if len(checkpoint) > 9:
-            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[9:]
+        if len(checkpoint) > 10:
+            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[10:]
             for slope, xy, xx, events, yy in slopes:
                 slope.xy, slope.xx, slope.events, slope.yy = xy, xx, events, yy
             self.estimator.mechanical, self.estimator.electrical = (slope for slope, *_ in slopes)
