@@ -39,6 +39,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "calibration": calibration_state(pipeline, sid, now, book),
             "fatigue": pipeline.reconstructor.fatigue(sid),
             "not_in_info": sid in unlisted,
+            "retired": sid in unlisted and stale,  # the board's INFO no longer lists it, and it sends nothing
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
@@ -65,7 +66,7 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     problems = []
     if link["state"] != "up":
         problems.append(f"link {link['state']}" + (f": {link['last_error']}" if link["last_error"] else ""))
-    problems += [f"sensor {sid} stale" for sid, sensor in sensors.items() if sensor["stale"]]
+    problems += [f"sensor {sid} stale" for sid, sensor in sensors.items() if sensor["stale"] and not sensor.get("retired")]
     problems += [f"sensor {sid} reconstruction fails: {error['error']} ({error['count']} times)"
                  for sid, error in errors.items() if error["active"]]
     problems += [f"sensor {sid} uses the built-in calibration: its own could not be used ({s['calibration']['problem']})"
@@ -80,7 +81,7 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [f"sensor {sid} sends data but the board's INFO does not list it (its shape is taken from its frames)"
-                 for sid, s in sensors.items() if s.get("not_in_info")]
+                 for sid, s in sensors.items() if s.get("not_in_info") and not s.get("retired")]
     return problems
 
 

@@ -165,3 +165,26 @@ def test_a_sensor_tared_under_a_load_since_removed_reads_below_zero_and_says_so(
            "Tare it again unloaded (POST /sensors/0/tare)" in report["problems"]
     assert any(p.startswith("sensor 1: its normal force reads below its tared zero") for p in report["problems"])
     assert orjson.dumps(report)
+
+
+def test_a_sensor_the_board_no_longer_lists_and_that_sends_nothing_is_retired_not_a_problem():
+    """A board's new INFO drops sensor 1, which stops: /health said "sensor 1
+    stale" and "sends data but the board's INFO does not list it" for ever,
+    the second false. Now it is retired (listed as such), not a problem; a
+    sensor dropped from INFO that goes on sending is still one."""
+    service = TactileService("sim://")
+    both = orjson.dumps({"board": "b", "sensors": [{"id": 0, "kind": "quad"}, {"id": 1, "kind": "quad"}]})
+    only0 = orjson.dumps({"board": "b", "sensors": [{"id": 0, "kind": "quad"}]})
+    quad = np.full(4, 2_200_000, "<u4").tobytes()
+    now = time.time()
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, both) + b"".join(
+        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - 2.0)
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 151_000, only0) + b"".join(
+        encode_frame(FrameType.QUAD, 0, s, 1000 * (s + 1), quad) for s in range(151, 300)), now)
+    report = health_report(service)
+    assert report["sensors"]["1"]["retired"] is True and report["sensors"]["0"]["retired"] is False
+    assert not any("sensor 1" in p for p in report["problems"])  # (the link itself is down: never started)
+    service.pipeline.feed(encode_frame(FrameType.QUAD, 1, 150, 300_000, quad), now)  # it sends again, unlisted
+    report = health_report(service)
+    assert report["sensors"]["1"]["retired"] is False
+    assert any("sensor 1 sends data but the board's INFO does not list it" in p for p in report["problems"])
