@@ -57,7 +57,8 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
     calibrations). Returns each board's pipeline by its name."""
     pacer = pacer or Pacer(math.inf)
     hold = not is_timed_by_host(path)
-    writer = writer or (JsonLines(export) if export is not None else None)
+    own = writer is None and export is not None  # a paced replay's lines go out as they come (a pipe may read them)
+    writer = writer or (JsonLines(export, gather=math.isinf(pacer.speed)) if export is not None else None)
     pipelines: dict[str | None, Pipeline] = {}
     # A one-board recording's topics do not name its board; its calibrations do.
     named = {key.split("/")[0] for key in getattr(calibrations, "recorded_cycles", {}) if isinstance(key, str)}
@@ -95,4 +96,6 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
         t_last = t_recorded
     for pipeline in pipelines.values():
         pipeline.finish(t_last)
+    if own:
+        writer.close()
     return {pipeline.interpreter.name: pipeline for pipeline in pipelines.values()}

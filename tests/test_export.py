@@ -57,6 +57,28 @@ def test_batch_json_lines_equal_the_per_frame_encoding_line_for_line(frames, bat
     assert lines.splitlines(keepends=True) == reference(frames)
 
 
+def test_writers_that_gather_small_batches_write_what_they_would_at_once(frames, tmp_path):
+    """An MCAP replay writes each recorded read (a frame or two per sensor);
+    the writers gather them (JsonLines with ``gather``, Parquet always) and
+    write the same bytes / table, what waits written at close."""
+    import pyarrow.parquet as pq
+    from service.record.export_parquet import Parquet
+
+    stream = io.BytesIO()
+    lines = export.JsonLines(stream, gather=True)
+    parquet, whole = Parquet(tmp_path / "small.parquet"), Parquet(tmp_path / "whole.parquet")
+    for i in range(0, len(frames), 3):
+        lines.write(frames[i:i + 3])
+        parquet.write(frames[i:i + 3])
+    assert len(stream.getvalue().splitlines()) < len(frames)  # some wait for the close
+    lines.close()
+    parquet.close()
+    whole.write(frames)
+    whole.close()
+    assert stream.getvalue().splitlines(keepends=True) == reference(frames)
+    assert pq.read_table(tmp_path / "small.parquet").equals(pq.read_table(tmp_path / "whole.parquet"))
+
+
 def test_keys_added_to_the_export_dict_are_followed(frames, monkeypatch):
     """Whatever to_export_dict gives — new keys, a known key meaning something
     else — the batch encoder writes the same bytes."""

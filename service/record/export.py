@@ -49,18 +49,31 @@ def encode_lines(frames: list[ForceFrame]) -> bytes:
     return b"\n".join(lines)
 
 
-LINES_PER_WRITE = 4096  # a large batch (a replay's held frames released at its end) is encoded a part at a time
+LINES_PER_WRITE = 4096  # frames gathered and encoded together: a recorded read holds one or two per sensor
 
 
 class JsonLines:
-    """``write(frames)`` appends their lines to ``stream``."""
+    """``write(frames)`` appends their lines to ``stream``; with ``gather``
+    (an offline replay) batches are kept until LINES_PER_WRITE frames are
+    waiting, since an MCAP replay writes each recorded read — a frame or two
+    per sensor — and the per-call costs (the contact summaries' numpy calls
+    per sensor) were most of the export. ``close()`` writes what waits."""
 
-    def __init__(self, stream: BinaryIO) -> None:
+    def __init__(self, stream: BinaryIO, gather: bool = False) -> None:
         self._stream = stream
+        self._gather = gather
+        self._waiting: list[ForceFrame] = []
 
     def write(self, frames: list[ForceFrame]) -> None:
+        if self._gather:
+            self._waiting += frames
+            if len(self._waiting) < LINES_PER_WRITE:
+                return
+            frames, self._waiting = self._waiting, []
         for start in range(0, len(frames), LINES_PER_WRITE):
             self._stream.write(encode_lines(frames[start:start + LINES_PER_WRITE]))
 
     def close(self) -> None:
-        """Nothing is held back; the stream is its owner's to close."""
+        """Write what waits; the stream is its owner's to close."""
+        frames, self._waiting, self._gather = self._waiting, [], False
+        self.write(frames)

@@ -36,6 +36,7 @@ from .arrow_columns import fixed_lists, floats, lists, numbers, strings, structs
 from .contact_batch import columns
 
 ROW_GROUP = 65_536
+GATHER = 4096  # frames made into columns together
 CONTACT = pa.struct([("total_N", pa.float64()), ("cop_x_mm", pa.float64()), ("cop_y_mm", pa.float64()),
                      ("area_mm2", pa.float64()), ("contacts", pa.int32())])
 TAXEL_FLAGS = pa.map_(pa.string(), pa.list_(pa.int32()))
@@ -142,16 +143,25 @@ class Parquet:
         self._writer = pq.ParquetWriter(str(path), SCHEMA, use_dictionary=TEXT_COLUMNS)
         self._pending: list[pa.Table] = []
         self._rows = 0
+        self._waiting: list[ForceFrame] = []  # frames not made into columns yet: a recorded read holds a few
 
     def write(self, frames: list[ForceFrame]) -> None:
-        if not frames:
-            return
-        self._pending.append(table(frames))
-        self._rows += len(frames)
+        self._waiting += frames
+        if len(self._waiting) >= GATHER:
+            self._tabled()
         if self._rows >= ROW_GROUP:
             self._flush()
 
+    def _tabled(self) -> None:
+        """The waiting frames as one batch of columns (an MCAP replay writes
+        each recorded read: per read, the columns cost 0.4 ms)."""
+        if self._waiting:
+            self._pending.append(table(self._waiting))
+            self._rows += len(self._waiting)
+            self._waiting = []
+
     def _flush(self) -> None:
+        self._tabled()
         if self._pending:
             self._writer.write_table(pa.concat_tables(self._pending), row_group_size=ROW_GROUP)
         self._pending, self._rows = [], 0
