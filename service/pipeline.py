@@ -124,6 +124,16 @@ class Pipeline:
         """One read: decoded, reconstructed and published as one batch, in arrival order."""
         return self._reconstruct(self._decode([(data, t_host)]), t_host, {"grid": 1, "other": 1})
 
+    def feed_many(self, chunks: list[tuple[bytes, float]]) -> list[ForceFrame]:
+        """Reads fed together (an offline replay joining recorded reads): each
+        decoded with its own receive time, all reconstructed in one batch and
+        published in arrival order — the frames each read alone gives, bit
+        for bit (a frame's forces do not depend on its batch), for one call
+        per step instead of one per read."""
+        if not chunks:
+            return []
+        return self._reconstruct(self._decode(chunks), chunks[-1][1], {"grid": len(chunks), "other": len(chunks)})
+
     def feed_reads(self, chunks: list[tuple[bytes, float]], defer: Defer) -> None:
         """Reads that waited together, each with its receive time. Sensors
         that are cheap to reconstruct (all but grids) are published at once;

@@ -3,9 +3,10 @@
 A recording is a sequence of timed byte chunks (record/readers.py); they go
 through the same pipeline as live data, paced by a ``Pacer`` (injectable
 clock, any speed, or as fast as possible). As fast as possible, the bytes
-go in large chunks (a raw capture is not decoded just to time them) and the
-pipeline keeps no history: an export needs neither, and the forces do not
-depend on how the stream is cut.
+go in large chunks (a raw capture is not decoded just to time them; a
+recording's reads are joined, JOIN_READS a call, split at its tares) and
+the pipeline keeps no history: an export needs neither, and the forces do
+not depend on how the stream is cut.
 A raw capture's readings are held until each sensor's auto-tare is
 complete, so every exported frame has forces. A recording is replayed as it
 ran live (the tare window null and flagged), with the tares made while it
@@ -27,6 +28,8 @@ from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
 from .record.mcap_reader import read_baselines, read_numbered, read_tares
 from .record.readers import is_timed_by_host, timed_chunks
+
+JOIN_READS = 256  # recorded reads of a board joined into one call at full speed
 
 __all__ = ["Pacer", "Writer", "export_line", "replay", "replay_boards"]
 
@@ -85,15 +88,30 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
     if hold:
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     t_last = 0.0
+    # At full speed a recording's reads (a frame or two per sensor each, as the live port gave them) are joined,
+    # a board's consecutive reads up to JOIN_READS, never across a tare made while recording.
+    joined: list[tuple[bytes, float]] = []
+    joined_board: str | None = None
+
+    def feed_joined() -> None:
+        if joined:
+            pipeline_of(joined_board).feed_many(joined)
+            joined.clear()
+
     for board, number, t_recorded, chunk in chunks:
         pacer.wait(t_recorded)
-        pipeline = pipeline_of(board)
         pending = tares.get(board)
-        while pending and pending[0][0] <= number:  # made live before this read was decoded
+        retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
+        if paced or board != joined_board or retare or len(joined) >= JOIN_READS:
+            feed_joined()
+        pipeline = pipeline_of(board)
+        while pending and pending[0][0] <= number:
             _, sensor_id, judge = pending.pop(0)
             pipeline.retare(sensor_id, judge)
-        pipeline.feed(chunk, t_recorded)
+        joined.append((chunk, t_recorded))
+        joined_board = board
         t_last = t_recorded
+    feed_joined()
     for pipeline in pipelines.values():
         pipeline.finish(t_last)
     if own:

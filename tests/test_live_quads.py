@@ -165,3 +165,26 @@ def test_a_plan_that_raises_has_counted_no_load_cycle(reads, monkeypatch):
     with pytest.raises(RuntimeError, match="boom"):
         plan.frames(items)
     assert counted == []  # no counter was stepped before the failure
+
+
+def test_a_quads_forces_do_not_depend_on_how_its_frames_were_batched_through_load_cycles(reads):
+    """Load cycles move a quad's fatigue factor; within a call the factor was
+    the count's at the call's start, so a read that piled up, a 1 024-frame
+    replay slice and frame-by-frame differed after each cycle (a replay could
+    not join recorded reads). Now each frame gets the factor of the count
+    before it, however the frames are batched: bit for bit."""
+    scans = [[r] for read in reads for r in read]  # frame by frame
+    everything = [[r for read in reads for r in read]]  # one call (sliced at 1 024 readings)
+
+    def run(batches):
+        rec = Reconstructor(level="full", clock=lambda: 0.0)
+        return rec, {(f.sensor.id, f.seq): f for batch in batches for f in rec.process_many(batch)}
+
+    one_by_one, alone = run(scans)
+    for batches in (reads, everything):
+        other, together = run(batches)
+        assert together.keys() == alone.keys()
+        for key, frame in alone.items():
+            _assert_same(together[key], frame)
+        assert other.cycle_counts()[0][2] == one_by_one.cycle_counts()[0][2]
+    assert sum(one_by_one.cycle_counts()[0][2]) > 5, "load cycles were counted (the factor moved)"

@@ -331,3 +331,44 @@ def test_a_recording_begun_during_a_stale_run_replays_it_as_it_ran(tmp_path):
     assert again == live and len(live) == 2 * 220
     stale = sorted((sensor, seq) for (sensor, seq, _), doc in again.items() if "stale" in doc["flags"])
     assert stale == [(sensor, seq) for sensor in (0, 1) for seq in range(180, 260)]
+
+
+def test_a_recording_replays_its_reads_joined_and_equal_to_what_ran_live(tmp_path, monkeypatch):
+    """At full speed a recording's reads go through the pipeline joined
+    (JOIN_READS a call: a live read is a frame or two per sensor, and the
+    per-read cost was most of a replay), split at the tares made while
+    recording; the frames equal the recorded ones bit for bit, through load
+    cycles that move a quad's fatigue factor inside joined reads."""
+    from service import replay as replay_module
+    from service.protocol import FrameType, encode_frame
+
+    rng = np.random.default_rng(5)
+    c0 = np.array([2.31, 2.12, 2.27, 2.19]) * 1e6
+    scans = []
+    for seq in range(3000):
+        pressed = seq >= 300 and seq // 40 % 2  # quad 0 pressed ~3 N and let go every 40 scans: load cycles
+        quad0 = c0 * (1.0 + (0.09 if pressed else 0.0)) + rng.normal(0, 300, 4)
+        quad1 = c0 + rng.normal(0, 300, 4)
+        scans.append(encode_frame(FrameType.QUAD, 0, seq, 1000 * seq, quad0.astype("<u4").tobytes())
+                     + encode_frame(FrameType.QUAD, 1, seq, 1000 * seq, quad1.astype("<u4").tobytes()))
+    pipeline = Pipeline(Reconstructor(level="full"))
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    i = read = 0
+    while i < len(scans):
+        n = int(rng.choice([1, 2, 3], p=[0.7, 0.2, 0.1]))  # reads that piled up
+        if read == 900:
+            pipeline.tare(1)
+        pipeline.feed(b"".join(scans[i:i + n]), 1000.0 + 0.001 * i)
+        i, read = i + n, read + 1
+    recorder.stop()
+    joined = []
+    original = Pipeline.feed_many
+    monkeypatch.setattr(Pipeline, "feed_many", lambda self, chunks: joined.append(len(chunks)) or original(self, chunks))
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    out = io.BytesIO()
+    pipelines = replay_module.replay_boards(tmp_path / "run.mcap", out)
+    again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+    assert again == live and len(live) == 6000
+    assert sum(joined) == read and len(joined) < read / 50  # joined, and split at the tare
+    assert sum(next(iter(pipelines.values())).reconstructor.cycle_counts()[0][2]) > 20

@@ -23,7 +23,9 @@ threshold counts nothing). Every JUDGE_EVERY-th frame of a sensor is judged
 (by its count in the stream, so however the stream is cut): a load lasts
 far longer than 4 scans at any rate a board runs, and at 1 kHz per sensor the
 live path's per-call cost, not the arithmetic, is what counting costs. Counts belong to a calibration: a new one starts
-from zero (the registry keeps them per sensor and calibration).
+from zero (the registry keeps them per sensor and calibration). A frame's
+factor is s(count before it), however frames are batched (``counts_before``
+says where in a batch a cycle ends; quad_batch.py).
 """
 from __future__ import annotations
 
@@ -86,6 +88,28 @@ class CycleCounter:
         if first < len(forces):
             forces = forces[first::JUDGE_EVERY]
             self._count(forces, forces > HIGH_N)
+
+    def counts_before(self, forces: np.ndarray) -> np.ndarray | None:
+        """The counts (N, n) before each of frames ``forces`` (N, n) that
+        ``update(forces)`` would step through, changing nothing; None when
+        they stay the counts of now (the usual batch: no cycle ends in it).
+        A quad's sensitivity factor per frame comes from them (quad_batch.py)."""
+        first = -self._seen % JUDGE_EVERY
+        judged = forces[first::JUDGE_EVERY]
+        above = judged > HIGH_N
+        if not len(judged) or (not self._any_armed and not np.count_nonzero(above)):
+            return None
+        state = np.where(above, 1, np.where(judged < LOW_N, -1, 0)).astype(np.int8)
+        state = np.vstack([np.where(self._armed, 1, -1).astype(np.int8)[None], state])
+        rows = np.arange(len(state))[:, None]
+        filled = np.take_along_axis(state, np.maximum.accumulate(np.where(state != 0, rows, 0), axis=0), axis=0)
+        ended = (filled[:-1] == 1) & (filled[1:] == -1)  # (J, n): a cycle ends at judged frame j
+        if not np.count_nonzero(ended):
+            return None
+        after = self.counts + np.cumsum(ended, axis=0)  # counts after each judged frame
+        # Frame k sees the cycles ended at judged frames before it: judged frame j is frame first + j·JUDGE_EVERY.
+        taken = np.searchsorted(first + JUDGE_EVERY * np.arange(len(judged)), np.arange(len(forces)), side="left")
+        return np.vstack([self.counts[None], after])[taken]
 
     def _judged_from(self, frames: int) -> int:
         """Which of the next ``frames`` is the first judged (``frames`` or

@@ -12,6 +12,10 @@ read holds when it waited while the loop was busy). The values are the same eith
 way (tests/test_live_quads.py). Stale electrodes (stuck.py) are counted
 either way: the plan holds its quads' runs as rows of two stacked arrays,
 which each processor's ``runs`` are views of, so one call steps them all.
+A sensor's fatigue factor is its count's before each frame, as frame by
+frame, when a load cycle ends among the frames of one call
+(``per_frame_sensitivity``): its forces do not depend on how its frames
+were batched, so a replay may join recorded reads.
 """
 from __future__ import annotations
 
@@ -21,6 +25,8 @@ from ..readings import Reading
 from .fatigue import update_many
 from .force_frame import ForceFrame
 from .stuck import STUCK_FRAMES, run_lengths
+
+MAX_FATIGUE_ROUNDS = 4
 
 
 def fatigue_factor(state) -> float:
@@ -33,6 +39,45 @@ def fatigue_factor(state) -> float:
     if state.sensitivity_for is None or state.sensitivity_for[0] != count or state.sensitivity_for[1] is not model:
         state.sensitivity_for = (count, model, float(model.factor(count)))
     return state.sensitivity_for[2]
+
+
+def per_frame_sensitivity(states: list, counts: list[int], fz: np.ndarray,
+                          sensitivity: np.ndarray) -> np.ndarray | None:
+    """Each row's fatigue factor (R,) where a load cycle ends within a
+    sensor's rows (``counts[k]`` of ``states[k]``, Fz ``fz`` (R,) computed
+    with ``sensitivity`` (R,)): from that row on, the factor of the new count,
+    as frame by frame; None when no cycle ends (the usual batch). So a
+    sensor's forces do not depend on how its frames were batched (a replay
+    may join recorded reads)."""
+    out, start = None, 0
+    for state, count in zip(states, counts):
+        model = state.calibration.fatigue
+        if count > 1 and model is not None:
+            before = state.cycles.counts_before(fz[start:start + count, None])
+            if before is not None:
+                moved = np.flatnonzero(before[:, 0] != before[0, 0])
+                if moved.size:
+                    if out is None:
+                        out = np.array(sensitivity, dtype=float)
+                    rows = start + moved
+                    out[rows] = model.factor(before[moved, 0])
+        start += count
+    return out
+
+
+def _with_fatigue(processor, states: list, counts: list[int], capacitance: np.ndarray, baseline, noise,
+                  sensitivity: np.ndarray, stale) -> tuple:
+    """(forces, quad flags) with each row's fatigue factor as frame by frame
+    (per_frame_sensitivity): a factor that moved changes Fz, which may move
+    where a cycle ends, so until they agree (at once, in practice)."""
+    forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
+    for _ in range(MAX_FATIGUE_ROUNDS):
+        moved = per_frame_sensitivity(states, counts, forces[:, 2], sensitivity)
+        if moved is None or np.array_equal(moved, sensitivity):
+            break
+        sensitivity = moved
+        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
+    return forces, quad_flags
 
 
 def stale_runs(states: list, capacitance: np.ndarray, counts: list[int]) -> tuple[np.ndarray | None, list]:
@@ -91,12 +136,15 @@ class QuadBatches:
         baseline = self._baselines([state.baseline.value for state in states])
         noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state in states])
         sensitivity = np.array([fatigue_factor(state) for state in states])
-        if len(readings) != len(members):
-            baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
         processor = states[0].processor
         capacitance = np.array([r.capacitance_pF for r in readings])
         stale, kept = stale_runs(states, capacitance, counts)
-        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
+        if len(readings) != len(members):
+            baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
+            forces, quad_flags = _with_fatigue(processor, states, counts, capacitance, baseline, noise, sensitivity,
+                                               stale)
+        else:
+            forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
         sigma = processor.sigma(forces, noise)
         keep_runs(kept)
         update_many([state.cycles for state in states], forces[:, 2:3], counts)
@@ -200,12 +248,15 @@ class QuadPlan:
     def _computed(batch: _Batch, readings: list[Reading], scans: int) -> tuple:
         """(forces, quad flags, σ, runs to keep) of a batch's readings, changing nothing."""
         baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
-        if scans > 1:
-            baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
         processor = batch.processor
         capacitance = np.array([r.capacitance_pF for r in readings])
         stale, kept = batch.stale(capacitance, scans)
-        forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
+        if scans > 1:
+            baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
+            forces, quad_flags = _with_fatigue(processor, batch.states, [scans] * len(batch.states), capacitance,
+                                               baseline, noise, sensitivity, stale)
+        else:
+            forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
         return forces, quad_flags, processor.sigma(forces, noise), kept
 
     def _apply(self, batch: _Batch, readings: list[Reading], result: tuple, scans: int) -> list[ForceFrame]:

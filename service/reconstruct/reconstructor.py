@@ -136,9 +136,8 @@ class Reconstructor(SensorStates):
 
     def _reconstruct(self, items: list[tuple[SensorState | Exception, Reading]]) -> list[ForceFrame]:
         """The items' frames; more than SLICE_READINGS (an offline replay's
-        megabyte reads, a held backlog) go through in slices of that many: a
-        quad's fatigue factor is fixed per call, and one 32 000-frame call
-        left a quad cycled 2 000 times compensated as if at 1 635 cycles."""
+        megabyte reads, a held backlog) go through in slices of that many
+        (long arrays leave the caches; the frames are the same either way)."""
         if len(items) > SLICE_READINGS:
             return [frame for start in range(0, len(items), SLICE_READINGS)
                     for frame in self._reconstruct(items[start:start + SLICE_READINGS])]
