@@ -84,6 +84,10 @@ def test_latest_message_shape(client):
     assert isinstance(grid["flags"], list) and isinstance(grid["taxel_flags"], dict)
     quad = client.get("/sensors/1/latest").json()
     assert set(quad["wrench"]["force"]) == {"x", "y", "z"} and "force_N" not in quad
+    response = client.get("/sensors/1/latest")  # how old the latest frame is, beside it: a quiet board still has one
+    stamp = response.json()["header"]["stamp"]
+    age = float(response.headers["X-Frame-Age-S"])
+    assert 0.0 <= age <= time.time() - stamp + 0.002 and float(client.get("/sensors/0/contact").headers["X-Frame-Age-S"]) >= 0
 
 
 def test_contact_and_history(client):

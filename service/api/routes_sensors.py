@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from ..live_service import TactileService
     from ..reconstruct import ForceFrame
 
+AGE_HEADER = "X-Frame-Age-S"
 router = APIRouter()
 
 MAX_HEAVY_READS = 2
@@ -64,7 +65,8 @@ def sensors(service: TactileService = Depends(get_service)) -> JSONResponse:
 @router.get("/sensors/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
 @router.get("/sensors/{board}/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
 def latest(frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
-    return JSONResponse(to_json_dict(frame, ALL_FIELDS))
+    # How old it is, beside the frame (whose shape is every frame's): a board gone quiet still has a latest frame.
+    return JSONResponse(to_json_dict(frame, ALL_FIELDS), headers={AGE_HEADER: _age(frame)})
 
 
 @router.get("/sensors/{sensor_id}/contact", responses={200: {"model": Contact}})
@@ -74,7 +76,12 @@ def contact(frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
         raise HTTPException(400, f"sensor {frame.sensor.address} is a {frame.sensor.kind}; contact summaries are for grids")
     if frame.contact is None:
         raise HTTPException(404, f"sensor {frame.sensor.address} is still taring")
-    return JSONResponse(frame.contact)
+    return JSONResponse(frame.contact, headers={AGE_HEADER: _age(frame)})
+
+
+def _age(frame: ForceFrame) -> str:
+    """Seconds since the frame's read was received, for AGE_HEADER."""
+    return f"{max(0.0, time.time() - frame.t_host):.3f}"
 
 
 @router.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}, 429: {}})
