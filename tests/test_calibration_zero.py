@@ -72,11 +72,21 @@ def grid_session(tmp_path_factory):
 
 
 @pytest.mark.parametrize("offset", [0.2, -0.2])
-def test_a_load_cell_off_zero_is_refused_unless_told_to_subtract_it(grid_session, offset):
+def test_a_load_cell_off_zero_is_said_and_subtracted_when_asked(grid_session, offset):
+    """+0.2 N joins the pauses to the presses: the refusal says the rest
+    level may be why; −0.2 N calibrates biased, and the summary warns. With
+    --zero-reference both calibrate as the zeroed log does."""
     sim, out, reference = grid_session
     (out / "off.csv").write_text(_shifted(sim.reference_csv, [offset]))
-    with pytest.raises(ValueError, match=rf"rests at force {re.escape(f'{offset:+.3f}')} N between loads, not 0 .*--zero-reference"):
-        calibrate(out / "session.bin", out / "off.csv", allow_partial=True)
+    hint = rf"rests at force {re.escape(f'{offset:+.3f}')} N between loads, not 0 .*--zero-reference"
+    if offset > 0:
+        with pytest.raises(ValueError, match=r"no taxel could be calibrated .*; note: the reference " + hint):
+            calibrate(out / "session.bin", out / "off.csv", allow_partial=True)
+    else:
+        biased = calibrate(out / "session.bin", out / "off.csv", allow_partial=True)
+        assert re.search(hint, biased.reference.zero_warning)
+        assert document(biased)["statistics"]["reference_rest_warning"] == biased.reference.zero_warning
+        assert any("(used as logged) — WARNING: the reference rests at" in line for line in summary_lines(biased))
     off = calibrate(out / "session.bin", out / "off.csv", allow_partial=True, zero_reference=True)
     assert sorted(off.fits) == sorted(reference.fits) == [9, 27, 45]
     assert len(off.presses) == len(reference.presses) == 6
@@ -86,6 +96,7 @@ def test_a_load_cell_off_zero_is_refused_unless_told_to_subtract_it(grid_session
         assert off.fits[t].residual_rms_N < 0.03
     assert off.reference.zero_N[-1] == pytest.approx(offset, abs=3e-3) and off.reference.zero_subtracted
     assert abs(reference.reference.zero_N[-1]) < 3e-3 and not reference.reference.zero_subtracted
+    assert reference.reference.zero_warning is None
     statistics = document(off)["statistics"]
     assert statistics["reference_rest_N"] == off.reference.zero_N[-1] and statistics["reference_rest_subtracted"]
     said = [re.search(r"at rest force ([-+][0-9.]+) N \(subtracted\)", line) for line in summary_lines(off)]
@@ -93,21 +104,29 @@ def test_a_load_cell_off_zero_is_refused_unless_told_to_subtract_it(grid_session
     assert any("(within tolerance of 0: used as logged)" in line for line in summary_lines(reference))
 
 
-def test_a_quad_ft_sensor_off_zero_or_preloaded(tmp_path):
-    sim = quad_session(rate_hz=250.0, seed=0)
+@pytest.mark.parametrize("preloads", [(3.0, 9.0), (1.0, 3.0)])
+def test_a_quad_ft_sensor_off_zero_or_preloaded(tmp_path, preloads):
+    """Off zero on every axis: refused for want of an unloaded stretch, the
+    rest levels named; with --zero-reference calibrated as the zeroed log.
+    Zeroed, with a light preload held longer than the pauses: calibrated as
+    logged (whatever the rest-level estimate says of it)."""
+    from firmware_sim.quad_session import quad_schedule
+
+    sim = quad_session(loads=quad_schedule(0, preloads=preloads), rate_hz=250.0, seed=0)
     (tmp_path / "session.bin").write_bytes(sim.raw)
     (tmp_path / "zeroed.csv").write_text(sim.reference_csv)
     (tmp_path / "off.csv").write_text(_shifted(sim.reference_csv, [-0.15, 0.1, 0.3]))
-    (tmp_path / "preloaded.csv").write_text(_shifted(sim.reference_csv, [0.0, 0.0, 1.0]))
     reference = calibrate_quad(tmp_path / "session.bin", tmp_path / "zeroed.csv")
-    with pytest.raises(ValueError, match=r"rests at Fx -0\.150 N, Fy \+0\.100 N, Fz \+0\.300 N between loads"):
+    assert reference.fit.normal[1] == pytest.approx(sim.model.normal_fit[1], rel=0.01)
+    if preloads[0] < 2.0:  # the light preload can pass for the rest: a warning, as logged (not subtracted)
+        assert not reference.reference.zero_subtracted
+        return
+    with pytest.raises(ValueError, match=r"unloaded frames.*; note: the reference rests at Fx -0\.150 N, Fy \+0\.100 N, "
+                                         r"Fz \+0\.300 N between loads"):
         calibrate_quad(tmp_path / "session.bin", tmp_path / "off.csv")
-    with pytest.raises(ValueError, match=r"rests at Fz \+1\.000 N between loads.*unload it between loads"):
-        calibrate_quad(tmp_path / "session.bin", tmp_path / "preloaded.csv")
     off = calibrate_quad(tmp_path / "session.bin", tmp_path / "off.csv", zero_reference=True)
     np.testing.assert_allclose(off.reference.zero_N, [-0.15, 0.1, 0.3], atol=3e-3)
     assert off.fit.normal[1] == pytest.approx(reference.fit.normal[1], rel=3e-3)
-    assert off.fit.normal[1] == pytest.approx(sim.model.normal_fit[1], rel=0.01)
     assert off.fit.shear[0] == pytest.approx(reference.fit.shear[0], rel=3e-3)
     np.testing.assert_allclose(off.fit.c0_pF, reference.fit.c0_pF, rtol=1e-5)
     assert quad_document(off)["statistics"]["reference_rest_N"]["z"] == off.reference.zero_N[2]

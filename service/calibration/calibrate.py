@@ -19,7 +19,7 @@ from .alignment import Alignment, align, total_response
 from .crosstalk_session import session_crosstalk, unleaked
 from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, read_reference
-from .reference_zero import zero_said, zeroed
+from .reference_zero import with_zero_hint, zero_said, zeroed
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
 from .session import BoardSession, file_sha256, load_session
 
@@ -67,32 +67,35 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
     session = load_session(session_path, sensor_id, board=board)
     reference = zeroed(read_reference(reference_path), zero_reference)
     lap("read")
-    rows, cols = session.info.rows, session.info.cols
-    crosstalk = session_crosstalk(session.capacitance_pF, rows, cols)
-    if crosstalk is not None:
-        session.capacitance_pF = unleaked(session.capacitance_pF, rows, cols, crosstalk["electrical"])
-    lap("crosstalk")
-    alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
-    lap("align")
-    t_ref_board = alignment.to_board(reference.t_s)
-    presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
-    samples = taxel_samples(presses, session.t_s, session.capacitance_pF, session.saturated, t_ref_board, reference.force_N)
-    lap("segment")
-    noise = noise_sigma(reference.force_N[unloaded(presses, t_ref_board)])  # pauses: pure instrument noise
-    fits, problems = {}, {}
-    for taxel, data in samples.items():
-        try:
-            fits[taxel] = fit_taxel(data, noise, full_scale_N, mounting, session.info.cols,
-                                    reference.rate_hz / session.rate_hz)
-        except TaxelError as exc:
-            problems[taxel] = str(exc)
-    lap("fit")
-    if problems and not allow_partial:
-        raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)))
-    if not fits:
-        raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
-    return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,
-                       timings, crosstalk)
+    try:  # a refusal says whether the reference's rest level may be why
+        rows, cols = session.info.rows, session.info.cols
+        crosstalk = session_crosstalk(session.capacitance_pF, rows, cols)
+        if crosstalk is not None:
+            session.capacitance_pF = unleaked(session.capacitance_pF, rows, cols, crosstalk["electrical"])
+        lap("crosstalk")
+        alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
+        lap("align")
+        t_ref_board = alignment.to_board(reference.t_s)
+        presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
+        samples = taxel_samples(presses, session.t_s, session.capacitance_pF, session.saturated, t_ref_board, reference.force_N)
+        lap("segment")
+        noise = noise_sigma(reference.force_N[unloaded(presses, t_ref_board)])  # pauses: pure instrument noise
+        fits, problems = {}, {}
+        for taxel, data in samples.items():
+            try:
+                fits[taxel] = fit_taxel(data, noise, full_scale_N, mounting, session.info.cols,
+                                        reference.rate_hz / session.rate_hz)
+            except TaxelError as exc:
+                problems[taxel] = str(exc)
+        lap("fit")
+        if problems and not allow_partial:
+            raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)))
+        if not fits:
+            raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
+        return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,
+                           timings, crosstalk)
+    except ValueError as exc:
+        raise with_zero_hint(reference, exc) from None
 
 
 def identity(session: BoardSession) -> dict:
@@ -141,6 +144,7 @@ def document(result: Calibration, previous: dict | None = None, created: str | N
         "statistics": {"presses": len(result.presses), "flagged_presses": len(result.flagged_presses),
                        "reference_noise_N": result.reference_noise_N, "reference_rest_N": None if result.reference.zero_N is None else result.reference.zero_N[-1],
                        "reference_rest_subtracted": result.reference.zero_subtracted,
+                       "reference_rest_warning": result.reference.zero_warning,
                        "reference_skipped_lines": result.reference.skipped,
                        "taxels_fitted": sorted(result.fits), "taxels_failed": {str(t): m for t, m in result.problems.items()},
                        "residual_rms_N_median": float(np.median([f.residual_rms_N for f in result.fits.values()]))},

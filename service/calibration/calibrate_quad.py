@@ -11,7 +11,7 @@ from . import registry
 from .alignment import Alignment, align, total_response
 from .quad_fit import QuadFit, fit_quad
 from .reference import Reference, read_reference
-from .reference_zero import zero_said, zeroed
+from .reference_zero import with_zero_hint, zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
 
 
@@ -41,7 +41,11 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
     inside = (session.t_s >= t_ref_board[0]) & (session.t_s <= t_ref_board[-1])
     fxyz = np.stack([np.interp(session.t_s[inside], t_ref_board, reference.fxyz_N[:, k]) for k in range(3)], axis=1)
     aligned = time.perf_counter()
-    fit = fit_quad(session.capacitance_pF[inside], fxyz, session.saturated[inside], session.rate_hz / reference.rate_hz)
+    try:  # a refusal says whether the reference's rest level may be why
+        fit = fit_quad(session.capacitance_pF[inside], fxyz, session.saturated[inside],
+                       session.rate_hz / reference.rate_hz)
+    except ValueError as exc:
+        raise with_zero_hint(reference, exc) from None
     done = time.perf_counter()
     return QuadCalibration(session, reference, alignment, fit,
                            {"read": read - started, "align": aligned - read, "fit": done - aligned})
@@ -64,7 +68,8 @@ def quad_document(result: QuadCalibration, created: str | None = None) -> dict:
         "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
                        "reference_skipped_lines": result.reference.skipped,
                        "reference_rest_N": dict(zip("xyz", result.reference.zero_N or (None,) * 3)),
-                       "reference_rest_subtracted": result.reference.zero_subtracted},
+                       "reference_rest_subtracted": result.reference.zero_subtracted,
+                       "reference_rest_warning": result.reference.zero_warning},
     }
 
 

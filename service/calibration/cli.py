@@ -40,7 +40,7 @@ def add_parsers(subparsers) -> None:
                      help="model table's mounting (default: %(default)s)")
     cal.add_argument("--zero-reference", action="store_true",
                      help="subtract the level the reference rests at between loads (an instrument not zeroed "
-                          "before the session); without it, a reference resting off 0 is refused")
+                          "before the session); without it, a reference resting off 0 is used as logged, with a warning")
     cal.add_argument("--partial", action="store_true",
                      help="store the taxels that fit even if others fail (those keep their previous calibration)")
     cal.add_argument("--no-activate", action="store_true", help="store without making it the sensor's active one")

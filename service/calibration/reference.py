@@ -33,6 +33,7 @@ class Reference:
     fxyz_N: np.ndarray | None = None  # (k, 3) of a 3-axis log
     zero_N: tuple[float, ...] | None = None  # the rest level per force column (reference_zero.py); None: not looked at
     zero_subtracted: bool = False  # zero_N was subtracted (--zero-reference), else the log is as written
+    zero_warning: str | None = None  # the rest level is off 0 beyond tolerance, not subtracted: what to do
 
     @property
     def rate_hz(self) -> float:

@@ -7,11 +7,13 @@ pauses and the presses into one load; a quad's F/T log off by 0.1 N on any
 axis had no "unloaded" frame (|F| < 0.05 N) to take C0 from. The log itself
 says where it rests; what it cannot say is why: an instrument not zeroed
 and a sensor preloaded through the whole session (its C0 then taken under
-load) rest at the same level. So a rest level within ZERO_TOLERANCE_N, 3
-noise σ or ZERO_TOLERANCE_SHARE of the largest load of 0 is taken as 0 —
-the log is used as it is — and a larger
-one is refused, naming it, unless the user says the instrument was only not
-zeroed (``subtract``: ``tactile calibrate --zero-reference``).
+load) rest at the same level, and a load held longer than the pauses (a
+quad's light preload while it is sheared) can pass for the rest. So the log
+is used as it is unless the user says the instrument was only not zeroed
+(``subtract``: ``tactile calibrate --zero-reference``); a rest level
+further from 0 than ZERO_TOLERANCE_N, 3 noise σ or ZERO_TOLERANCE_SHARE of
+the largest load is a warning — in the summary, the document and any
+refusal the calibration then makes (+0.2 N joins every press into one).
 
 The rest level of a one-sided load (a grid's normal force, a quad's Fz):
 windows of FLAT_S whose spread is within FLAT_SIGMAS noise σ and whose
@@ -91,8 +93,8 @@ def rest_levels(reference: Reference) -> tuple[tuple[float, ...] | None, float]:
 
 def zeroed(reference: Reference, subtract: bool = False) -> Reference:
     """``reference`` with ``zero_N`` set to its rest levels, subtracted
-    when ``subtract``; ValueError when one is off 0 by more than the
-    tolerance (module docstring) and ``subtract`` is not given."""
+    when ``subtract``; else, when one is off 0 by more than the tolerance,
+    with a ``zero_warning`` (module docstring) and the log as it is."""
     levels, sigma = rest_levels(reference)
     if levels is None:
         if subtract:
@@ -107,13 +109,20 @@ def zeroed(reference: Reference, subtract: bool = False) -> Reference:
     tolerance = max(ZERO_TOLERANCE_N, ZERO_SIGMAS * sigma, ZERO_TOLERANCE_SHARE * float(np.abs(reference.force_N).max()))
     names = ("force",) if len(levels) == 1 else ("Fx", "Fy", "Fz")
     off = [f"{name} {level:+.3f} N" for name, level in zip(names, levels) if abs(level) > tolerance]
+    warning = None
     if off:
-        raise ValueError(f"{reference.path}: the reference rests at {', '.join(off)} between loads, not 0 "
-                         f"(tolerance ±{tolerance:.3f} N). If the instrument was only not zeroed (nothing touched "
-                         "the sensor in the pauses), calibrate again with --zero-reference to subtract it; if the "
-                         "sensor was loaded throughout (a preload), unload it between loads: its unloaded "
-                         "capacitance is taken there")
-    return dataclasses.replace(reference, zero_N=levels)
+        warning = (f"the reference rests at {', '.join(off)} between loads, not 0 (tolerance ±{tolerance:.3f} N): "
+                   "if the instrument was not zeroed (nothing touched the sensor in the pauses), calibrate again "
+                   "with --zero-reference to subtract it; a load held longer than the pauses (a preload) rests "
+                   "there too, and is no problem")
+    return dataclasses.replace(reference, zero_N=levels, zero_warning=warning)
+
+
+def with_zero_hint(reference: Reference, exc: ValueError) -> ValueError:
+    """``exc`` (a calibration refused) with the reference's rest-level warning, which may be why."""
+    if reference.zero_warning is None:
+        return exc
+    return ValueError(f"{exc}; note: {reference.zero_warning}")
 
 
 def zero_said(reference: Reference) -> str:
@@ -122,4 +131,8 @@ def zero_said(reference: Reference) -> str:
         return f"at rest: never still for {FLAT_S:g} s (used as logged)"
     names = ("force",) if len(reference.zero_N) == 1 else ("Fx", "Fy", "Fz")
     levels = ", ".join(f"{name} {level:+.4f} N" for name, level in zip(names, reference.zero_N))
-    return f"at rest {levels} ({'subtracted' if reference.zero_subtracted else 'within tolerance of 0: used as logged'})"
+    if reference.zero_subtracted:
+        return f"at rest {levels} (subtracted)"
+    if reference.zero_warning is not None:
+        return f"at rest {levels} (used as logged) — WARNING: {reference.zero_warning}"
+    return f"at rest {levels} (within tolerance of 0: used as logged)"
