@@ -23,6 +23,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
     sensors = {}
     name = pipeline.interpreter.name
     unlisted = pipeline.interpreter.unlisted
+    dropped = pipeline.interpreter.dropped
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
@@ -39,7 +40,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "calibration": calibration_state(pipeline, sid, now, book),
             "fatigue": pipeline.reconstructor.fatigue(sid),
             "not_in_info": sid in unlisted,
-            "retired": sid in unlisted and stale,  # the board's INFO no longer lists it, and it sends nothing
+            "retired": sid in dropped and stale,  # an INFO listed it, the one in force does not, and it sends nothing
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
@@ -115,6 +116,7 @@ def board_health(board, now: float, book=None) -> dict:
         "stream": {k: v for k, v in counters.items() if k != "sensors"},
         "rejected": dict(pipeline.interpreter.rejected),
         "board_errors": [{"t_host": t, "text": text} for t, text in pipeline.interpreter.board_errors],
+        "board_error_count": pipeline.interpreter.board_error_count,
         "sensors": sensors,
         "reconstruction": reconstruction,
         "clock": None if pipeline.clock is None else pipeline.clock.status(),

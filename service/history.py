@@ -121,11 +121,13 @@ class History:
         """Outputs (a grid's taxels, row-major; a quad's 2 for Fz) that read
         below their tared zero — out of range at force 0 (grid.py, quad.py)
         — in BELOW_ZERO_SHARE of the frames of the last ``seconds`` (at most
-        BELOW_ZERO_POINTS of them, evenly spread); none with fewer than
-        BELOW_ZERO_FRAMES frames there."""
+        BELOW_ZERO_POINTS of them, evenly spread), or of the last
+        BELOW_ZERO_FRAMES frames when fewer came in that time."""
         slots = self.window_slots(seconds, BELOW_ZERO_POINTS)
-        if len(slots) < BELOW_ZERO_FRAMES:
-            return []
+        if len(slots) < BELOW_ZERO_FRAMES:  # a slow board (RATE under 20 Hz): its last frames, however long they took
+            if len(self) < BELOW_ZERO_FRAMES:
+                return []
+            slots = (self._count - BELOW_ZERO_FRAMES + np.arange(BELOW_ZERO_FRAMES)) % self.capacity
         if self._taxel_flags is not None:
             below = (self._taxel_flags[slots] & OUT_OF_RANGE != 0) & (self._forces[slots] == 0.0)
         else:

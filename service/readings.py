@@ -207,12 +207,14 @@ class Interpreter:
         self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
         self.sensors: dict[int, SensorInfo] = {}
         self.board_errors: deque[tuple[float, str]] = deque(maxlen=50)
-        self._error_logged_at: float | None = None  # host time of the last board error logged
+        self._error_logged_at: float | None = None  # monotonic time of the last board error logged
+        self.board_error_count = 0  # ERROR frames ever (board_errors keeps the last 50)
         self._errors_unlogged = 0
         self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
         self.max_unannounced_sensors = max_unannounced_sensors
         self._unannounced: set[int] = set()  # sensors known only from their data frames
         self._listed: set[int] = set()  # the sensors the INFO in force describes
+        self._ever_listed: set[int] = set()  # the sensors any INFO described
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
@@ -228,6 +230,11 @@ class Interpreter:
         list them (their shape taken from their frames, or from an older
         INFO); none before any INFO."""
         return sorted(set(self.sensors) - self._listed) if self.board else []
+
+    @property
+    def dropped(self) -> list[int]:
+        """Sensors an earlier INFO listed and the one in force does not (the board removed them)."""
+        return sorted(self._ever_listed - self._listed)
 
     def interpret(self, frame: Frame, t_host: float | None = None) -> Reading | None:
         """Return a reading for a data frame, or None for INFO/ERROR frames and
@@ -302,18 +309,20 @@ class Interpreter:
                 out[i] = Reading(info, seq, t_us, t_host, flags, gap, row, o, s, board_restart, scans[i])
         return out
 
-    def _log_board_error(self, text: str, t_host: float) -> None:
+    def _log_board_error(self, text: str) -> None:
         """Log a board's ERROR text, escaped (a board must not write control
         sequences to a terminal or fake log lines) and at most once per
-        ERROR_LOG_PERIOD_S (a board sending one every 5 ms wrote 370 KB/s
-        of log), saying how many were not logged since."""
-        if self._error_logged_at is not None and 0.0 <= t_host - self._error_logged_at < ERROR_LOG_PERIOD_S:
+        ERROR_LOG_PERIOD_S of this process's time (a board sending one every
+        5 ms wrote 370 KB/s of log; a replay's reads may all have one
+        stamp), saying how many were not logged since; /health counts them all."""
+        now = time.monotonic()
+        if self._error_logged_at is not None and now - self._error_logged_at < ERROR_LOG_PERIOD_S:
             self._errors_unlogged += 1
             return
         shown = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in text[:ERROR_LOG_CHARS])
         more = f" ({self._errors_unlogged} more since the last logged, in /health)" if self._errors_unlogged else ""
         log.warning("board error: %s%s%s", shown, "…" if len(text) > ERROR_LOG_CHARS else "", more)
-        self._error_logged_at, self._errors_unlogged = t_host, 0
+        self._error_logged_at, self._errors_unlogged = now, 0
 
     def _sensor_for(self, frame: Frame, t_host: float) -> SensorInfo | None:
         """The sensor a data frame fits; None, having taken in an INFO or
@@ -324,7 +333,8 @@ class Interpreter:
         if frame.type == FrameType.ERROR:
             text = frame.payload.decode("utf-8", errors="replace")
             self.board_errors.append((t_host, text))
-            self._log_board_error(text, t_host)
+            self.board_error_count += 1
+            self._log_board_error(text)
             return None
         info = self.sensors.get(frame.sensor)
         if info is None:
@@ -370,3 +380,4 @@ class Interpreter:
                              for sid, info in sensors.items()})
         self._unannounced.difference_update(sensors)
         self._listed = set(sensors)
+        self._ever_listed |= self._listed

@@ -98,22 +98,24 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
             pipeline_of(joined_board).feed_many(joined)
             joined.clear()
 
-    for board, number, t_recorded, chunk in chunks:
-        pacer.wait(t_recorded)
-        pending = tares.get(board)
-        retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
-        if paced or board != joined_board or retare or len(joined) >= JOIN_READS:
-            feed_joined()
-        pipeline = pipeline_of(board)
-        while pending and pending[0][0] <= number:
-            _, sensor_id, judge = pending.pop(0)
-            pipeline.retare(sensor_id, judge)
-        joined.append((chunk, t_recorded))
-        joined_board = board
-        t_last = t_recorded
-    feed_joined()
-    for pipeline in pipelines.values():
-        pipeline.finish(t_last)
-    if own:
-        writer.close()
+    try:
+        for board, number, t_recorded, chunk in chunks:
+            pacer.wait(t_recorded)
+            pending = tares.get(board)
+            retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
+            if paced or board != joined_board or retare or len(joined) >= JOIN_READS:
+                feed_joined()
+            pipeline = pipeline_of(board)
+            while pending and pending[0][0] <= number:
+                _, sensor_id, judge = pending.pop(0)
+                pipeline.retare(sensor_id, judge)
+            joined.append((chunk, t_recorded))
+            joined_board = board
+            t_last = t_recorded
+        feed_joined()
+        for pipeline in pipelines.values():
+            pipeline.finish(t_last)
+    finally:  # an interrupted replay's export keeps every frame made so far (the writer gathers them)
+        if own:
+            writer.close()
     return {pipeline.interpreter.name: pipeline for pipeline in pipelines.values()}

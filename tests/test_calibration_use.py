@@ -226,6 +226,9 @@ def test_a_pinned_calibration_of_another_shape_is_reported_not_silently_ignored(
     assert book.for_sensor({"board": "b"}, info) is None
     assert book.problems == ["pinned calibration abc123 is for a 4x4 grid; sensor b/0 is a 8x8 grid: not used"]
     assert "abc123" in caplog.text
+    with_builtin = CalibrationBook(None, book.pinned + [{"id": "builtin-table1", "kind": "grid"}])
+    assert with_builtin.for_sensor({"board": "b"}, info) is None  # the built-in pinned beside it: said all the same
+    assert with_builtin.problems == book.problems
 
 
 def test_a_calibration_made_on_another_sensor_judges_no_taxel_loaded_and_says_so(calibrated):

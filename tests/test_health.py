@@ -188,3 +188,34 @@ def test_a_sensor_the_board_no_longer_lists_and_that_sends_nothing_is_retired_no
     report = health_report(service)
     assert report["sensors"]["1"]["retired"] is False
     assert any("sensor 1 sends data but the board's INFO does not list it" in p for p in report["problems"])
+
+
+def test_a_sensor_no_info_ever_listed_that_stops_is_stale_not_retired():
+    """Sensors an INFO never described (a board whose INFO cannot list them
+    all) are not retired when they stop: that is a failure, said as one."""
+    service = TactileService("sim://")
+    only0 = orjson.dumps({"board": "b", "sensors": [{"id": 0, "kind": "quad"}]})
+    quad = np.full(4, 2_200_000, "<u4").tobytes()
+    now = time.time()
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(
+        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - 2.0)
+    service.pipeline.feed(b"".join(encode_frame(FrameType.QUAD, 0, s, 1000 * (s + 1), quad) for s in range(150, 300)),
+                          now)
+    report = health_report(service)
+    assert report["sensors"]["1"]["retired"] is False and report["sensors"]["1"]["stale"] is True
+    assert "sensor 1 stale" in report["problems"]
+
+
+def test_below_zero_is_told_on_a_slow_board_too():
+    """At 10 scans/s a second holds 10 frames, fewer than the 20 the rule
+    wants: the last 20 frames are looked at, however long they took."""
+    from service.history import History
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    info = SensorInfo(1, "quad", 2, 2)
+    history = History(info, 100, 3)
+    for k in range(30):
+        history.append(ForceFrame(info, k, k * 100_000, 1000.0 + 0.1 * k, np.array([0.0, 0.0, 0.0]), np.ones(4),
+                                  ["normal_out_of_range"], "full"))
+    assert history.below_zero() == [2]

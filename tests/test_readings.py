@@ -108,24 +108,31 @@ def test_error_frames_are_kept_as_text():
     assert [text for _, text in interpreter.board_errors] == ["mux settle timeout"]
 
 
-def test_a_flood_of_board_errors_is_logged_escaped_and_once_a_minute(caplog):
+def test_a_flood_of_board_errors_is_logged_escaped_and_once_a_minute(caplog, monkeypatch):
     """A board sending a 1 KB ERROR every 5 ms wrote 370 KB/s of log, its
     control bytes (terminal escapes) verbatim: now one line a minute, escaped,
     saying how many were held back; /health keeps the last 50 as sent."""
+    import service.readings as readings
+
+    clock = [100.0]
+    monkeypatch.setattr(readings.time, "monotonic", lambda: clock[0])
     interpreter = Interpreter()
     decoder = Decoder()
     text = b"\x1b[2J\x1b[31mFAKE: service stopped\nmux " + b"x" * 900
     with caplog.at_level("WARNING", logger="service.readings"):
-        for k in range(400):  # 2 s at 5 ms, then one 61 s later
+        for k in range(400):  # 2 s at 5 ms, then one 61 s later (a replay's reads may all have one stamp)
+            clock[0] = 100.0 + 0.005 * k
             for frame in decoder.feed(encode_frame(FrameType.ERROR, 255, k, k, text)):
-                interpreter.interpret(frame, 100.0 + 0.005 * k)
+                interpreter.interpret(frame, 0.0)
+        clock[0] = 163.0
         for frame in decoder.feed(encode_frame(FrameType.ERROR, 255, 400, 400, b"mux settle timeout")):
-            interpreter.interpret(frame, 163.0)
+            interpreter.interpret(frame, 0.0)
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("board error")]
     assert len(lines) == 2 and "\x1b" not in lines[0] and "\n" not in lines[0]
     assert lines[0].startswith("board error: \\x1b[2J\\x1b[31mFAKE: service stopped\\x0amux xxx") and lines[0].endswith("…")
     assert lines[1] == "board error: mux settle timeout (399 more since the last logged, in /health)"
     assert len(interpreter.board_errors) == 50 and interpreter.board_errors[0][1] == text.decode()
+    assert interpreter.board_error_count == 401
 
 
 def test_the_first_frame_after_a_board_restart_says_so_through_to_the_binary_stream():

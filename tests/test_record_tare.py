@@ -372,3 +372,23 @@ def test_a_recording_replays_its_reads_joined_and_equal_to_what_ran_live(tmp_pat
     assert again == live and len(live) == 6000
     assert sum(joined) == read and len(joined) < read / 50  # joined, and split at the tare
     assert sum(next(iter(pipelines.values())).reconstructor.cycle_counts()[0][2]) > 20
+
+
+def test_an_interrupted_replay_exports_every_frame_made_before(tmp_path, pressed, monkeypatch):
+    """The JSON lines writer gathers frames; a replay stopped by Ctrl-C (or
+    an error) writes what it gathered instead of losing it."""
+    recorded(tmp_path / "run.mcap", pressed, {})
+    made, original = [], Pipeline.feed_many
+
+    def feed_many(self, chunks):
+        if len(made) == 3:
+            raise KeyboardInterrupt
+        frames = original(self, chunks)
+        made.append(len(frames))
+        return frames
+
+    monkeypatch.setattr(Pipeline, "feed_many", feed_many)
+    out = io.BytesIO()
+    with pytest.raises(KeyboardInterrupt):
+        replay(tmp_path / "run.mcap", out)
+    assert len(made) == 3 and len(out.getvalue().splitlines()) == sum(made)  # the last call's frames waited

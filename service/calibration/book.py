@@ -140,13 +140,13 @@ class CalibrationBook:
                 return document
             misfits.append(f"pinned calibration {document.get('id')} is for a {_shape(*shape)}; sensor "
                            f"{info.address} is a {_shape(info.kind, info.rows, info.cols)}: not used")
-        for document in self.pinned:
-            if str(document.get("id", "")).startswith("builtin-") and document.get("kind") == info.kind:
-                return document
         for missed in misfits:  # asked for by name and none fits: never set aside silently
             if missed not in self.problems:
                 self.problems.append(missed)
                 log.warning(missed)
+        for document in self.pinned:
+            if str(document.get("id", "")).startswith("builtin-") and document.get("kind") == info.kind:
+                return document
         return None
 
     def _active(self, key: str) -> dict | None:

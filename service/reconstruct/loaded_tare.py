@@ -43,16 +43,17 @@ def _sigma(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
 
 def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
           frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """(loaded (n,) bool, below (n,) bool): ``loaded_taxels``, or none
-    loaded when the taxels below C0 by as much (``below``) show the
-    calibration's C0 is not this sensor's (module docstring)."""
+    """(loaded (n,) bool, mismatch (n,) bool): ``loaded_taxels``; or, when
+    the taxels below C0 by as much show the calibration's C0 is not this
+    sensor's (module docstring), none loaded and those taxels as mismatch
+    (none otherwise)."""
     sigma = _sigma(c0_pF, std_pF, frames)
     with np.errstate(invalid="ignore"):
         below = measured & (c0_pF - mean_pF > LOADED_SIGMAS * sigma)
         loaded = measured & (mean_pF - c0_pF > LOADED_SIGMAS * sigma)
     if np.count_nonzero(below) >= max(MISMATCH_TAXELS, MISMATCH_SHARE * np.count_nonzero(measured)):
-        loaded = np.zeros_like(loaded)
-    return loaded, below
+        return np.zeros_like(loaded), below
+    return loaded, np.zeros_like(below)
 
 
 def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,

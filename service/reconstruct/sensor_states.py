@@ -90,7 +90,7 @@ class SensorStates:
                 processor.restore_stale_runs(*runs)
             state.processor, state.calibration = processor, calibration
             state.cycles = self._cycles(info, calibration)  # counts belong to a calibration: a new one starts anew
-            state.tare_judged = False  # judged again against the new C0
+            state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
             self._calibration_applied(info.id)
         return document
 
@@ -267,12 +267,14 @@ class SensorStates:
     def _judge_tare(self, state: SensorState) -> None:
         """Once a grid's tare is complete: loaded taxels get the calibration's C0."""
         state.tare_judged = True
+        state.below_c0 = []
         calibration = state.calibration
         if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
             return
         baseline = state.baseline
-        loaded, below = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std, baseline.frames)
-        state.below_c0 = np.flatnonzero(below).tolist() if not loaded.any() and below.any() else []
+        loaded, mismatch = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std,
+                                 baseline.frames)
+        state.below_c0 = np.flatnonzero(mismatch).tolist()
         if state.below_c0:
             log.warning("sensor %d: taxels %s read below the calibration's C0 at the tare: its C0 is not this "
                         "sensor's as it is now, so no taxel is judged loaded", state.info.id, state.below_c0)
