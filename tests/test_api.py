@@ -176,6 +176,24 @@ def test_websocket_rejects_bad_parameters(client, query, message):
     assert reply["type"] == "error" and message in reply["detail"]
 
 
+def test_a_stream_client_past_the_limit_is_refused_and_the_others_keep_theirs(client, monkeypatch):
+    from starlette.websockets import WebSocketDisconnect
+
+    from service.api import routes_stream
+
+    monkeypatch.setattr(routes_stream, "MAX_STREAM_CLIENTS", 2)
+    with client.websocket_connect("ws://localhost/ws?sensors=1") as first, \
+            client.websocket_connect("ws://localhost/ws?sensors=1") as second:
+        assert orjson.loads(first.receive_text())["type"] == "frames"
+        with client.websocket_connect("ws://localhost/ws?sensors=1") as third:
+            reply = orjson.loads(third.receive_text())
+            assert reply["type"] == "error" and "too many stream clients (2)" in reply["detail"]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                third.receive_text()
+            assert closed.value.code == 1013
+        assert orjson.loads(second.receive_text())["type"] == "frames"
+
+
 def test_dashboard_is_served(client):
     page = client.get("/")
     assert page.status_code == 200 and "/static/app.js" in page.text

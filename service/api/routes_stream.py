@@ -29,6 +29,9 @@ if TYPE_CHECKING:
 
 MAX_WS_RATE_HZ = 5000.0
 MAX_BATCH_MS = 1000.0
+# Every client costs the loop its encodings and sends: past this many (the load test runs 26), one more is
+# refused rather than slowing every controller's stream (a page could open sockets without end).
+MAX_STREAM_CLIENTS = 64
 
 router = APIRouter()
 
@@ -58,6 +61,10 @@ class StreamSession:
 
     async def run(self) -> None:
         await self.websocket.accept()
+        if len(self.service.hub.subscribers) >= MAX_STREAM_CLIENTS:
+            await self.reject(f"too many stream clients ({MAX_STREAM_CLIENTS}): try again when one has left",
+                              code=1013)
+            return
         try:
             self.subscriber = subscription(self.websocket.query_params)
         except ValueError as exc:
@@ -85,9 +92,9 @@ class StreamSession:
             detail = f"sensors {', '.join(unknown)} are not known (yet); known: {', '.join(known) or 'none yet'}"
             await self.websocket.send_text(orjson.dumps({"type": "notice", "detail": detail}).decode())
 
-    async def reject(self, detail: str) -> None:
+    async def reject(self, detail: str, code: int = 1008) -> None:
         await self.websocket.send_text(orjson.dumps({"type": "error", "detail": detail}).decode())
-        await self.websocket.close(code=1008, reason=detail[:120])
+        await self.websocket.close(code=code, reason=detail[:120])
 
     async def send_forever(self) -> None:
         subscriber, websocket, service = self.subscriber, self.websocket, self.service
