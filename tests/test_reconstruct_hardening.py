@@ -515,33 +515,45 @@ def test_a_glitch_in_the_tare_window_stays_out_of_the_zero(glitch, late):
     assert np.array_equal(np.delete(baseline.value, 20), np.delete(clean.value, 20))
 
 
+def grid_and_quad_run(seed: int, scans: int, pressed_from: int, changed) -> tuple:
+    """(reconstructor, {seq: (grid frame, quad frame)}) of a table-1 grid and
+    a quad at rest, pressed (+5 %: taxel 20 ~4 N, the quad ~2 N) from scan
+    ``pressed_from`` on, run twice on the same noise: ``changed(seq, grid,
+    quad)`` alters the first run's counts (in place; it returns the quad's),
+    the second is clean."""
+    c0 = table1().c0_pF
+    quad_c0 = np.array([2.21, 2.18, 2.24, 2.20])
+    rng = np.random.default_rng(seed)
+    state = rng.bit_generator.state
+    runs = []
+    for change in (changed, None):
+        rng.bit_generator.state = state
+        rec = Reconstructor(level="full")
+        out = {}
+        for seq in range(scans):
+            grid = c0 + rng.normal(0.0, 0.0012, 64)
+            quad = quad_c0 + rng.normal(0.0, 0.0005, 4)
+            if change is not None:
+                quad = change(seq, grid, quad)
+            if seq >= pressed_from:
+                grid[20] *= 1.05
+                quad = quad * 1.05
+            out[seq] = rec.process_many([reading(GRID, grid, seq), reading(QUAD, quad, seq)])
+        runs.append((rec, out))
+    return runs
+
+
 def test_a_glitch_during_the_auto_tare_neither_hides_a_press_nor_makes_a_load():
     """A grid taxel and a quad electrode each read once 3× off during the
     tare; then, at rest, no force and no flag; pressed, the force of a run
     without the glitch."""
-    c0 = table1().c0_pF
-    quad_c0 = np.array([2.21, 2.18, 2.24, 2.20])
-    rng = np.random.default_rng(8)
+    def glitch(seq, grid, quad):
+        if seq == 50:
+            grid[20] *= 3.0
+            quad[2] *= 3.0
+        return quad
 
-    def run(glitch: bool):
-        rec = Reconstructor(level="full")
-        out = {}
-        for seq in range(300):
-            grid = c0 + rng.normal(0.0, 0.0012, 64)
-            quad = quad_c0 + rng.normal(0.0, 0.0005, 4)
-            if glitch and seq == 50:
-                grid[20] *= 3.0
-                quad[2] *= 3.0
-            if seq >= 250:
-                grid[20] *= 1.05
-                quad = quad * 1.05
-            out[seq] = rec.process_many([reading(GRID, grid, seq), reading(QUAD, quad, seq)])
-        return out
-
-    state = rng.bit_generator.state
-    with_glitch = run(True)
-    rng.bit_generator.state = state
-    without = run(False)
+    (_, with_glitch), (_, without) = grid_and_quad_run(8, 300, 250, glitch)
     grid_rest, quad_rest = with_glitch[200]
     assert abs(grid_rest.forces_N[20]) < 0.05 and grid_rest.taxel_flags[20] == 0 and grid_rest.flags == []
     assert np.abs(quad_rest.forces_N).max() < 0.05 and quad_rest.flags == []
@@ -557,26 +569,13 @@ def test_a_load_let_go_while_taring_begins_the_tare_again(loaded_frames):
     glitches. The tare begins again on the unloaded readings, so at rest
     there is no force, none below zero and no flag, and a press reads what
     it reads on a sensor tared unloaded; /health's restarts say it."""
-    c0 = table1().c0_pF
-    quad_c0 = np.array([2.21, 2.18, 2.24, 2.20])
-    rng = np.random.default_rng(9)
+    def step(seq, grid, quad):
+        if seq < loaded_frames:
+            grid[20] *= 1.05
+            return quad * 1.05
+        return quad
 
-    def run(step: bool):
-        rec = Reconstructor(level="full")
-        out = {}
-        for seq in range(400):
-            grid = c0 + rng.normal(0.0, 0.0012, 64)
-            quad = quad_c0 + rng.normal(0.0, 0.0005, 4)
-            if (step and seq < loaded_frames) or seq >= 350:
-                grid[20] *= 1.05
-                quad = quad * 1.05
-            out[seq] = rec.process_many([reading(GRID, grid, seq), reading(QUAD, quad, seq)])
-        return rec, out
-
-    state = rng.bit_generator.state
-    rec, stepped = run(True)
-    rng.bit_generator.state = state
-    _, clean = run(False)
+    (rec, stepped), (_, clean) = grid_and_quad_run(9, 400, 350, step)
     assert rec.tare_restarts(GRID.id) == 1 and rec.tare_restarts(QUAD.id) == 1
     # The second window is readings 100–199; the one that completes it has forces.
     assert all("taring" in f.flags for f in stepped[198]) and not any("taring" in f.flags for f in stepped[199])
