@@ -275,3 +275,23 @@ def test_pinning_the_builtin_compares_against_it_whatever_the_registry_holds(cal
     assert [d["id"] for d in book.pinned] == ["builtin-fits34-35", "builtin-mean-4x4"]
     with pytest.raises(ValueError, match="--calibration builtin-tabel1: no such built-in calibration"):
         book_from_options(str(registry_path), ["builtin-tabel1"])
+
+
+@pytest.mark.parametrize("drift", [1.006, 0.994])
+def test_a_sensor_warmer_or_cooler_than_at_its_calibration_still_tells_the_gripped_taxel(calibrated, tmp_path, drift):
+    """Every C0 0.6 % off the calibration's (temperature moves them alike):
+    taken against the calibration's C0, +0.6 % called all 64 taxels loaded
+    and −0.6 % called the C0 another sensor's, judging none (the grip became
+    taxel 27's zero: 4 N low after release). Against C0 moved by the
+    common-mode drift, taxel 27 alone is loaded and reads true after release."""
+    import dataclasses
+
+    sim, registry_path, cid = calibrated
+    moved = dataclasses.replace(sim.calibration, c0_pF=sim.calibration.c0_pF * drift)
+    capture = validation_capture(moved, rate_hz=RATE_HZ, presses=loaded_start_presses(), **SERIALS)
+    book = book_from_options(str(registry_path), [cid])  # this sensor's (another test of the module activates others)
+    grid = [line for line in exported(capture.raw, tmp_path, book) if line["kind"] == "grid"]
+    assert {tuple(line["taxel_flags"]["loaded_at_tare"]) for line in grid} == {(LOADED_TAXEL,)}
+    truth = dict(zip(capture.truth_t_us.tolist(), capture.truth_N))
+    after = [line for line in grid if line["t_us"] > 3.2e6]
+    assert max(abs(line["taxels_N"][LOADED_TAXEL] - truth[line["t_us"]][LOADED_TAXEL]) for line in after) <= 0.03

@@ -11,6 +11,11 @@ The combined σ of (tared mean − C0) per taxel: the mean's noise (the
 channel's spread / √T) and C0's own drift since the calibration (PDMS's
 permittivity and the gap move with temperature; C0_DRIFT_RELATIVE = 0.1 %
 of C0 is what we allow, an assumption to replace by a measured figure).
+Temperature moves every taxel alike, a grip a minority: C0 is first moved
+by the median over taxels of tared mean / C0 (``common_c0``), so a sensor
+0.3 % warmer than at its calibration neither takes a gripped taxel's zero
+0.3 % off (0.27 N after release, against 0.03) nor, at 0.5 %, calls every
+taxel loaded.
 A compressive taxel cannot read below its zero, so only an excess counts.
 With table 1's mean sensitivity (1.25 %/N) the threshold, 4 × 0.1 % of C0,
 is a load of about 0.3 N: a lighter grip passes as unloaded. Only taxels
@@ -41,19 +46,31 @@ def _sigma(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
     return np.hypot(noise, C0_DRIFT_RELATIVE * c0_pF)
 
 
+def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray) -> np.ndarray:
+    """The calibration's C0 (n,) moved by the sensor's common-mode drift
+    since: times the median over measured taxels of mean/C0 (a grip loads a
+    minority of taxels; temperature moves them all)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = mean_pF / c0_pF
+    usable = measured & np.isfinite(ratio)
+    return c0_pF * float(np.median(ratio[usable])) if usable.any() else c0_pF
+
+
 def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
-          frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """(loaded (n,) bool, mismatch (n,) bool): ``loaded_taxels``; or, when
-    the taxels below C0 by as much show the calibration's C0 is not this
-    sensor's (module docstring), none loaded and those taxels as mismatch
-    (none otherwise)."""
+          frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(loaded (n,) bool, mismatch (n,) bool, C0 (n,) pF): ``loaded_taxels``
+    against the calibration's C0 moved by the common-mode drift
+    (``common_c0``: the zero a loaded taxel takes); or, when the taxels
+    below it by as much show it is not this sensor's (module docstring),
+    none loaded and those taxels as mismatch (none otherwise)."""
+    c0_pF = common_c0(c0_pF, measured, mean_pF)
     sigma = _sigma(c0_pF, std_pF, frames)
     with np.errstate(invalid="ignore"):
         below = measured & (c0_pF - mean_pF > LOADED_SIGMAS * sigma)
         loaded = measured & (mean_pF - c0_pF > LOADED_SIGMAS * sigma)
     if np.count_nonzero(below) >= max(MISMATCH_TAXELS, MISMATCH_SHARE * np.count_nonzero(measured)):
-        return np.zeros_like(loaded), below
-    return loaded, np.zeros_like(below)
+        return np.zeros_like(loaded), below, c0_pF
+    return loaded, np.zeros_like(below), c0_pF
 
 
 def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,

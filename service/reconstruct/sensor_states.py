@@ -272,14 +272,14 @@ class SensorStates:
         if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
             return
         baseline = state.baseline
-        loaded, mismatch = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std,
-                                 baseline.frames)
+        loaded, mismatch, c0 = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std,
+                                     baseline.frames)
         state.below_c0 = np.flatnonzero(mismatch).tolist()
         if state.below_c0:
             log.warning("sensor %d: taxels %s read below the calibration's C0 at the tare: its C0 is not this "
                         "sensor's as it is now, so no taxel is judged loaded", state.info.id, state.below_c0)
         if loaded.any():
-            baseline.substitute(loaded, calibration.tare_c0_pF)
+            baseline.substitute(loaded, c0)
             state.loaded = loaded
             log.warning("sensor %d: taxels %s were loaded at tare; their zero is the calibration's C0",
                         state.info.id, np.flatnonzero(loaded).tolist())
