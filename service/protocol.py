@@ -23,7 +23,10 @@ if the clock went back, it is a restart whose INFO was lost (at the same board
 time it is sequenced like any scan). After an INFO stamped before the
 sensor's last scan (a power-up INFO; a reply to INFO? after a reconnect is
 stamped after it), a frame whose clock ran on but whose sequence fell back
-is a restart too (a board that ran for less time than it was off). A frame whose sequence is the next one (other
+is a restart too (a board that ran for less time than it was off), and so
+is one, after an INFO, whose sequence jumped by twice the scans its clock's
+step holds at 5 000 scans/s (a power-up just after the clock wrapped: the
+clock looks a moment on). A frame whose sequence is the next one (other
 than 0 after 65 535) is in order whatever its clock did: a pause of more
 than half the clock's period (STOP … START) looks like a step back. None of
 these is a gap of 65 000 scans. A frame a link delivered late — one of the
@@ -297,12 +300,16 @@ class Decoder:
                 elif state.infos != self._infos and ((t_us < state.t_us and step > RESTART_JUMP_US)
                                                      or ((seq - state.seq) % SEQ_MODULUS >= SEQ_MODULUS // 2
                                                          and 0 < (state.t_us - self._info_t_us) % T_US_MODULUS
-                                                         < _HALF_CLOCK)):
+                                                         < _HALF_CLOCK)
+                                                     or (seq - state.seq - 1) % SEQ_MODULUS * MIN_SCAN_PERIOD_US
+                                                     > 2 * step):
                     # After an INFO the clock fell back towards 0 (a board that had run more
                     # than half the clock's period: not a forward step), or, after an INFO
                     # stamped before this sensor's last scan (a power-up INFO, not a reply to
                     # INFO?), the clock ran on but the sequence started again (a board that had
-                    # run for less time than it was off): a restart, not a gap of 65 000 scans.
+                    # run for less time than it was off), or the sequence jumped by twice the
+                    # scans the clock's step holds at the fastest rate (a power-up just after
+                    # the clock wrapped): a restart, not a gap.
                     restart = True
                 if restart:
                     sensor_counters.board_restarts += 1

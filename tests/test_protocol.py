@@ -289,6 +289,32 @@ def test_a_long_outage_then_the_reply_to_info_is_a_gap_not_a_restart(bulk):
     assert decoder.counters.sensor(1).board_restarts == 0
 
 
+@pytest.mark.parametrize("bulk", [False, True])
+def test_a_restart_just_before_the_board_clock_wraps_is_no_gap(bulk):
+    """The last scan 0.5 s before the u32 µs clock wraps, seq 33 000; the
+    board powers up (INFO at 0, scans from seq 0): the clock looks 0.5 s on,
+    the sequence 32 536 on — more scans than 0.5 s holds even at 5 000 a
+    second. A restart, not 32 536 missed scans."""
+    decoder = BulkDecoder() if bulk else Decoder()
+    last = 2**32 - 500_000
+    before = b"".join(hand_frame(seq=33_000 + s, t_us=last - 1000 * (4 - s)) for s in range(5))
+    after = info(0) + b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(3))
+    frames = [f for f in decoder.feed(before + after) if f.type == FrameType.QUAD]
+    counters = decoder.counters.sensor(1)
+    assert frames[5].board_restart and (counters.board_restarts, counters.seq_gaps, counters.missed_frames) == (1, 0, 0)
+
+
+def test_a_gap_after_an_info_reply_at_the_fastest_rate_is_still_a_gap():
+    """5 000 scans/s, 2 s lost, then INFO? answered and the scans go on:
+    10 000 scans missed over 2 s of clock is a gap (what a restart after a
+    wrap is told from)."""
+    decoder = Decoder()
+    before = b"".join(hand_frame(seq=s, t_us=200 * (s + 1)) for s in range(5))
+    after = info(200 * 10_004) + b"".join(hand_frame(seq=10_005 + s, t_us=200 * (10_006 + s)) for s in range(3))
+    frames = [f for f in decoder.feed(before + after) if f.type == FrameType.QUAD]
+    assert not any(f.board_restart for f in frames) and frames[5].gap == 10_000
+
+
 def test_an_info_reply_then_the_next_scan_is_neither_a_restart_nor_a_gap():
     decoder = Decoder()
     before = b"".join(hand_frame(seq=s, t_us=1000 * (s + 1)) for s in range(5))

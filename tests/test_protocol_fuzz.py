@@ -60,7 +60,9 @@ def passed_on(expected):
     then it is in order. After an INFO, a clock that fell back by more than
     RESTART_JUMP_US (yet "forward" modulo 2^32) is a restart too, and so,
     after an INFO stamped before the sensor's last scan, is a sequence that
-    fell back (by half its period or more) while the clock ran on. A scan
+    fell back (by half its period or more) while the clock ran on, and a
+    sequence that jumped by twice the scans the clock's step holds at 5 000
+    scans/s. A scan
     whose clock went back, no INFO since, that one of the sensor's gaps of at
     most 256 scans missed (and behind by no more than those scans take at
     1 Hz) came late: dropped. Any other frame whose sequence did not advance
@@ -93,6 +95,8 @@ def passed_on(expected):
                 elif info_t_us is not None and (seq - last_seq) % 2**16 >= 2**15 \
                         and 0 < (last_t_us - info_t_us) % 2**32 < 2**31:
                     restart = True  # after a power-up INFO the sequence started again: a board up for a short time
+                elif info_t_us is not None and (seq - last_seq - 1) % 2**16 * 200 > 2 * step:
+                    restart = True  # after an INFO, twice the scans missed that the clock's step holds at 5 kHz
                 if restart:
                     missing[sensor] = []
                 else:
