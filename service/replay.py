@@ -89,7 +89,8 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     t_last = 0.0
     # At full speed a recording's reads (a frame or two per sensor each, as the live port gave them) are joined,
-    # a board's consecutive reads up to JOIN_READS, never across a tare made while recording.
+    # a board's consecutive reads up to JOIN_READS, never across a tare made while recording (a raw capture's
+    # chunks are a megabyte already).
     joined: list[tuple[bytes, float]] = []
     joined_board: str | None = None
 
@@ -103,7 +104,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
             pacer.wait(t_recorded)
             pending = tares.get(board)
             retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
-            if paced or board != joined_board or retare or len(joined) >= JOIN_READS:
+            if paced or hold or board != joined_board or retare or len(joined) >= JOIN_READS:
                 feed_joined()
             pipeline = pipeline_of(board)
             while pending and pending[0][0] <= number:

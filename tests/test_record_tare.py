@@ -392,3 +392,34 @@ def test_an_interrupted_replay_exports_every_frame_made_before(tmp_path, pressed
     with pytest.raises(KeyboardInterrupt):
         replay(tmp_path / "run.mcap", out)
     assert len(made) == 3 and len(out.getvalue().splitlines()) == sum(made)  # the last call's frames waited
+
+
+@pytest.mark.parametrize("level", ["table", "full"])
+def test_a_late_zero_completing_inside_joined_reads_applies_from_there_on(tmp_path, level):
+    """Channel 5 sends the open-channel value for the first 150 scans, so
+    it gets its zero late (100 plausible readings later, at scan 249): a
+    replay joining 256 reads applied that zero to the frames before it
+    (150 frames differed at table, 501 at full through the drift state).
+    The batch is split where a late zero completes: bit for bit."""
+    from service.protocol import FrameType, encode_frame
+
+    rng = np.random.default_rng(1)
+    c0 = rng.uniform(10.0, 11.0, 64) * 1e6
+    pipeline = Pipeline(Reconstructor(level=level))
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for seq in range(600):
+        counts = c0 + rng.normal(0, 1000, 64)
+        if 200 <= seq < 400:
+            counts[20:22] *= 1.05
+        counts = counts.astype("<u4")
+        if seq < 150:
+            counts[5] = 0xFFFFFFFF
+        pipeline.feed(encode_frame(FrameType.GRID, 0, seq, 1000 * seq, counts.tobytes()), 1000.0 + 0.001 * seq)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    out = io.BytesIO()
+    replay(tmp_path / "run.mcap", out, level=level)
+    again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+    assert again == live
+    assert live[(0, 248, 248_000)]["taxels_N"][5] is None and live[(0, 249, 249_000)]["taxels_N"][5] is not None

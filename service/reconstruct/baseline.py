@@ -98,6 +98,14 @@ class Baseline:
         so caches keyed on it see the change."""
         self.value = np.where(channels, values_pF, self.value)
 
+    def completes_late(self, capacitance_pF: np.ndarray) -> bool:
+        """Whether this reading (n,) pF would complete a late channel's zero
+        (changing ``value`` for the readings after it), changing nothing."""
+        if not self._any_late or not self.ready:
+            return False
+        valid = self._valid(capacitance_pF, self._late)
+        return bool(np.any(self._late & valid & (self._count + 1 >= self.frames)))
+
     def update(self, capacitance_pF: np.ndarray) -> bool:
         """Feed one reading of shape (channels,); return whether the baseline
         is ready (the reading that completes it is already tared)."""
@@ -122,11 +130,15 @@ class Baseline:
             self._any_late = bool(self._late.any())
         return self.ready
 
-    def _accumulate(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> None:
+    def _valid(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> np.ndarray:
+        """The ``channels`` (n,) bool whose reading counts towards the zero."""
         if self.window is None:
-            valid = channels & ~np.isnan(capacitance_pF)
-        else:  # NaN compares False: a sentinel is left out as before
-            valid = channels & (capacitance_pF >= self.window[0]) & (capacitance_pF <= self.window[1])
+            return channels & ~np.isnan(capacitance_pF)
+        # NaN compares False: a sentinel is left out as before
+        return channels & (capacitance_pF >= self.window[0]) & (capacitance_pF <= self.window[1])
+
+    def _accumulate(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> None:
+        valid = self._valid(capacitance_pF, channels)
         self._sum[valid] += capacitance_pF[valid]
         self._sum_sq[valid] += capacitance_pF[valid] ** 2
         self._samples[self._count[valid], valid] = capacitance_pF[valid]

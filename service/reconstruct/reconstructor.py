@@ -83,15 +83,23 @@ class Reconstructor(SensorStates):
 
     def process_many(self, readings: list[Reading]) -> list[ForceFrame]:
         """Reconstruct a batch of readings (e.g. one read from the port), each
-        sensor's frames together; returns ForceFrames in arrival order."""
+        sensor's frames together; returns ForceFrames in arrival order. A
+        channel's late zero (it read nothing plausible while its sensor
+        tared) completing inside the batch splits it there: the sensor's
+        earlier frames had no zero for it, however reads were joined."""
         pending: list[tuple[SensorState | Exception, Reading]] = []
         taring: list[int] = []  # readings in their sensor's tare window, the one that completes it aside
+        out: list[ForceFrame] = []
         sensors = self._sensors
         for reading in readings:
             try:
                 state = sensors.get(reading.sensor.id)
                 if state is None or state.info is not reading.sensor:  # the usual reading skips the call
                     state = self._state(reading.sensor)
+                if pending and state.baseline.completes_late(reading.capacitance_pF) and \
+                        any(earlier is state for earlier, _ in pending):
+                    out += self._batch_done(pending, taring)
+                    pending, taring = [], []
                 if state.baseline.update(reading.capacitance_pF):
                     if not state.tare_judged:
                         self._judge_tare(state)
@@ -100,6 +108,11 @@ class Reconstructor(SensorStates):
             except Exception as exc:  # noqa: BLE001 — isolated: this reading goes out null and flagged
                 state = exc
             pending.append((state, reading))
+        out += self._batch_done(pending, taring)
+        return out
+
+    def _batch_done(self, pending: list[tuple[SensorState | Exception, Reading]], taring: list[int]) -> list[ForceFrame]:
+        """The frames of a batch whose baselines are updated (``taring``: its readings in a tare window)."""
         if not self.hold_until_tared:
             return self._reconstruct(pending) if not taring else self._with_taring(pending, taring)
         self._held.extend(pending)
