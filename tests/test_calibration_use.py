@@ -295,3 +295,28 @@ def test_a_sensor_warmer_or_cooler_than_at_its_calibration_still_tells_the_gripp
     truth = dict(zip(capture.truth_t_us.tolist(), capture.truth_N))
     after = [line for line in grid if line["t_us"] > 3.2e6]
     assert max(abs(line["taxels_N"][LOADED_TAXEL] - truth[line["t_us"]][LOADED_TAXEL]) for line in after) <= 0.03
+
+
+def test_the_common_drift_leaves_large_grips_and_partial_calibrations_judged():
+    """The common-mode drift is the free taxels': a grip over 40 of 64 taxels
+    is still 40 loaded, with the calibration's own C0 as their zero; with a
+    handful of measured taxels (a partial calibration, a 2x2 grid) nothing is
+    moved, so a grip on most of them is still told."""
+    from service.reconstruct.loaded_tare import judge
+
+    rng = np.random.default_rng(2)
+    c0 = rng.uniform(10.0, 11.0, 64)
+    std = np.full(64, 0.001)
+    gripped = np.zeros(64, bool)
+    gripped[:40] = True
+    mean = c0 * np.where(gripped, 1.03, 1.0) + rng.normal(0.0, 1e-4, 64)
+    loaded, mismatch, zero = judge(c0, np.ones(64, bool), mean, std, 100)
+    assert loaded.tolist() == gripped.tolist() and not mismatch.any()
+    np.testing.assert_allclose(zero / c0, 1.0, atol=2e-4)
+    few = np.zeros(64, bool)
+    few[[9, 10, 11]] = True  # a partial calibration: three taxels measured, two gripped
+    mean = c0 * np.where(np.isin(np.arange(64), [9, 10]), 1.03, 1.0)
+    loaded, mismatch, zero = judge(c0, few, mean, std, 100)
+    assert np.flatnonzero(loaded).tolist() == [9, 10] and not mismatch.any() and np.array_equal(zero, c0)
+    loaded, _, _ = judge(c0[:4], np.ones(4, bool), c0[:4] * [1.03, 1.03, 1.0, 1.0], std[:4], 100)  # a 2x2 grid
+    assert loaded.tolist() == [True, True, False, False]

@@ -11,8 +11,8 @@ The combined σ of (tared mean − C0) per taxel: the mean's noise (the
 channel's spread / √T) and C0's own drift since the calibration (PDMS's
 permittivity and the gap move with temperature; C0_DRIFT_RELATIVE = 0.1 %
 of C0 is what we allow, an assumption to replace by a measured figure).
-Temperature moves every taxel alike, a grip a minority: C0 is first moved
-by the median over taxels of tared mean / C0 (``common_c0``), so a sensor
+Temperature moves every taxel alike, a grip some of them: C0 is first moved
+by the free taxels' tared mean / C0 (``common_c0``), so a sensor
 0.3 % warmer than at its calibration neither takes a gripped taxel's zero
 0.3 % off (0.27 N after release, against 0.03) nor, at 0.5 %, calls every
 taxel loaded.
@@ -39,6 +39,9 @@ C0_DRIFT_RELATIVE = 1e-3
 LOADED_SIGMAS = 4.0
 MISMATCH_TAXELS = 2
 MISMATCH_SHARE = 0.05
+COMMON_MIN_TAXELS = 8
+COMMON_QUANTILE = 0.25
+COMMON_MAX_DRIFT = 0.02  # a few degrees' worth; a larger common shift is a mismatch, not temperature
 
 
 def _sigma(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
@@ -46,14 +49,24 @@ def _sigma(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
     return np.hypot(noise, C0_DRIFT_RELATIVE * c0_pF)
 
 
-def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray) -> np.ndarray:
+def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, sigma_pF: np.ndarray) -> np.ndarray:
     """The calibration's C0 (n,) moved by the sensor's common-mode drift
-    since: times the median over measured taxels of mean/C0 (a grip loads a
-    minority of taxels; temperature moves them all)."""
+    since (temperature moves every taxel alike, a grip raises some): the
+    lower quartile of mean/C0 over the measured taxels (up to three
+    quarters of them gripped leave it on a free one), then the median of
+    those within LOADED_SIGMAS σ (``sigma_pF`` (n,)) of it — the free
+    taxels, unbiased —, within ±COMMON_MAX_DRIFT; unmoved with fewer than
+    COMMON_MIN_TAXELS measured (a partial calibration, a small grid: a grip
+    could be most of them)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = mean_pF / c0_pF
     usable = measured & np.isfinite(ratio)
-    return c0_pF * float(np.median(ratio[usable])) if usable.any() else c0_pF
+    if np.count_nonzero(usable) < COMMON_MIN_TAXELS:
+        return c0_pF
+    first = float(np.quantile(ratio[usable], COMMON_QUANTILE))
+    free = usable & (np.abs(ratio - first) <= LOADED_SIGMAS * sigma_pF / c0_pF)
+    factor = float(np.median(ratio[free])) if free.any() else first
+    return c0_pF * min(max(factor, 1.0 - COMMON_MAX_DRIFT), 1.0 + COMMON_MAX_DRIFT)
 
 
 def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
@@ -63,7 +76,7 @@ def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: 
     (``common_c0``: the zero a loaded taxel takes); or, when the taxels
     below it by as much show it is not this sensor's (module docstring),
     none loaded and those taxels as mismatch (none otherwise)."""
-    c0_pF = common_c0(c0_pF, measured, mean_pF)
+    c0_pF = common_c0(c0_pF, measured, mean_pF, _sigma(c0_pF, std_pF, frames))
     sigma = _sigma(c0_pF, std_pF, frames)
     with np.errstate(invalid="ignore"):
         below = measured & (c0_pF - mean_pF > LOADED_SIGMAS * sigma)
