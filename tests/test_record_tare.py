@@ -423,3 +423,30 @@ def test_a_late_zero_completing_inside_joined_reads_applies_from_there_on(tmp_pa
     again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
     assert again == live
     assert live[(0, 248, 248_000)]["taxels_N"][5] is None and live[(0, 249, 249_000)]["taxels_N"][5] is not None
+
+
+@pytest.mark.parametrize("begin", [1001, 1521, 2003])
+def test_a_recording_begun_mid_stream_counts_load_cycles_as_live(tmp_path, begin):
+    """A quad pressed and let go every 40 scans from scan 1 500 (load cycles
+    move its fatigue factor); the recording begins at scan ``begin``: before,
+    among the cycles (1001), while pressed (1521: a cycle pending) or after
+    some (2003). Its /baselines carry where the count stood (counts, which
+    frames are judged, a load on), so the replay's factors are live's: 93,
+    62, 31 frames differed when the judged frames' phase was lost."""
+    from service.protocol import FrameType, encode_frame
+
+    rng = np.random.default_rng(5)
+    c0 = np.array([2.31, 2.12, 2.27, 2.19]) * 1e6
+    pipeline = Pipeline(Reconstructor(level="full"))
+    recorder = None
+    for seq in range(4000):
+        if seq == begin:
+            recorder = Recorder(tmp_path / "run.mcap")
+            recorder.attach(pipeline)
+        pressed = seq >= 1500 and seq // 40 % 2
+        counts = c0 * (1.0 + (0.09 if pressed else 0.0)) + rng.normal(0, 300, 4)
+        pipeline.feed(encode_frame(FrameType.QUAD, 0, seq, 1000 * seq, counts.astype("<u4").tobytes()), 1000.0 + 0.001 * seq)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    again = by_frame(replayed_forces(tmp_path / "run.mcap"))
+    assert again == live and len(live) == 4000 - begin

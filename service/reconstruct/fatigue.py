@@ -81,6 +81,20 @@ class CycleCounter:
         self._any_armed = False
         self._seen = 0  # frames offered, for JUDGE_EVERY
 
+    def where(self) -> dict:
+        """Where the count stands ({cycles, cycles_seen, cycles_armed}): what a
+        recording begun now stores, so that its replay counts as live did
+        (which frames are judged, a load already on)."""
+        return {"cycles": self.counts.tolist(), "cycles_seen": self._seen, "cycles_armed": self._armed.tolist()}
+
+    def resume(self, where: dict) -> None:
+        """Continue from ``where`` (ValueError when it is not this counter's size)."""
+        counts, armed = np.array(where["cycles"], dtype=np.int64), np.array(where["cycles_armed"], dtype=bool)
+        if counts.shape != self.counts.shape or armed.shape != self.counts.shape:
+            raise ValueError(f"cycle counts: expected {self.counts.size}, got {counts.size}")
+        self.counts, self._armed, self._seen = counts, armed, int(where["cycles_seen"])
+        self._any_armed = bool(armed.any())
+
     def update(self, forces: np.ndarray) -> None:
         """Forces (N, n) in frame order (NaN: no reading, changes nothing);
         every JUDGE_EVERY-th frame of the stream is judged."""

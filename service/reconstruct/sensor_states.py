@@ -164,13 +164,16 @@ class SensorStates:
                     state.loaded = np.isin(np.arange(info.channels), zero["loaded"])
                 if zero.get("stale_runs") is not None and len(zero["stale_runs"]) == info.channels:
                     state.processor.restore_stale_runs(_array(zero["stale_last_pF"]), zero["stale_runs"])
+                if zero.get("cycles") is not None and state.cycles is not None:
+                    state.cycles.resume(zero)
             self._sensors[info.id] = state
         return state
 
     def baselines(self) -> list[dict]:
         """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
-        and where its stale-channel count stands: stale_last_pF, stale_runs}
-        (NaN as None), what a recording begun now stores for its replay."""
+        where its stale-channel count stands: stale_last_pF, stale_runs, and
+        its load-cycle count: cycles, cycles_seen, cycles_armed} (NaN as
+        None), what a recording begun now stores for its replay."""
         out = []
         for sid, state in sorted(self._sensors.items()):
             if state.baseline.ready:
@@ -179,6 +182,8 @@ class SensorStates:
                 runs = state.processor.stale_runs
                 if runs is not None:
                     zero |= {"stale_last_pF": _listed(runs[0]), "stale_runs": runs[1].tolist()}
+                if state.cycles is not None:
+                    zero |= state.cycles.where()
                 out.append(zero)
         return out
 

@@ -61,7 +61,11 @@ BASELINES = {
             "stale_last_pF": {"type": "array", "items": {"type": ["number", "null"]},
                               "description": "each channel's last reading, where its stale count stands"},
             "stale_runs": {"type": "array", "items": {"type": "integer"},
-                           "description": "frames each channel had repeated that reading (stale at 50)"}}}},
+                           "description": "frames each channel had repeated that reading (stale at 50)"},
+            "cycles": {"type": "array", "items": {"type": "integer"}, "description": "load cycles counted"},
+            "cycles_seen": {"type": "integer", "description": "frames the cycle counter had seen (every 4th is judged)"},
+            "cycles_armed": {"type": "array", "items": {"type": "boolean"},
+                             "description": "outputs loaded above 1 N, a cycle pending"}}}},
     },
 }
 
