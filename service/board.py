@@ -123,6 +123,8 @@ class Board:
             log.warning("%s: its recorded tares cannot be read (%s); replayed without them", self.source, exc)
             return
         self.pipeline.schedule_retares(tares)
+        if began.get("info"):
+            self.pipeline.interpreter.preset_info(began["info"])
         self.pipeline.reconstructor.preset_baselines(began.get("sensors", []))
         if began and self.spec.name is None:  # begun mid-stream, no INFO in it: the name the board had then
             self.pipeline.interpreter.board_name = began["board"]

@@ -356,6 +356,22 @@ class Interpreter:
             return None
         return info
 
+    def info_document(self) -> dict | None:
+        """The INFO in force as a document (its fields and the sensors it
+        lists), None before any: what a recording begun now stores, since its
+        bytes will not hold it (a 4x4 grid is not told from its frames)."""
+        if not self.board:
+            return None
+        sensors = [{"id": sid, "kind": info.kind, "rows": info.rows, "cols": info.cols,
+                    **({"serial": info.serial} if info.serial else {})}
+                   for sid, info in sorted(self.sensors.items()) if sid in self._listed]
+        return {**self.board, "sensors": sensors}
+
+    def preset_info(self, document: dict) -> None:
+        """Take ``info_document``'s document as the INFO in force (a replay
+        of a recording begun mid-stream, before its first frame)."""
+        self._on_info(orjson.dumps(document))
+
     def _on_info(self, payload: bytes) -> None:
         try:
             doc, sensors = parse_info(payload)

@@ -77,6 +77,8 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
                 board_name=board or only or began.get("board"))
             if writer is not None:
                 pipeline.listeners.append(writer.write)
+            if began.get("info"):
+                pipeline.interpreter.preset_info(began["info"])
             pipeline.reconstructor.preset_baselines(began.get("sensors", []))
         return pipeline
 

@@ -450,3 +450,33 @@ def test_a_recording_begun_mid_stream_counts_load_cycles_as_live(tmp_path, begin
     live = by_frame(recorded_forces(tmp_path / "run.mcap"))
     again = by_frame(replayed_forces(tmp_path / "run.mcap"))
     assert again == live and len(live) == 4000 - begin
+
+
+def test_a_recording_begun_mid_stream_keeps_the_info_its_bytes_do_not_hold(tmp_path):
+    """A 4x4 grid and a quad, described by an INFO sent before the recording
+    began: its bytes hold no INFO, and without one a 64-byte grid payload has
+    no shape (every 4x4 frame was rejected in the replay). The INFO in force
+    is recorded with the zeros; the replay takes it first."""
+    from service.protocol import FrameType, encode_frame
+
+    rng = np.random.default_rng(3)
+    info = orjson.dumps({"board": "hand", "serial": "H-7", "rate_hz": 1000,
+                         "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 4}, {"id": 1, "kind": "quad"}]})
+    pipeline = Pipeline(Reconstructor(level="table"))
+    pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info), 1000.0)
+    recorder = None
+    for seq in range(400):
+        if seq == 200:
+            recorder = Recorder(tmp_path / "run.mcap")
+            recorder.attach(pipeline)
+        grid = (10_660_000 + rng.normal(0, 800, 16)).astype("<u4").tobytes()
+        quad = (2_200_000 + rng.normal(0, 800, 4)).astype("<u4").tobytes()
+        pipeline.feed(encode_frame(FrameType.GRID, 0, seq, 1000 * (seq + 1), grid)
+                      + encode_frame(FrameType.QUAD, 1, seq, 1000 * (seq + 1), quad), 1000.0 + 0.001 * seq)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    out = io.BytesIO()
+    replay(tmp_path / "run.mcap", out, level="table")
+    again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+    assert len(live) == 400 and again == live
+    assert {(d["sensor"], d.get("rows"), d.get("cols")) for d in again.values()} == {(0, 4, 4), (1, None, None)}

@@ -90,13 +90,17 @@ def read_tares(path: str | Path) -> dict[str | None, list[tuple[int, int, bool]]
 
 def read_baselines(path: str | Path) -> dict[str | None, dict]:
     """The zeros in force when the recording began, per board (as
-    ``read_boards`` names them): {"board": its name then, "sensors": [...]};
-    none for a recording that began with its stream (its sensors tare in
-    it, and its INFO names the board)."""
+    ``read_boards`` names them): {"board": its name then, "sensors": [...],
+    "info": the INFO then in force (if any)}; none for a recording that
+    began with its stream (its sensors tare in it, and its INFO names the
+    board)."""
     zeros: dict[str | None, dict] = {}
     for topic, message in _topics_of(path, lambda topic: raw_board(topic, "baselines") is not False):
         doc = orjson.loads(message.data)
-        zeros.setdefault(raw_board(topic, "baselines"), {"board": doc["board"], "sensors": []})["sensors"] += doc["sensors"]
+        began = zeros.setdefault(raw_board(topic, "baselines"), {"board": doc["board"], "sensors": []})
+        began["sensors"] += doc["sensors"]
+        if doc.get("info") is not None:
+            began.setdefault("info", doc["info"])
     return zeros
 
 

@@ -98,9 +98,11 @@ class McapLog:
             "board": board, "judge": judge,
             "sensors": [{"sensor": sid, "after_reads": n} for sid, n in sorted(after_reads.items())]})
 
-    def baselines(self, board: str, sensors: list[dict], t_host: float, prefix: str = "") -> None:
-        """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded} when the recording began."""
-        self._add(f"{prefix}/baselines", "baselines", t_host, {"board": board, "sensors": sensors})
+    def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "") -> None:
+        """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded, …} when the recording
+        began; ``info``: the board's INFO then in force (Interpreter.info_document), if any."""
+        self._add(f"{prefix}/baselines", "baselines", t_host,
+                  {"board": board, "sensors": sensors, **({"info": info} if info is not None else {})})
 
     def diagnostics(self, t_host: float, diagnostics: dict, prefix: str = "") -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

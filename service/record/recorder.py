@@ -167,7 +167,8 @@ class Recorder:
             self._log.tare(pipeline.interpreter.name, after_reads, judge, t_host, prefix)
             self.messages += 1
         elif kind == "baselines":
-            self._log.baselines(pipeline.interpreter.name, payload, t_host, prefix)
+            zeros, info = payload
+            self._log.baselines(pipeline.interpreter.name, zeros, info, t_host, prefix)
             self.messages += 1
         else:
             self._log.diagnostics(t_host, payload, prefix)
@@ -203,8 +204,9 @@ class _Listeners:
                 self._first_read = self.pipeline.reads
                 with self.pipeline._lock:  # a tare from the API's thread may be resetting one
                     zeros = self.pipeline.reconstructor.baselines()
-                if zeros:  # a recording begun on a running service: the zeros its replay starts from
-                    self.recorder._queue.put(("baselines", (self.pipeline, zeros), t_host))
+                    info = self.pipeline.interpreter.info_document()
+                if zeros or info:  # a recording begun on a running service: the INFO and zeros its replay starts from
+                    self.recorder._queue.put(("baselines", (self.pipeline, (zeros, info)), t_host))
             self.recorder._queue.put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:

@@ -52,6 +52,8 @@ BASELINES = {
     "type": "object",
     "properties": {
         "board": {"type": "string"},
+        "info": {"type": "object", "description": "the board's INFO in force when the recording began (its bytes do "
+                                                  "not hold it): the sensors' shapes, serials, rate"},
         "sensors": {"type": "array", "items": {"type": "object", "properties": {
             "sensor": {"type": "integer"},
             "baseline_pF": {"type": "array", "items": {"type": ["number", "null"]}},
