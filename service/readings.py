@@ -362,15 +362,19 @@ class Interpreter:
         bytes will not hold it (a 4x4 grid is not told from its frames)."""
         if not self.board:
             return None
-        sensors = [{"id": sid, "kind": info.kind, "rows": info.rows, "cols": info.cols,
-                    **({"serial": info.serial} if info.serial else {})}
-                   for sid, info in sorted(self.sensors.items()) if sid in self._listed]
-        return {**self.board, "sensors": sensors}
+        described = [{"id": sid, "kind": info.kind, "rows": info.rows, "cols": info.cols,
+                      **({"serial": info.serial} if info.serial else {})} for sid, info in sorted(self.sensors.items())]
+        return {**self.board, "sensors": [d for d in described if d["id"] in self._listed],
+                "unlisted": [d for d in described if d["id"] not in self._listed]}  # shapes from an older INFO or frames
 
     def preset_info(self, document: dict) -> None:
         """Take ``info_document``'s document as the INFO in force (a replay
-        of a recording begun mid-stream, before its first frame)."""
-        self._on_info(orjson.dumps(document))
+        of a recording begun mid-stream, before its first frame), with the
+        shapes of the sensors it did not list."""
+        self._on_info(orjson.dumps({k: v for k, v in document.items() if k != "unlisted"}))
+        _, unlisted = parse_info(orjson.dumps({"sensors": document.get("unlisted", [])}))
+        for sid, info in unlisted.items():
+            self.sensors.setdefault(sid, replace(info, board=self.board_name, board_identity=self._swapped_to))
 
     def _on_info(self, payload: bytes) -> None:
         try:

@@ -452,11 +452,14 @@ def test_a_recording_begun_mid_stream_counts_load_cycles_as_live(tmp_path, begin
     assert again == live and len(live) == 4000 - begin
 
 
-def test_a_recording_begun_mid_stream_keeps_the_info_its_bytes_do_not_hold(tmp_path):
+@pytest.mark.parametrize("dropped", [False, True])
+def test_a_recording_begun_mid_stream_keeps_the_info_its_bytes_do_not_hold(tmp_path, dropped):
     """A 4x4 grid and a quad, described by an INFO sent before the recording
     began: its bytes hold no INFO, and without one a 64-byte grid payload has
     no shape (every 4x4 frame was rejected in the replay). The INFO in force
-    is recorded with the zeros; the replay takes it first."""
+    is recorded with the zeros; the replay takes it first. ``dropped``: a
+    later INFO lists only the quad, the grid goes on (its shape from the
+    older INFO, kept as unlisted)."""
     from service.protocol import FrameType, encode_frame
 
     rng = np.random.default_rng(3)
@@ -464,6 +467,9 @@ def test_a_recording_begun_mid_stream_keeps_the_info_its_bytes_do_not_hold(tmp_p
                          "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 4}, {"id": 1, "kind": "quad"}]})
     pipeline = Pipeline(Reconstructor(level="table"))
     pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info), 1000.0)
+    if dropped:
+        only_quad = orjson.dumps({"board": "hand", "serial": "H-7", "sensors": [{"id": 1, "kind": "quad"}]})
+        pipeline.feed(encode_frame(FrameType.INFO, 255, 1, 500, only_quad), 1000.0)
     recorder = None
     for seq in range(400):
         if seq == 200:

@@ -55,17 +55,21 @@ def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, sigm
     lower quartile of mean/C0 over the measured taxels (up to three
     quarters of them gripped leave it on a free one), then the median of
     those within LOADED_SIGMAS σ (``sigma_pF`` (n,)) of it — the free
-    taxels, unbiased —, within ±COMMON_MAX_DRIFT; unmoved with fewer than
-    COMMON_MIN_TAXELS measured (a partial calibration, a small grid: a grip
-    could be most of them)."""
+    taxels, unbiased —, within ±COMMON_MAX_DRIFT. Unmoved unless at least
+    COMMON_MIN_TAXELS, and a quarter of the measured, agree on that level:
+    a partial calibration or a small grid (a grip could be most of them),
+    or another sensor's C0 (no common level: its taxels are then judged
+    against it as they are, and those below it tell the mismatch)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = mean_pF / c0_pF
     usable = measured & np.isfinite(ratio)
     if np.count_nonzero(usable) < COMMON_MIN_TAXELS:
         return c0_pF
-    first = float(np.quantile(ratio[usable], COMMON_QUANTILE))
+    first = float(np.quantile(ratio[usable], COMMON_QUANTILE, method="lower"))  # a taxel's own ratio
     free = usable & (np.abs(ratio - first) <= LOADED_SIGMAS * sigma_pF / c0_pF)
-    factor = float(np.median(ratio[free])) if free.any() else first
+    if np.count_nonzero(free) < max(COMMON_MIN_TAXELS, COMMON_QUANTILE * np.count_nonzero(usable)):
+        return c0_pF  # the taxels agree on no common level (another sensor's C0): judged as they are
+    factor = float(np.median(ratio[free]))
     return c0_pF * min(max(factor, 1.0 - COMMON_MAX_DRIFT), 1.0 + COMMON_MAX_DRIFT)
 
 
