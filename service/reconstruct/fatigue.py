@@ -113,10 +113,7 @@ class CycleCounter:
         above = judged > HIGH_N
         if not len(judged) or (not self._any_armed and not np.count_nonzero(above)):
             return None
-        state = np.where(above, 1, np.where(judged < LOW_N, -1, 0)).astype(np.int8)
-        state = np.vstack([np.where(self._armed, 1, -1).astype(np.int8)[None], state])
-        rows = np.arange(len(state))[:, None]
-        filled = np.take_along_axis(state, np.maximum.accumulate(np.where(state != 0, rows, 0), axis=0), axis=0)
+        filled = self._filled(judged, above)
         ended = (filled[:-1] == 1) & (filled[1:] == -1)  # (J, n): a cycle ends at judged frame j
         if not np.count_nonzero(ended):
             return None
@@ -139,16 +136,19 @@ class CycleCounter:
         if len(forces) <= FEW_FRAMES:
             self._step(forces, above)
             return
-        # Each frame's state: +1 above HIGH, −1 below LOW, 0 between (keeps the last);
-        # carried forward from the previous batch, a cycle is each +1 → −1 step.
-        state = np.where(above, 1, np.where(forces < LOW_N, -1, 0)).astype(np.int8)
-        state = np.vstack([np.where(self._armed, 1, -1).astype(np.int8)[None], state])
-        rows = np.arange(len(state))[:, None]
-        last = np.maximum.accumulate(np.where(state != 0, rows, 0), axis=0)
-        filled = np.take_along_axis(state, last, axis=0)
+        filled = self._filled(forces, above)
         self.counts += np.count_nonzero((filled[:-1] == 1) & (filled[1:] == -1), axis=0)
         self._armed = filled[-1] == 1
         self._any_armed = bool(self._armed.any())
+
+    def _filled(self, forces: np.ndarray, above: np.ndarray) -> np.ndarray:
+        """(N + 1, n) states of judged frames ``forces`` (N, n), after the
+        counter's own: +1 above HIGH, −1 below LOW, between keeps the last;
+        a cycle is each +1 → −1 step."""
+        state = np.where(above, 1, np.where(forces < LOW_N, -1, 0)).astype(np.int8)
+        state = np.vstack([np.where(self._armed, 1, -1).astype(np.int8)[None], state])
+        rows = np.arange(len(state))[:, None]
+        return np.take_along_axis(state, np.maximum.accumulate(np.where(state != 0, rows, 0), axis=0), axis=0)
 
     def _step(self, forces: np.ndarray, above: np.ndarray) -> None:
         """``update`` frame by frame: a cycle is an armed taxel falling below LOW_N."""
