@@ -188,6 +188,22 @@ def test_request_headers_are_bounded_before_anything_reads_them(served):
     assert _raw_request(base_url, b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n" + usual + b"\r\n").startswith(b"HTTP/1.1 200")
 
 
+def test_a_websocket_handshake_past_the_parser_limits_is_answered_and_closed(served):
+    """A WebSocket handshake with a 9 KB header line passed the HTTP parser
+    (it came whole) and was refused by websockets' own parser, after which
+    uvicorn's protocol neither answered nor closed: the connection hung open
+    for ever. Now 400, closed; an ordinary handshake still upgrades."""
+    import time
+
+    base_url, _ = served
+    handshake = (b"GET /ws?sensors=0 HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                 b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n")
+    started = time.monotonic()
+    answer = _raw_request(base_url, handshake + b"X-Big: " + b"a" * 9000 + b"\r\n\r\n", timeout=5)
+    assert answer.startswith(b"HTTP/1.1 400") and time.monotonic() - started < 2.0
+    assert _raw_request(base_url, handshake + b"\r\n", timeout=5).startswith(b"HTTP/1.1 101")
+
+
 def test_a_websocket_client_cannot_send_large_messages(served):
     """The service reads a client's messages only to notice it leave: a
     message over 4 KiB closes that connection (1009) instead of being taken."""

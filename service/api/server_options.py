@@ -13,14 +13,20 @@ the tests' live servers share (docs/security.md).
   stream).
 * No per-message deflate: compressing every 1 kHz message costs more CPU
   than loopback or a LAN saves.
+* A WebSocket handshake its parser refuses (headers past websockets'
+  limits) gets 400 and is closed (ws_handshake.py); it held the connection
+  open for ever.
 """
 from __future__ import annotations
+
+from .ws_handshake import protocol
 
 MAX_HEADER_BYTES = 8 << 10  # request line + headers still arriving; a browser's are a few KiB
 WS_MAX_MESSAGE = 4 << 10
 
 SERVER_OPTIONS = {
     "http": "h11",
+    "ws": protocol(),
     "h11_max_incomplete_event_size": MAX_HEADER_BYTES,
     "ws_max_size": WS_MAX_MESSAGE,
     "ws_per_message_deflate": False,
