@@ -13,6 +13,7 @@ from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
 
 from . import (
     dashboard,
@@ -26,6 +27,7 @@ from ..fanout.history_json import RecentRings
 from .admission import Admission
 from .deps import JSONResponse
 from .guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
+from .validation_errors import validation_error
 
 if TYPE_CHECKING:
     from ..live_service import TactileService
@@ -57,6 +59,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
         app.include_router(routes.router)
     dashboard.add_dashboard(app)
+    app.add_exception_handler(RequestValidationError, validation_error)
     app.add_middleware(Admission)
     app.add_middleware(RequestGuard, bind_host=bind_host, token=token, allow_hosts=allow_hosts,
                        allow_origins=allow_origins, max_body_bytes=max_body_bytes)
