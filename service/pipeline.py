@@ -112,6 +112,9 @@ class Pipeline:
         self._deferred: deque[tuple[list[Reading], float, int]] = deque()  # (grids, t_host, reads)
         self.bytes_fed = 0  # bytes of every read so far
         self._retares: list[tuple[int, int, bool]] = []  # (byte offset, sensor, judged), in order
+        # The board's identity (INFO's serial, name) when sensors' calibrations were last looked up: an
+        # INFO after their first frames (a board already streaming) names the board they are stored under.
+        self._board: tuple = (None, None)
 
     def schedule_retares(self, tares: list[tuple[int, int, bool]]) -> None:
         """Recorded tares (byte offset in the stream, sensor id, judged) to
@@ -266,6 +269,10 @@ class Pipeline:
                 self.bytes_fed += len(data)
                 # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.
                 readings += self.interpreter.interpret_many(self.decoder.feed(data), t_host, self.clock)
+                board = self.interpreter.board
+                if (board.get("serial"), board.get("board")) != self._board and self.reconstructor.resolve is not None:
+                    self._board = (board.get("serial"), board.get("board"))
+                    self.reconstructor.resolve_again()
         return readings
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:

@@ -239,3 +239,42 @@ def test_a_calibration_made_for_a_named_board_is_found_by_that_board_only(tmp_pa
     book = CalibrationBook(path)
     assert book.for_sensor(result.session.board, SensorInfo(0, "grid", 8, 8, board="left")).id == cid
     assert book.for_sensor(result.session.board, SensorInfo(0, "grid", 8, 8, board="right")) is None
+
+
+def test_a_board_streaming_before_its_info_gets_its_stored_calibration_once_the_info_names_it(tmp_path):
+    """A board already streaming when the service connects sends frames
+    before its INFO (the reply to INFO?): the sensor's calibration was
+    looked up then, under an unknown board, and never again, so the one
+    stored for the board's serial was not used (frames said builtin-table1,
+    /health ok). Now the INFO's identity looks it up again; the zero is kept."""
+    from service.calibration import registry as reg
+    from service.calibration.book import CalibrationBook
+    from service.pipeline import Pipeline
+    from service.protocol import FrameType, encode_frame
+    from service.readings import SensorInfo
+    from service.reconstruct import Reconstructor
+
+    board = {"board": "tmux-8x8", "serial": "TMX-A", "fw": "1.1.0", "rate_hz": 1000}
+    info = SensorInfo(0, "grid", 8, 8, board="a")
+    document = reg.builtin_document()
+    document["taxels"]["gain"] = [1.2 * g for g in document["taxels"]["gain"]]
+    document |= {"id": None, "note": "test", "sensor": reg.sensor_identity(board, info), "created": "2026-11-24T00:00:00Z"}
+    path = tmp_path / "registry.sqlite3"
+    with reg.Registry(path) as registry:
+        cid = registry.add({k: v for k, v in document.items() if k != "id"}, activate=True)
+    c0 = np.array(reg.builtin_document()["taxels"]["c0_pF"])
+    rng = np.random.default_rng(1)
+
+    def scan(k: int) -> bytes:
+        raw = np.round((c0 + rng.normal(0, 0.002, 64)) * 1e6).astype("<u4")  # aF
+        return encode_frame(FrameType.GRID, 0, k, 1000 * (k + 1), raw.tobytes())
+
+    info_frame = encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(
+        board | {"sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}]}))
+    pipeline = Pipeline(Reconstructor(level="table"), calibrations=CalibrationBook(path), board_name="a", map_clock=False)
+    before = pipeline.feed(b"".join(scan(k) for k in range(150)), 1.0)
+    after = pipeline.feed(info_frame + b"".join(scan(k) for k in range(150, 200)), 1.2)
+    assert {f.calibration for f in before} == {"builtin-table1"}
+    assert {f.calibration for f in after} == {cid}
+    assert not any("taring" in f.flags for f in after)  # the zero was kept
+    assert pipeline.reconstructor.calibration(0).id == cid

@@ -85,14 +85,35 @@ class SensorStates:
         self._chosen[info.id] = calibration
         state = self._sensors.get(info.id)
         if state is not None:
-            runs = state.processor.stale_runs
-            if runs is not None:  # a converter stuck before the new calibration is still stuck
-                processor.restore_stale_runs(*runs)
-            state.processor, state.calibration = processor, calibration
-            state.cycles = self._cycles(info, calibration)  # counts belong to a calibration: a new one starts anew
-            state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
-            self._calibration_applied(info.id)
+            self._swap(state, calibration, processor)
         return document
+
+    def resolve_again(self) -> list[int]:
+        """The board's identity changed (its INFO came after its first
+        frames: a board already streaming when the service connected):
+        each sensor's calibration is looked up again, and one that differs
+        from the one in use is swapped in, the zero kept (a calibration set
+        through ``set_calibration`` stays). Returns the sensors changed."""
+        changed = []
+        for sid, state in list(self._sensors.items()):
+            if sid in self._chosen:
+                continue
+            calibration = self._calibration_for(state.info)
+            if calibration.id != state.calibration.id:
+                self._swap(state, calibration, processor_for(state.info, self.level, self.mounting, calibration))
+                log.info("sensor %d: calibration %s now that its board is known", sid, calibration.id)
+                changed.append(sid)
+        return changed
+
+    def _swap(self, state: SensorState, calibration: SensorCalibration, processor) -> None:
+        """``calibration`` and its ``processor`` in place of the sensor's, its zero kept."""
+        runs = state.processor.stale_runs
+        if runs is not None:  # a converter stuck before the new calibration is still stuck
+            processor.restore_stale_runs(*runs)
+        state.processor, state.calibration = processor, calibration
+        state.cycles = self._cycles(state.info, calibration)  # counts belong to a calibration: a new one starts anew
+        state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
+        self._calibration_applied(state.info.id)
 
     def tare_glitches(self, sensor_id: int) -> dict[int, int]:
         """{channel: readings left out of its zero as glitches} of the current
