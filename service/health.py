@@ -24,6 +24,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
     name = pipeline.interpreter.name
     unlisted = pipeline.interpreter.unlisted
     dropped = pipeline.interpreter.dropped
+    info_at = pipeline.interpreter.info_t_host
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
@@ -40,7 +41,11 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "calibration": calibration_state(pipeline, sid, now, book),
             "fatigue": pipeline.reconstructor.fatigue(sid),
             "not_in_info": sid in unlisted,
-            "retired": sid in dropped and stale,  # an INFO listed it, the one in force does not, and it sends nothing
+            # Sends nothing, and the INFO in force does not list it: an INFO once did, or it has sent nothing
+            # since that INFO came (a board restarted without it). One that stops while the INFO it came
+            # after is in force (a board whose INFO cannot list every sensor) is stale: a failure.
+            "retired": stale and (sid in dropped or (sid in unlisted and info_at is not None and latest is not None
+                                                     and latest.t_host < info_at)),
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
@@ -65,7 +70,9 @@ def _reconstruction(pipeline) -> dict:
 def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     """Why the status is degraded, one line each (empty when ok)."""
     problems = []
-    if link["state"] != "up":
+    if link["state"] == "stale":  # connected, silent: an error from before it connected is not why
+        problems.append(f"link stale: connected, no bytes for {link['silent_s']:g} s")
+    elif link["state"] != "up":
         problems.append(f"link {link['state']}" + (f": {link['last_error']}" if link["last_error"] else ""))
     problems += [f"sensor {sid} stale" for sid, sensor in sensors.items() if sensor["stale"] and not sensor.get("retired")]
     problems += [f"sensor {sid} reconstruction fails: {error['error']} ({error['count']} times)"
@@ -82,7 +89,7 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [f"sensor {sid} sends data but the board's INFO does not list it (its shape is taken from its frames)"
-                 for sid, s in sensors.items() if s.get("not_in_info") and not s.get("retired")]
+                 for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems
 
 

@@ -205,6 +205,7 @@ class Interpreter:
         self.board_name = board_name
         self.name_board = name_board
         self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
+        self.info_t_host: float | None = None  # when the last INFO frame came (host clock)
         self.sensors: dict[int, SensorInfo] = {}
         self.board_errors: deque[tuple[float, str]] = deque(maxlen=50)
         self._error_logged_at: float | None = None  # monotonic time of the last board error logged
@@ -329,6 +330,7 @@ class Interpreter:
         ERROR frame or counted a rejected data frame, otherwise."""
         if frame.type == FrameType.INFO:
             self._on_info(frame.payload)
+            self.info_t_host = t_host
             return None
         if frame.type == FrameType.ERROR:
             text = frame.payload.decode("utf-8", errors="replace")

@@ -206,6 +206,28 @@ def test_a_sensor_no_info_ever_listed_that_stops_is_stale_not_retired():
     assert "sensor 1 stale" in report["problems"]
 
 
+def test_a_sensor_no_info_listed_that_stopped_before_the_board_restarted_without_it_is_retired():
+    """An unlisted sensor that stopped, then a board restart whose INFO
+    again does not list it: /health said "stale" and "sends data but the
+    board's INFO does not list it" for good (43 s after its last frame). It
+    is retired; "sends data" is said only of a sensor that does."""
+    service = TactileService("sim://")
+    only0 = orjson.dumps({"board": "b", "sensors": [{"id": 0, "kind": "quad"}]})
+    quad = np.full(4, 2_200_000, "<u4").tobytes()
+    now = time.time()
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(
+        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - 3.0)
+    report = health_report(service)
+    assert report["sensors"]["1"]["stale"] and not report["sensors"]["1"]["retired"]
+    assert "sensor 1 stale" in report["problems"]
+    assert not any("sends data" in p for p in report["problems"])  # it sends nothing now
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(  # restarted: 0 from 0 again
+        encode_frame(FrameType.QUAD, 0, s, 1000 * (s + 1), quad) for s in range(150)), now)
+    report = health_report(service)
+    assert report["sensors"]["1"]["retired"] is True
+    assert not any("sensor 1" in p for p in report["problems"])
+
+
 def test_below_zero_is_told_on_a_slow_board_too():
     """At 10 scans/s a second holds 10 frames, fewer than the 20 the rule
     wants: the last 20 frames are looked at, however long they took."""
@@ -219,3 +241,18 @@ def test_below_zero_is_told_on_a_slow_board_too():
         history.append(ForceFrame(info, k, k * 100_000, 1000.0 + 0.1 * k, np.array([0.0, 0.0, 0.0]), np.ones(4),
                                   ["normal_out_of_range"], "full"))
     assert history.below_zero() == [2]
+
+
+def test_a_silent_link_is_not_blamed_on_an_error_from_before_it_connected():
+    """A board connected and silent was "link stale: cannot open …
+    Connection refused", an error of an earlier attempt."""
+    from service.health import _problems
+    from service.readout import LinkState
+
+    link = LinkState("socket://127.0.0.1:1")
+    link.last_error = "cannot open 'socket://127.0.0.1:1': Connection refused"
+    link.up, link.connected_at = True, 100.0
+    problems = _problems(link.as_dict(102.0, 0.5), {}, {})
+    assert problems == ["link stale: connected, no bytes for 2 s"]
+    link.up = False
+    assert _problems(link.as_dict(103.0, 0.5), {}, {}) == ["link down: " + link.last_error]
