@@ -84,7 +84,7 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  "sensor, or C0 drifted), so loaded taxels cannot be told" for sid, s in sensors.items()
                  if (s.get("calibration") or {}).get("below_c0")]
     problems += [f"sensor {sid}: channels {s['unzeroed_channels']} have no zero (no plausible reading while it "
-                 "tared): their forces are null" for sid, s in sensors.items() if s.get("unzeroed_channels")]
+                 "tared, or one far off the sensor's own level: a fault then): their forces are null until they read plausibly" for sid, s in sensors.items() if s.get("unzeroed_channels")]
     problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]

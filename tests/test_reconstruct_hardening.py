@@ -647,3 +647,46 @@ def test_a_frozen_drift_estimate_is_suspect_after_10_s_whatever_the_board_clock_
         flags += [suspect for _, suspect in tracker.follow(ts, [False] * len(ts), [0.0] * len(ts))]
     first = flags.index(True)
     assert abs(first - 10_000) <= 1 and all(flags[first:])
+
+
+def test_a_channel_far_off_its_sensors_level_while_it_tared_waits_for_a_zero_of_its_own():
+    """A converter fault at power-up: grid taxel 4 read 60 pF (5.6× its
+    10.7 pF C0) and a quad's electrode 0.41× its C0 while they tared; the
+    wide tare window (nominal C0, not the board's own) took both as zeros,
+    so once they recovered the taxel was null and the quad's three forces
+    null, flagged out of range, until a tare — and /health said nothing.
+    Now such a zero is set aside (/health names the channel unzeroed) and
+    a late one taken once the channel reads at its sensor's level."""
+    from service.physics.paper_data import grid_calibration
+    from service.physics.quad_model import NOMINAL_C0_PF
+    from service.pipeline import Pipeline
+    from service.protocol import FrameType, encode_frame
+    from service.reconstruct import Reconstructor
+
+    c0 = grid_calibration(8, 8).c0_pF
+    rng = np.random.default_rng(4)
+
+    def scans(start: int, stop: int, faulty: bool) -> bytes:
+        out = []
+        for k in range(start, stop):
+            grid = c0 + rng.normal(0, 0.002, 64)
+            quad = NOMINAL_C0_PF * (1 + rng.normal(0, 2e-4, 4))
+            if faulty:
+                grid[4], quad[0] = 60.0 + rng.normal(0, 0.05), 0.41 * NOMINAL_C0_PF
+            out.append(encode_frame(FrameType.GRID, 0, k, 1000 * (k + 1), np.round(grid * 1e6).astype("<u4").tobytes()))
+            out.append(encode_frame(FrameType.QUAD, 1, k, 1000 * (k + 1), np.round(quad * 1e6).astype("<u4").tobytes()))
+        return b"".join(out)
+
+    pipeline = Pipeline(Reconstructor(level="full"), map_clock=False)
+    faulty = pipeline.feed(scans(0, 300, True), 1.0)
+    grid = [f for f in faulty if f.sensor.id == 0][-1]
+    quad = [f for f in faulty if f.sensor.id == 1][-1]
+    assert np.isnan(grid.forces_N[4]) and np.isfinite(np.delete(grid.forces_N, 4)).all()
+    assert pipeline.reconstructor.unzeroed(0) == [4] and pipeline.reconstructor.unzeroed(1) == [0]
+    assert np.isnan(quad.forces_N).all()
+    recovered = pipeline.feed(scans(300, 500, False), 2.0)
+    grid = [f for f in recovered if f.sensor.id == 0][-1]
+    quad = [f for f in recovered if f.sensor.id == 1][-1]
+    assert pipeline.reconstructor.unzeroed(0) == [] and pipeline.reconstructor.unzeroed(1) == []
+    assert np.isfinite(grid.forces_N).all() and abs(grid.forces_N[4]) < 0.05 and not grid.taxel_flag_lists()
+    assert np.isfinite(quad.forces_N).all() and np.abs(quad.forces_N).max() < 0.05

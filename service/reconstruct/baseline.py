@@ -1,6 +1,8 @@
 """Zero-load baseline per channel: auto-tare on start and on demand."""
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 DEFAULT_TARE_FRAMES = 100
@@ -26,6 +28,10 @@ class Baseline:
     ``window`` ((channels,) low and high pF, level0.tare_window_pF): a
     reading outside it is implausible (1 aF, the converter's top count) and,
     like a sentinel, takes no part in the mean; None accepts every reading.
+    ``own_level`` (level0.own_level_window): given a finished tare's zeros,
+    the window around the sensor's own level; a channel whose zero lies
+    outside it (a converter fault while it tared: 5× its neighbours) gets
+    none, and waits for a late zero within that window.
 
     A glitch inside the window (one reading of a mux settling late, ESD:
     plausible as a capacitance, 50 % off the others) would shift the zero
@@ -44,11 +50,13 @@ class Baseline:
     """
 
     def __init__(self, channels: int, frames: int = DEFAULT_TARE_FRAMES,
-                 window: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 window: tuple[np.ndarray, np.ndarray] | None = None,
+                 own_level: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None) -> None:
         if frames < 1:
             raise ValueError(f"tare needs at least 1 frame, got frames={frames}")
         self.frames = frames
-        self.window = window
+        self.window = self._window = window
+        self.own_level = own_level
         self._sum = np.zeros(channels)
         self._sum_sq = np.zeros(channels)
         self._count = np.zeros(channels, dtype=np.int64)
@@ -71,6 +79,7 @@ class Baseline:
         self.restarts = 0
 
     def _begin(self) -> None:
+        self.window = self._window
         self._sum[:] = 0.0
         self._sum_sq[:] = 0.0
         self._count[:] = 0
@@ -127,8 +136,27 @@ class Baseline:
                 self.restarts += 1
                 return False
             self._late = self._count == 0
+            self._set_aside_off_level()
             self._any_late = bool(self._late.any())
         return self.ready
+
+    def _set_aside_off_level(self) -> None:
+        """Channels whose zero lies outside the sensor's own level's window
+        lose it; they and those that had none wait for a late zero inside
+        that window."""
+        window = self.own_level(self.value) if self.own_level is not None else None
+        if window is None:
+            return
+        off = (self.value < window[0]) | (self.value > window[1])  # NaN compares False
+        if off.any():
+            self.value = np.where(off, np.nan, self.value)
+            self.std = np.where(off, np.nan, self.std)
+            self._sum[off], self._sum_sq[off], self._count[off] = 0.0, 0.0, 0
+            self._samples[:, off] = np.nan
+            self._late |= off
+        if self._late.any():
+            low, high = self._window if self._window is not None else (-np.inf, np.inf)
+            self.window = (np.where(self._late, window[0], low), np.where(self._late, window[1], high))
 
     def _valid(self, capacitance_pF: np.ndarray, channels: np.ndarray) -> np.ndarray:
         """The ``channels`` (n,) bool whose reading counts towards the zero."""

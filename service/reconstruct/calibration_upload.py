@@ -10,6 +10,7 @@ calibration, ``tare_window`` the readings a tare may take.
 from __future__ import annotations
 
 from datetime import datetime, timezone
+from functools import partial
 
 import numpy as np
 
@@ -19,7 +20,7 @@ from ..physics.taxel_response import SENSITIVITY_RANGE_PCT_PER_N, table_top, tax
 from ..readings import SensorInfo
 from .crosstalk import Crosstalk
 from .grid import GridProcessor
-from .level0 import tare_window_pF
+from .level0 import own_level_window, tare_window_pF
 from .quad import QuadProcessor
 from .sensor_calibration import SCHEMA, SensorCalibration, calibration_id, check_c0, from_document
 
@@ -42,9 +43,20 @@ def processor_for(info: SensorInfo, level: str, mounting: str,
 def tare_window(info: SensorInfo, mounting: str, calibration: SensorCalibration) -> tuple[np.ndarray, np.ndarray]:
     """Readings a tare may take (level0.py): the plausible window around
     the nominal C0 (table 1's; a quad's NOMINAL_C0_PF), widened."""
+    return tare_window_pF(*_nominal(info, mounting, calibration))
+
+
+def own_level(info: SensorInfo, mounting: str, calibration: SensorCalibration):
+    """The window around a finished tare's own level (level0.own_level_window), for the sensor's Baseline."""
+    nominal, top = _nominal(info, mounting, calibration)
+    return partial(own_level_window, nominal_c0_pF=nominal, top_relative=top)
+
+
+def _nominal(info: SensorInfo, mounting: str, calibration: SensorCalibration) -> tuple[np.ndarray, float]:
+    """(nominal C0 (n,) pF, largest ΔC/C0 the model explains) of the sensor's kind and shape."""
     if info.kind == "quad":
-        return tare_window_pF(np.full(info.channels, NOMINAL_C0_PF), calibration.quad.top_relative)
-    return tare_window_pF(grid_calibration(info.rows, info.cols).c0_pF, table_top(mounting))
+        return np.full(info.channels, NOMINAL_C0_PF), calibration.quad.top_relative
+    return grid_calibration(info.rows, info.cols).c0_pF, table_top(mounting)
 
 
 def upload_document(info: SensorInfo, upload: dict, mounting: str, sensor: dict | None = None) -> dict:

@@ -77,6 +77,26 @@ def tare_window_pF(nominal_c0_pF: np.ndarray, top_relative: float) -> tuple[np.n
     return nominal * PLAUSIBLE_LOW / TARE_WIDEN, nominal * (1.0 + top_relative) * PLAUSIBLE_MARGIN * TARE_WIDEN
 
 
+OWN_LEVEL_CHANNELS = 3  # zeros a sensor needs before its own level says which of them is off
+
+
+def own_level_window(zero_pF: np.ndarray, nominal_c0_pF: np.ndarray, top_relative: float) -> tuple | None:
+    """(low, high) pF (n,): the plausible window around the sensor's own
+    level, a finished tare's ``zero_pF`` (n,) (NaN: none) against the
+    nominal C0 (n,). The level is the median of zero / nominal over the
+    channels with a zero (the nominal C0 is not the board's own, so the
+    wide tare window holds a channel that read 5× the others while it tared:
+    a converter fault at power-up that, once it recovered, left the channel
+    implausible against that zero, null until the next tare). None with
+    fewer than OWN_LEVEL_CHANNELS zeros."""
+    ratio = zero_pF / nominal_c0_pF
+    ratio = ratio[ratio == ratio]
+    if ratio.size < OWN_LEVEL_CHANNELS:
+        return None
+    own = float(np.median(ratio)) * np.asarray(nominal_c0_pF, dtype=float)
+    return own * PLAUSIBLE_LOW, own * (1.0 + top_relative) * PLAUSIBLE_MARGIN
+
+
 def implausible(relative: np.ndarray, low, high) -> np.ndarray | None:
     """Mask of ΔC/C0 outside [low, high], or None when there is none (NaN
     compares False: a missing reading is not implausible). The bounds may be

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..readings import SensorInfo
 from .baseline import Baseline
-from .calibration_upload import processor_for, tare_window, upload_document
+from .calibration_upload import own_level, processor_for, tare_window, upload_document
 from .fatigue import CycleCounter
 from .grid import GridProcessor
 from .loaded_tare import judge, loaded_taxels
@@ -173,7 +173,8 @@ class SensorStates:
         if state is None or (state.info is not info and state.info != info):
             calibration = self._calibration_for(info)
             window = tare_window(info, self.mounting, calibration)
-            state = SensorState(info, Baseline(info.channels, self.tare_frames, window),
+            state = SensorState(info, Baseline(info.channels, self.tare_frames, window,
+                                               own_level(info, self.mounting, calibration)),
                                  processor_for(info, self.level, self.mounting, calibration), calibration)
             state.cycles = self._cycles(info, calibration)
             state.judge_tare = self._first_judge.pop(info.id, True)
