@@ -20,7 +20,6 @@ from .calibration.registry import sensor_identity
 from .handover import LoopHandover
 from .history import Histories
 from .pipeline import Pipeline
-from .readings import UNNAMED_BOARD
 from .readout import DEFAULT_SILENCE_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
 from .sources.protocol_replay import recorded_baselines, recorded_tares
@@ -97,7 +96,7 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
 
 class Board:
     """One board of the service. ``name`` is its given name, or the one its
-    first INFO settled (``board`` until then)."""
+    first INFO settled (``board``, or ``board-2`` … beside other unnamed boards, until then)."""
 
     def __init__(self, spec: BoardSpec, calibrations, histories: Histories, name_board=None,
                  silence_s: float = DEFAULT_SILENCE_S, grid_batch_s: float = 0.0) -> None:
@@ -131,7 +130,7 @@ class Board:
 
     @property
     def name(self) -> str:
-        return self.pipeline.interpreter.board_name or UNNAMED_BOARD
+        return self.pipeline.interpreter.name
 
     @property
     def sensors(self) -> dict:

@@ -20,7 +20,7 @@ from .fanout.hub import Hub
 from .health import health_report
 from .history import DEFAULT_BUDGET_BYTES, Histories
 from .latency import LatencyMeter
-from .readings import name_from_info
+from .readings import UNNAMED_BOARD, name_from_info
 from .readout import DEFAULT_SILENCE_S
 from .reconstruct import DEFAULT_LEVEL
 from .record.recorder import Recorder
@@ -74,6 +74,15 @@ class TactileService:
         self._boards = [Board(spec, self.calibrations.with_pinned(list(spec.calibration)) if spec.calibration
                               else self.calibrations, Histories(share), self._name_board, silence_s, grid_batch_s)
                         for spec in specs]
+        # Boards without a name until their INFO settles one (never, if it is invalid) must not share
+        # ``board``: /health showed one of two, and their sensors' addresses were the same.
+        taken = set(names)
+        for k, board in enumerate([b for b in self._boards if b.spec.name is None] if len(specs) > 1 else []):
+            provisional, n = UNNAMED_BOARD, 2
+            while provisional in taken:
+                provisional, n = f"{UNNAMED_BOARD}-{n}", n + 1
+            board.pipeline.interpreter.unnamed = provisional
+            taken.add(provisional)
         self.hub = Hub()
         self.published_latency = LatencyMeter()  # receive stamp → decoded, reconstructed, handed to listeners
         self.started_at = time.time()

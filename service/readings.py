@@ -203,6 +203,7 @@ class Interpreter:
     def __init__(self, clock=time.time, max_unannounced_sensors: int = MAX_UNANNOUNCED_SENSORS,
                  board_name: str | None = None, name_board=name_from_info) -> None:
         self.board_name = board_name
+        self.unnamed = UNNAMED_BOARD  # the name until one is settled (a service of several boards makes it unique)
         self.name_board = name_board
         self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
         self.info_t_host: float | None = None  # when the last INFO frame came (host clock)
@@ -222,8 +223,8 @@ class Interpreter:
 
     @property
     def name(self) -> str:
-        """The board's name (``board`` until one is settled)."""
-        return self.board_name or UNNAMED_BOARD
+        """The board's name (``unnamed`` until one is settled)."""
+        return self.board_name or self.unnamed
 
     @property
     def unlisted(self) -> list[int]:

@@ -120,6 +120,24 @@ def test_a_bare_source_is_named_from_its_info():
         assert client.get("/sensors/0/latest").status_code == 200  # one board: a bare id still works
 
 
+def test_bare_sources_whose_info_never_names_them_do_not_share_a_name():
+    """Two unnamed sources whose INFO is invalid (or not come yet) were both
+    ``board``: /health showed one of them, /sensors listed board/0 twice and
+    board/0 read either. Until an INFO names them they are board, board-2."""
+    from service.health import health_report
+    from service.protocol import FrameType, encode_frame
+
+    service = TactileService(boards=[BoardSpec("socket://127.0.0.1:1"), BoardSpec("socket://127.0.0.1:2")])
+    invalid = encode_frame(FrameType.INFO, 255, 0, 0, b'{"board": "x", "sensors": 3}')
+    quad = np.full(4, 2_200_000, "<u4").tobytes()
+    for board in service.all_boards:
+        board.pipeline.feed(invalid + b"".join(encode_frame(FrameType.QUAD, 0, k, 1000 * (k + 1), quad)
+                                               for k in range(5)), time.time())
+    assert [b.name for b in service.all_boards] == ["board", "board-2"]
+    assert sorted(health_report(service)["boards"]) == ["board", "board-2"]
+    assert [f.sensor.address for b in service.all_boards for f in [b.pipeline.latest[0]]] == ["board/0", "board-2/0"]
+
+
 def test_a_board_that_stalls_floods_or_vanishes_does_not_disturb_another():
     bad = MisbehavingBoard()
     service = TactileService(boards=[BoardSpec("sim://?scene=press&sensors=grid,quad", "good"),
