@@ -208,3 +208,29 @@ def test_a_reference_saved_by_a_spreadsheet_with_a_byte_order_mark_is_read(tmp_p
     (tmp_path / "r.csv").write_bytes("\ufefft_s,force_N\n0.0,1.5\n0.01,2.5\n".encode())
     reference = read_reference(tmp_path / "r.csv")
     assert reference.force_N.tolist() == [1.5, 2.5] and reference.skipped == 0
+
+
+@pytest.mark.parametrize("level", ["table", "full"])
+def test_a_force_past_an_empirical_curves_end_is_flagged_saturated_without_sigma(level):
+    """An empirical curve ends at the largest force pressed in the session;
+    past it the force was held at that end, unflagged, with the curve's
+    small σ (a true 8.5 N read 7.89 ± 0.025 N). Now it is held there and
+    flagged saturated with no σ, as a model taxel past the table's top."""
+    from dataclasses import replace
+
+    from service.readings import SensorInfo
+    from service.reconstruct.calibration_upload import processor_for
+    from service.reconstruct.grid import SATURATED
+    from service.reconstruct.sensor_calibration import builtin
+
+    info = SensorInfo(0, "grid", 8, 8)
+    relative, force = np.array([0.0, 0.05, 0.1]), np.array([0.0, 4.0, 7.9])
+    calibration = replace(builtin(info), curves={2: (relative, force)})
+    processor = processor_for(info, level, "flat", calibration)
+    c0 = calibration.grid.c0_pF
+    frames = np.tile(c0, (3, 1))
+    frames[:, 2] *= 1 + np.array([0.05, 0.099, 0.11])  # on the curve, just inside its end, past it
+    result = processor.process(frames, c0, np.full(64, 0.002), np.arange(3) * 1e-3)
+    assert result.forces_N[:, 2] == pytest.approx([4.0, 4.0 + 0.049 / 0.05 * 3.9, 7.9], abs=2e-3)  # (full: unmixed)
+    assert (result.taxel_flags[:, 2] & SATURATED).tolist() == [0, 0, SATURATED]
+    assert np.isfinite(result.sigma_N[:2, 2]).all() and np.isnan(result.sigma_N[2, 2])

@@ -207,7 +207,7 @@ class GridProcessor:
         noise = self.noise(baseline, baseline_std)
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
         if self.curves:
-            empirical_forces(self.curves, relative, forces)
+            empirical_forces(self.curves, relative, forces, saturated)
         # Taxel by taxel, so an implausible reading is set aside afterwards.
         # It lies above the table's top (saturated) or below −5σ (out of
         # range) — unless the tare was absurdly noisy — so a frame with

@@ -104,7 +104,7 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     forces, saturated, out_of_range = _inverted(pieces, rows, params, compensated, noise, gain, shared)
     for (p, _, _), r in zip(pieces, rows):
         if p.curves:
-            empirical_forces(p.curves, compensated[r], forces[r])
+            empirical_forces(p.curves, compensated[r], forces[r], saturated[r])
     sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma), saturated, shared)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)

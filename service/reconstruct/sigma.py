@@ -47,10 +47,14 @@ def level0_sigma(processor, forces: np.ndarray, noise: np.ndarray) -> np.ndarray
     return np.sqrt(reading * reading + (forces * processor.gain_relative_se) ** 2)
 
 
-def empirical_forces(curves: dict, relative: np.ndarray, forces: np.ndarray) -> None:
+def empirical_forces(curves: dict, relative: np.ndarray, forces: np.ndarray, saturated: np.ndarray) -> None:
     """Overwrite ``forces`` (N, n) of the taxels with an empirical curve
     ({taxel: (relative (m,), force (m,))}) by that curve's inverse; a ΔC/C0
-    below the curve's start gives its first force (0), above its end its
-    last (flagged saturated by the model's top as any other taxel)."""
+    below the curve's start gives its first force (0). Above its end the
+    calibration says nothing: the force is held at the curve's last (the
+    largest calibrated) and ``saturated`` (N, n) is set there, so it is
+    flagged and has no σ, as a model taxel past the table's top (it was
+    held there unflagged: a true 8.5 N read 7.89 N ± 0.025 N)."""
     for taxel, (r, f) in curves.items():
         forces[..., taxel] = np.interp(relative[..., taxel], r, f)
+        saturated[..., taxel] |= relative[..., taxel] > r[-1]
