@@ -93,6 +93,19 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     return problems
 
 
+def _shared_serials(boards) -> list[str]:
+    """A problem per serial that several boards' INFO report: a serial names one board, and its sensors'
+    calibrations and load-cycle counts are stored under it (a firmware's default serial, a cloned board)."""
+    by_serial: dict[str, list[str]] = {}
+    for board in boards:
+        serial = board.pipeline.interpreter.board.get("serial") if isinstance(board, Board) else None
+        if serial:
+            by_serial.setdefault(str(serial), []).append(board.name)
+    return [f"boards {', '.join(names)} report one serial {serial!r}: their sensors' calibrations and load-cycle "
+            "counts are kept under it, shared (a firmware's default serial? give each board its own)"
+            for serial, names in by_serial.items() if len(names) > 1]
+
+
 def _outputs(sensor: dict) -> str:
     """What reads below zero, for a problem line."""
     if sensor["kind"] == "quad":
@@ -145,6 +158,7 @@ def health_report(service) -> dict:
     problems = [(f"board {name}: " if several else "") + problem
                 for name, part in boards.items() for problem in part["problems"]]
     problems += book.problems if book is not None else []
+    problems += _shared_serials(service.all_boards)
     report = {
         "status": "ok" if not problems else "degraded",
         "problems": problems,

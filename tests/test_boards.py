@@ -138,6 +138,21 @@ def test_bare_sources_whose_info_never_names_them_do_not_share_a_name():
     assert [f.sensor.address for b in service.all_boards for f in [b.pipeline.latest[0]]] == ["board/0", "board-2/0"]
 
 
+def test_two_boards_reporting_one_serial_are_a_problem_in_health():
+    """Two boards whose INFO give one serial share their sensors' calibration
+    keys (an upload to one was the other's after a restart), silently."""
+    from service.health import health_report
+    from service.protocol import FrameType, encode_frame
+
+    service = TactileService(boards=[BoardSpec("socket://127.0.0.1:1", name="a"), BoardSpec("socket://127.0.0.1:2", name="b")])
+    info = encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps({"board": "tmux", "serial": "TMX-SAME",
+                                                                "sensors": [{"id": 0, "kind": "quad"}]}))
+    for board in service.all_boards:
+        board.pipeline.feed(info, time.time())
+    problems = health_report(service)["problems"]
+    assert any(p.startswith("boards a, b report one serial 'TMX-SAME'") for p in problems), problems
+
+
 def test_a_board_that_stalls_floods_or_vanishes_does_not_disturb_another():
     bad = MisbehavingBoard()
     service = TactileService(boards=[BoardSpec("sim://?scene=press&sensors=grid,quad", "good"),
