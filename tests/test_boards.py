@@ -153,6 +153,20 @@ def test_two_boards_reporting_one_serial_are_a_problem_in_health():
     assert any(p.startswith("boards a, b report one serial 'TMX-SAME'") for p in problems), problems
 
 
+def test_a_tare_of_a_board_not_connected_says_so():
+    """A tare while the board is away answered as done; it takes the
+    board's next frames once it is back, and the answer now says so."""
+    from service.protocol import FrameType, encode_frame
+
+    service = TactileService(boards=[BoardSpec("socket://127.0.0.1:1", name="a")])
+    quad = np.full(4, 2_200_000, "<u4").tobytes()
+    with TestClient(create_app(service), base_url="http://localhost") as client:
+        service.pipeline.feed(b"".join(encode_frame(FrameType.QUAD, 0, k, 1000 * (k + 1), quad) for k in range(5)),
+                              time.time())
+        answer = client.post("/tare").json()
+    assert answer["tared"] == [0] and "a not connected" in answer["note"]
+
+
 def test_a_board_that_stalls_floods_or_vanishes_does_not_disturb_another():
     bad = MisbehavingBoard()
     service = TactileService(boards=[BoardSpec("sim://?scene=press&sensors=grid,quad", "good"),

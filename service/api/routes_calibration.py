@@ -41,16 +41,23 @@ def _tared(service: TactileService, boards, force: bool, sensor_id: int | None =
             loaded = board.loaded(sensor_id)
             if loaded:
                 raise _loaded(LoadedAtTare(loaded), board.name if several else None)
-        tared, frames = [], 0
+        tared, frames, waiting = [], 0, []
         for board in boards:
             try:
                 done, frames = board.tare(sensor_id, force=force)
             except LoadedAtTare as exc:  # loaded between the look and the tare
                 raise _loaded(exc, board.name if several else None) from None
             tared += [f"{board.name}/{sid}" for sid in done] if several else done
+            readout = getattr(board, "readout", None)
+            if done and readout is not None and not readout.link.up:
+                waiting.append(board.name)
     except RemoteBoardError as exc:
         raise HTTPException(409, str(exc)) from None
-    return JSONResponse({"tared": tared, "frames": frames})
+    answer = {"tared": tared, "frames": frames}
+    if waiting:  # said, since the answer alone reads as done
+        answer["note"] = (f"board{'s' if len(waiting) > 1 else ''} {', '.join(waiting)} not connected: "
+                          "the tare takes its next frames once it is back")
+    return JSONResponse(answer)
 
 
 @router.post("/sensors/{sensor_id}/tare", dependencies=MUTATION, responses={409: {"description": "no frames yet, or taxels read loaded"}})
