@@ -19,6 +19,7 @@ import numpy as np
 from ..protocol import FLAG_SATURATED, T_US_MODULUS, Decoder, FrameType
 from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Interpreter, SensorInfo
 from ..record.readers import is_timed_by_host, timed_chunks
+from .dead_taxels import dead_taxels
 
 READ_BYTES = 1 << 20
 
@@ -27,7 +28,9 @@ READ_BYTES = 1 << 20
 class BoardSession:
     """One grid over a session. ``t_s`` (n,) board seconds, unwrapped and
     increasing; ``capacitance_pF`` (n, rows*cols), NaN for sentinels;
-    ``saturated`` (n,) the board's saturation flag per frame."""
+    ``saturated`` (n,) the board's saturation flag per frame; ``dead`` why
+    each channel with no usable reading all session is dead (dead_taxels.py;
+    its column is all NaN)."""
 
     path: str
     sha256: str
@@ -36,6 +39,7 @@ class BoardSession:
     t_s: np.ndarray
     capacitance_pF: np.ndarray
     saturated: np.ndarray
+    dead: dict[int, str]
 
     @property
     def rate_hz(self) -> float:
@@ -146,5 +150,7 @@ def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "gr
     raw = np.frombuffer(b"".join(f[3] for f in mine), dtype="<u4").reshape(len(mine), info.channels)
     capacitance = raw / AF_PER_PF
     capacitance[(raw == OPEN_SENTINEL) | (raw == SHORT_SENTINEL)] = np.nan
+    dead = dead_taxels(raw)
+    capacitance[:, list(dead)] = np.nan  # a stuck value is no capacitance either
     saturated = (np.array([f[2] for f in mine]) & FLAG_SATURATED) != 0
-    return BoardSession(path, file_sha256(path), info, dict(interpreter.board), t_s, capacitance, saturated)
+    return BoardSession(path, file_sha256(path), info, dict(interpreter.board), t_s, capacitance, saturated, dead)
