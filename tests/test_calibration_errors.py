@@ -1,6 +1,8 @@
 """Bad calibration input: each gets a clear error (naming the taxel, the
 file or the line), and a sensor the model cannot follow gets an empirical
 curve, flagged. Short sessions of a few taxels, at 200 Hz."""
+import json
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from service.calibration.reference import parse_reference, read_reference
 from service.calibration.segmentation import segment
 from service.calibration.session import load_session
 from service.physics.paper_data import GridCalibration
+from service.protocol import FrameType, encode_frame
 
 RATE_HZ = 200.0
 
@@ -138,6 +141,32 @@ def test_a_session_without_that_grid_names_the_grids_there(tmp_path):
     (tmp_path / "s.bin").write_bytes(raw)
     with pytest.raises(ValueError, match=r"no grid sensor 3 in the session \(grids: \[0\]\)"):
         load_session(tmp_path / "s.bin", 3)
+
+
+def grid_frames(count: int, channels: int, info_shape: tuple[int, int] | None) -> bytes:
+    out = bytearray()
+    if info_shape is not None:
+        info = {"board": "b", "fw": "1", "rate_hz": 200,
+                "sensors": [{"id": 0, "kind": "grid", "rows": info_shape[0], "cols": info_shape[1]}]}
+        out += encode_frame(FrameType.INFO, 255, 0, 0, json.dumps(info).encode())
+    payload = np.full(channels, 10_000_000, "<u4").tobytes()
+    for k in range(count):
+        out += encode_frame(FrameType.GRID, 0, k, 5000 * k, payload)
+    return bytes(out)
+
+
+def test_frames_of_another_shape_than_the_sensor_are_named_not_counted_as_missing(tmp_path):
+    path = tmp_path / "s.bin"
+    path.write_bytes(grid_frames(150, 16, None))
+    with pytest.raises(ValueError, match=r"150 frames of grid sensor 0 carry 64-byte payloads \(16 channels\), but no "
+                                         r"INFO announces it, and a grid without one is read as the protocol's 8x8"):
+        load_session(path)
+    path.write_bytes(grid_frames(150, 16, (8, 8)))
+    with pytest.raises(ValueError, match=r"150 frames of grid sensor 0 carry 64-byte payloads \(16 channels\), but "
+                                         r"its INFO announces 8x8 \(256 bytes\)"):
+        load_session(path)
+    path.write_bytes(grid_frames(150, 16, (4, 4)))
+    assert load_session(path).capacitance_pF.shape == (150, 16)
 
 
 @pytest.mark.parametrize("rate_hz, offset_s, rate_ppm", [(10.0, -3600.5, -200.0), (1000.0, 0.75, 200.0)])

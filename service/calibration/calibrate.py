@@ -73,14 +73,24 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         if crosstalk is not None:
             session.capacitance_pF = unleaked(session.capacitance_pF, rows, cols, crosstalk["electrical"])
         lap("crosstalk")
-        alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
+        dead = {t: str(TaxelError(t, cols, why)) for t, why in sorted(session.dead.items())}
+        # dead columns are all NaN: alignment's medians would warn about them, and they add nothing to the sum
+        capacitance = np.delete(session.capacitance_pF, list(dead), axis=1) if dead else session.capacitance_pF
+        try:
+            alignment = align(session.t_s, total_response(capacitance), reference.t_s, reference.force_N)
+        except ValueError as exc:
+            if not dead:
+                raise
+            # the reference shows their presses and the board does not: it may be why they match badly
+            raise ValueError(f"{exc}; note: presses on dead taxels show on no channel ({'; '.join(dead.values())})") from None
         lap("align")
         t_ref_board = alignment.to_board(reference.t_s)
         presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
         samples = taxel_samples(presses, session.t_s, session.capacitance_pF, session.saturated, t_ref_board, reference.force_N)
         lap("segment")
         noise = noise_sigma(reference.force_N[unloaded(presses, t_ref_board)])  # pauses: pure instrument noise
-        fits, problems = {}, {}
+        fits = {}
+        problems = dict(dead)
         for taxel, data in samples.items():
             try:
                 fits[taxel] = fit_taxel(data, noise, full_scale_N, mounting, session.info.cols,

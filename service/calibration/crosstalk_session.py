@@ -26,9 +26,18 @@ MAD_TO_SIGMA = 1.4826
 MEDIAN_STRIDE = 8
 
 
+def column_median(values: np.ndarray) -> np.ndarray:
+    """Each column's median (n,) over rows (N, n), NaN ignored; NaN for a
+    column without a number (a dead channel), without numpy's All-NaN warning."""
+    out = np.full(values.shape[1], np.nan)
+    some = ~np.isnan(values).all(axis=0)
+    out[some] = np.nanmedian(values[:, some], axis=0)
+    return out
+
+
 def unloaded_c0(capacitance_pF: np.ndarray) -> np.ndarray:
     """Each channel's median (n,) pF over frames (N, n)."""
-    return np.nanmedian(capacitance_pF[::MEDIAN_STRIDE], axis=0)
+    return column_median(capacitance_pF[::MEDIAN_STRIDE])
 
 
 def session_crosstalk(capacitance_pF: np.ndarray, rows: int, cols: int) -> dict | None:
@@ -37,7 +46,7 @@ def session_crosstalk(capacitance_pF: np.ndarray, rows: int, cols: int) -> dict 
     c0 = unloaded_c0(capacitance_pF)
     relative = capacitance_pF / c0 - 1.0
     sample = relative[::MEDIAN_STRIDE]
-    noise = np.fmax(MAD_TO_SIGMA * np.nanmedian(np.abs(sample - np.nanmedian(sample, axis=0)), axis=0), 1e-6)
+    noise = np.fmax(MAD_TO_SIGMA * column_median(np.abs(sample - column_median(sample))), 1e-6)
     estimator = CrosstalkEstimator(rows, cols)
     for start in range(0, len(relative), 4096):  # bounded memory for long sessions
         estimator.observe(relative[start:start + 4096], noise, c0)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from ..physics.paper_data import BUILTIN_GRID_ID, grid_calibration
 from ..readings import SensorInfo, name_from_info
-from ..reconstruct.sensor_calibration import SCHEMA, calibration_id, canonical
+from ..reconstruct.sensor_calibration import SCHEMA, calibration_id, canonical, check_for_its_sensor
 
 BUILTIN_ID = BUILTIN_GRID_ID
 BUILTIN_NOTE = ("built-in: table 1 of Liang et al. 2015 (paper 000), the calibration every 8x8 array without "
@@ -198,6 +198,10 @@ class Registry:
             raise ValueError(f"{path}: not JSON: {exc}") from None
         if not isinstance(document, dict):
             raise ValueError(f"{path}: not a calibration document")
+        try:  # calibrate refuses what the service cannot use; an import as well
+            check_for_its_sensor(document)
+        except ValueError as exc:
+            raise ValueError(f"{path}: not imported, the service could not use it: {exc}") from None
         return self.add(document)
 
     def _activate(self, cid: str, key: str) -> None:

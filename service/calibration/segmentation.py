@@ -4,9 +4,10 @@ A press is a run of reference samples above LOW (noise-scaled) that reaches
 HIGH somewhere (hysteresis: noise around the low threshold does not split or
 invent presses). It belongs to the taxel whose ΔC/C0 rises most at the
 press's top (force above TOP_FRACTION of its peak), against the unloaded
-window just before it; a press where the runner-up taxel rises by more than
-COMPARABLE of the first is flagged (the probe straddled two taxels) and not
-used. Each taxel's C0 is the mean of its capacitance over the unloaded
+window just before it; a press where that rise is within RESPONSE_SIGMAS of
+the taxel's noise is flagged (no live taxel answered: the pressed one is
+dead), and one where the runner-up taxel rises by more than COMPARABLE of
+the first (the probe straddled two taxels); flagged presses are not used. Each taxel's C0 is the mean of its capacitance over the unloaded
 windows around its own presses (robust to slow drift across the session).
 The fit's samples are the reference samples of the taxel's presses (padded
 by PAD_S of unloaded reference on each side, so that which samples are
@@ -25,6 +26,7 @@ LOW_SIGMAS, HIGH_SIGMAS = 5.0, 20.0
 LOW_MIN_N, HIGH_MIN_N = 0.05, 0.5
 TOP_FRACTION = 0.8
 COMPARABLE = 0.3
+RESPONSE_SIGMAS = 5.0  # a press's taxel rises this far above its noise (thousands of σ at a few N)
 PAD_S = 0.25  # the pauses are ≥ 0.5 s: unloaded samples, and the ramps' feet below the threshold
 GUARD_S = 0.15  # unloaded windows keep this far from any press
 WINDOW_S = 0.5  # longest unloaded window used for a baseline
@@ -98,10 +100,10 @@ def find_runs(force_N: np.ndarray, low: float, high: float) -> list[tuple[int, i
     return [(int(a), int(b)) for a, b in runs if force_N[a:b].max() > high]
 
 
-def _window_mean(t_s: np.ndarray, capacitance: np.ndarray, a: float, b: float) -> np.ndarray | None:
-    """Mean capacitance (taxels,) of the frames with a ≤ t < b, None if there are none."""
+def _window(t_s: np.ndarray, capacitance: np.ndarray, a: float, b: float) -> np.ndarray | None:
+    """The frames (k, taxels) with a ≤ t < b, None if there are fewer than 5."""
     i, j = np.searchsorted(t_s, [a, b])
-    return capacitance[i:j].mean(axis=0) if j - i >= 5 else None
+    return capacitance[i:j] if j - i >= 5 else None
 
 
 def _quiet_windows(presses: list[Press], k: int, t_first: float, t_last: float) -> list[tuple[float, float]]:
@@ -129,19 +131,26 @@ def segment(t_board: np.ndarray, capacitance_pF: np.ndarray, t_ref_board: np.nda
 
 def _attribute(press: Press, k: int, presses: list[Press], t_board, capacitance_pF, t_ref_board, force_N) -> None:
     windows = _quiet_windows(presses, k, float(t_board[0]), float(t_board[-1]))
-    baseline = next((m for a, b in windows if (m := _window_mean(t_board, capacitance_pF, a, b)) is not None), None)
+    quiet = next((w for a, b in windows if (w := _window(t_board, capacitance_pF, a, b)) is not None), None)
     top = (t_ref_board >= press.start_s) & (t_ref_board <= press.end_s) & (force_N >= TOP_FRACTION * press.peak_N)
-    loaded = _window_mean(t_board, capacitance_pF, float(t_ref_board[top].min()), float(t_ref_board[top].max()) + 1e-6)
-    if baseline is None or loaded is None:
+    loaded = _window(t_board, capacitance_pF, float(t_ref_board[top].min()), float(t_ref_board[top].max()) + 1e-6)
+    if quiet is None or loaded is None:
         press.problem = "no unloaded window or no board frames around it"
         return
-    rise = np.nan_to_num(loaded / baseline - 1.0, nan=-np.inf)
+    baseline = quiet.mean(axis=0)
+    rise = np.nan_to_num(loaded.mean(axis=0) / baseline - 1.0, nan=-np.inf)
+    # σ of that rise from the taxel's own unloaded noise: a noisy taxel's
+    # chance rise must not take a press whose taxel answered on no channel
+    sigma = quiet.std(axis=0, ddof=1) * np.sqrt(1 / len(quiet) + 1 / len(loaded)) / baseline
     order = np.argsort(rise)[::-1]
     press.taxel, press.runner_up = int(order[0]), int(order[1])
     press.response = float(rise[order[0]])
     press.runner_up_share = float(rise[order[1]] / rise[order[0]]) if rise[order[0]] > 0 else 1.0
-    if not rise[order[0]] > 0:
-        press.problem = "no taxel responded"
+    with np.errstate(divide="ignore", invalid="ignore"):  # noiseless (synthetic) frames: σ 0
+        sigmas = float(rise[order[0]] / sigma[order[0]])
+    if not sigmas > RESPONSE_SIGMAS:
+        press.problem = (f"no taxel responded (largest rise: ΔC/C0 {press.response:.5f} on taxel {press.taxel}, "
+                         f"{sigmas:.1f} σ of its noise)")
     elif press.runner_up_share > COMPARABLE:
         press.problem = (f"taxels {press.taxel} and {press.runner_up} responded comparably "
                          f"({100 * press.runner_up_share:.0f} %)")

@@ -10,6 +10,7 @@ longer be one line.
 from __future__ import annotations
 
 import hashlib
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,7 @@ import numpy as np
 from ..protocol import FLAG_SATURATED, T_US_MODULUS, Decoder, FrameType
 from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Interpreter, SensorInfo
 from ..record.readers import is_timed_by_host, timed_chunks
+from .dead_taxels import dead_taxels
 
 READ_BYTES = 1 << 20
 
@@ -26,7 +28,9 @@ READ_BYTES = 1 << 20
 class BoardSession:
     """One grid over a session. ``t_s`` (n,) board seconds, unwrapped and
     increasing; ``capacitance_pF`` (n, rows*cols), NaN for sentinels;
-    ``saturated`` (n,) the board's saturation flag per frame."""
+    ``saturated`` (n,) the board's saturation flag per frame; ``dead`` why
+    each channel with no usable reading all session is dead (dead_taxels.py;
+    its column is all NaN)."""
 
     path: str
     sha256: str
@@ -35,6 +39,7 @@ class BoardSession:
     t_s: np.ndarray
     capacitance_pF: np.ndarray
     saturated: np.ndarray
+    dead: dict[int, str]
 
     @property
     def rate_hz(self) -> float:
@@ -98,6 +103,22 @@ def _frames(path: str, board: str | None = None) -> tuple[Interpreter, list]:
     return interpreter, frames
 
 
+def _too_few(path: str, info: SensorInfo, kind: str, used: int, sizes: list[int], announced: bool) -> str:
+    """Why a session has too few frames of its sensor: most often its frames
+    are of another shape than INFO (or, without INFO, the protocol's 8x8)
+    says, and that, not their number, is what to name."""
+    other = Counter(size for size in sizes if size != 4 * info.channels)
+    if not other:
+        return f"{path}: only {used} frames of {kind} sensor {info.id}; a session needs far more"
+    size, count = other.most_common(1)[0]
+    said = (f"its INFO announces {info.rows}x{info.cols} ({4 * info.channels} bytes): the INFO and the frames "
+            "are not of the same sensor" if announced else
+            "no INFO announces it, and a grid without one is read as the protocol's 8x8 (256 bytes): capture the "
+            "board's INFO with the session (it answers INFO?)")
+    return (f"{path}: {count} frames of {kind} sensor {info.id} carry {size}-byte payloads ({size // 4} channels), "
+            f"but {said}; {used} frames fit")
+
+
 def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "grid",
                  board: str | None = None) -> BoardSession:
     """The frames of one ``kind`` sensor (``sensor_id``, or the only one of
@@ -115,7 +136,8 @@ def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "gr
     info = _pick(sensors, sensor_id, path, kind)
     mine = [f for f in frames if f[0] == info.id and len(f[3]) == 4 * info.channels]
     if len(mine) < 100:
-        raise ValueError(f"{path}: only {len(mine)} frames of {kind} sensor {info.id}; a session needs far more")
+        raise ValueError(_too_few(path, info, kind, len(mine), [len(f[3]) for f in frames if f[0] == info.id],
+                                  info.id in interpreter.sensors))
     restart = next((i for i, f in enumerate(mine) if f[4]), None)
     if restart is not None:
         raise ValueError(f"{path}: the board restarted during the session (sensor {info.id}, frame {restart}); "
@@ -128,5 +150,7 @@ def load_session(path: str | Path, sensor_id: int | None = None, kind: str = "gr
     raw = np.frombuffer(b"".join(f[3] for f in mine), dtype="<u4").reshape(len(mine), info.channels)
     capacitance = raw / AF_PER_PF
     capacitance[(raw == OPEN_SENTINEL) | (raw == SHORT_SENTINEL)] = np.nan
+    dead = dead_taxels(raw)
+    capacitance[:, list(dead)] = np.nan  # a stuck value is no capacitance either
     saturated = (np.array([f[2] for f in mine]) & FLAG_SATURATED) != 0
-    return BoardSession(path, file_sha256(path), info, dict(interpreter.board), t_s, capacitance, saturated)
+    return BoardSession(path, file_sha256(path), info, dict(interpreter.board), t_s, capacitance, saturated, dead)

@@ -51,9 +51,29 @@ C0_RANGE_PF = (0.01, 1000.0)
 
 
 def canonical(document: dict) -> bytes:
-    """The document without ``id`` as canonical JSON (sorted keys, compact, UTF-8, no NaN)."""
+    """The document without ``id`` as canonical JSON (sorted keys, compact,
+    UTF-8, no NaN); ValueError naming the first field that is not a JSON number."""
     body = {k: v for k, v in document.items() if k != "id"}
-    return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
+    try:
+        return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
+    except ValueError:
+        found = _non_finite(body)
+        if found is None:
+            raise
+        raise ValueError(f"{found[0]} = {found[1]} is not a JSON number (a calibration document holds no NaN "
+                         "or Infinity)") from None
+
+
+def _non_finite(value, where: str = "") -> tuple[str, float] | None:
+    """(path, value) of the first NaN or infinite float in a JSON-like value, None if none."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return where, value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list | tuple) else ()
+    for key, item in items:
+        found = _non_finite(item, f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else key)
+        if found:
+            return found
+    return None
 
 
 def calibration_id(document: dict) -> str:
@@ -117,6 +137,22 @@ def from_document(document: dict, info: SensorInfo, mounting: str = "flat") -> S
     return _grid(document, cid, info, document.get("mounting") or mounting)
 
 
+def check_for_its_sensor(document: dict) -> None:
+    """ValueError naming the field when the service could not use ``document``
+    on a sensor of the kind and shape it declares (from_document's own checks):
+    stored anyway, it would only be refused at use, the built-in taken instead."""
+    kind, rows, cols = document.get("kind"), document.get("rows"), document.get("cols")
+    if kind == "quad":
+        info = SensorInfo(0, "quad", 2, 2)
+    elif kind == "grid":
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (rows, cols)):
+            raise ValueError(f"rows, cols: {rows!r}, {cols!r} is not a grid's shape (two positive integers)")
+        info = SensorInfo(0, "grid", rows, cols)
+    else:
+        raise ValueError(f"kind: {kind!r} is neither 'grid' nor 'quad'")
+    from_document({**document, "id": calibration_id(document)}, info)
+
+
 def check_c0(name: str, c0: np.ndarray) -> None:
     """ValueError naming the first C0 outside C0_RANGE_PF."""
     low, high = C0_RANGE_PF
@@ -129,8 +165,12 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
     values = taxels.get(name)
     if values is None and missing_ok:
         return np.full(n, np.nan)
-    if not isinstance(values, list) or len(values) != n or any(isinstance(v, bool) for v in values):
+    if isinstance(values, list) and len(values) != n:
+        raise ValueError(f"taxels.{name}: {len(values)} values for the {n} taxels")
+    if not isinstance(values, list) or any(isinstance(v, bool) for v in values):
         raise ValueError(f"taxels.{name}: expected a list of {n} numbers")
+    if not missing_ok and None in values:  # float(None) would pass as NaN
+        raise ValueError(f"taxels.{name}[{values.index(None)}] is null: expected a number")
     try:
         out = np.array([np.nan if v is None and missing_ok else v for v in values], dtype=float)
     except (TypeError, ValueError):
@@ -208,8 +248,13 @@ def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
             relative = np.asarray(curve["relative"], float)
         except (TypeError, ValueError, KeyError):
             raise ValueError(f"taxels.curves[{key!r}]: expected {{force_N: [...], relative: [...]}}") from None
-        if not 0 <= taxel < n or force.shape != relative.shape or force.size < 2:
-            raise ValueError(f"taxels.curves[{key!r}]: taxel out of range or curve of fewer than 2 points")
+        if not 0 <= taxel < n:
+            raise ValueError(f"taxels.curves[{key!r}]: taxel {taxel} is outside 0..{n - 1}")
+        if force.shape != relative.shape or force.ndim != 1:
+            raise ValueError(f"taxels.curves[{key!r}]: force_N ({force.size} values) and relative "
+                             f"({relative.size}) are not two lists of one length")
+        if force.size < 2:
+            raise ValueError(f"taxels.curves[{key!r}]: {force.size} points (a curve needs at least 2)")
         if not (np.isfinite(force).all() and np.isfinite(relative).all()
                 and np.all(np.diff(force) > 0) and np.all(np.diff(relative) > 0)):
             raise ValueError(f"taxels.curves[{key!r}]: must be finite and strictly increasing")
