@@ -690,3 +690,37 @@ def test_a_channel_far_off_its_sensors_level_while_it_tared_waits_for_a_zero_of_
     assert pipeline.reconstructor.unzeroed(0) == [] and pipeline.reconstructor.unzeroed(1) == []
     assert np.isfinite(grid.forces_N).all() and abs(grid.forces_N[4]) < 0.05 and not grid.taxel_flag_lists()
     assert np.isfinite(quad.forces_N).all() and np.abs(quad.forces_N).max() < 0.05
+
+
+@pytest.mark.parametrize("level", ["full", "table", "level0"])
+def test_a_channel_clipped_at_the_converters_top_is_saturated_not_a_number_with_sigma_nor_stale(level):
+    """A press past the converter's range: the board pins the channel at its
+    top count (here 2^24 − 1 aF) and sets the frame's SATURATED flag. The
+    taxel came out as a number with a σ for 50 frames (24.8 ± 1.7 N against
+    a true 24–29 N), then null and flagged stale for the rest. Its force is
+    a lower bound: held, flagged saturated, no σ; never stale."""
+    from service.physics.paper_data import grid_calibration
+    from service.pipeline import Pipeline
+    from service.protocol import FLAG_SATURATED, FrameType, encode_frame
+    from service.reconstruct import Reconstructor
+
+    c0 = grid_calibration(8, 8).c0_pF
+    rng = np.random.default_rng(5)
+    top = (1 << 24) - 1
+    frames = []
+    for k in range(400):
+        raw = np.round((c0 + rng.normal(0, 0.002, 64)) * 1e6).astype(np.int64)
+        clip = 200 <= k < 350
+        if clip:
+            raw[57] = top
+        frames.append(encode_frame(FrameType.GRID, 0, k, 1000 * (k + 1), raw.astype("<u4").tobytes(),
+                                   FLAG_SATURATED if clip else 0))
+    out = Pipeline(Reconstructor(level=level), map_clock=False).feed(b"".join(frames), 1.0)
+    clipped = [f for f in out if 200 <= f.seq < 350]
+    assert len(clipped) == 150
+    for frame in clipped:
+        assert frame.taxel_flag_lists().get("saturated") == [57] and "stale" not in frame.taxel_flag_lists()
+        assert np.isfinite(frame.forces_N[57]) and frame.forces_N[57] > 10.0 and np.isnan(frame.sigma_N[57])
+        assert np.isfinite(np.delete(frame.sigma_N, 57)).all()
+    after = [f for f in out if f.seq >= 352]
+    assert all(not f.taxel_flag_lists() and np.isfinite(f.sigma_N).all() for f in after)

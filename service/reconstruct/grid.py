@@ -185,14 +185,22 @@ class GridProcessor:
         self._same_count = runs[-1]
         return runs
 
-    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray) -> GridResult:
+    def process(self, capacitance: np.ndarray, baseline: np.ndarray, baseline_std: np.ndarray, t_s: np.ndarray,
+                clipped: np.ndarray | None = None) -> GridResult:
         """Frames (N, n) pF at board times (N,) s → forces (N, n) N and
-        per-taxel flags (N, n). A single frame is a batch of one."""
+        per-taxel flags (N, n). A single frame is a batch of one.
+        ``clipped`` (N, n): channels at the converter's top (level0.clipped):
+        saturated, no σ, never stale."""
         if self.level == "full":
             from .grid_full import GridJob, process_full  # grid_full builds on this module
 
-            return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s)])[0]
+            return process_full([GridJob(self, capacitance, baseline, baseline_std, t_s, clipped)])[0]
         flags, stale = self._reading_flags(capacitance, baseline, baseline_std)
+        if stale is not None and clipped is not None:
+            flags[clipped & stale] &= ~np.uint8(STALE)
+            stale = stale & ~clipped
+            if not np.count_nonzero(stale):
+                stale = None
         relative = level0.relative_change(capacitance, baseline)
         if self.level == "level0":  # level0.grid_forces, on the checked ΔC/C0
             implausible = level0.implausible(relative, *self._bounds)
@@ -203,11 +211,18 @@ class GridProcessor:
                 relative = np.where(stale, np.nan, relative)
             forces = relative / self.calibration.sensitivity_per_N
             noise = self.noise(baseline, baseline_std)
-            return GridResult(forces, flags, level0_sigma(self, forces, noise))
+            sigma = level0_sigma(self, forces, noise)
+            if clipped is not None:
+                held = clipped & (forces == forces)
+                np.bitwise_or(flags, SATURATED, out=flags, where=held)
+                sigma[held] = np.nan
+            return GridResult(forces, flags, sigma)
         noise = self.noise(baseline, baseline_std)
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
         if self.curves:
             empirical_forces(self.curves, relative, forces, saturated)
+        if clipped is not None:
+            saturated |= clipped
         # Taxel by taxel, so an implausible reading is set aside afterwards.
         # It lies above the table's top (saturated) or below −5σ (out of
         # range) — unless the tare was absurdly noisy — so a frame with

@@ -29,13 +29,15 @@ Piece = tuple[GridProcessor, "GridJob", slice]
 @dataclass
 class GridJob:
     """One grid sensor's share of a batch: frames (N, n) pF at board times
-    (N,) s, with the sensor's tare baseline and spread (n,)."""
+    (N,) s, with the sensor's tare baseline and spread (n,); ``clipped``
+    (N, n): channels at the converter's top (level0.clipped), None: none."""
 
     processor: GridProcessor
     capacitance: np.ndarray
     baseline: np.ndarray
     baseline_std: np.ndarray
     t_s: np.ndarray
+    clipped: np.ndarray | None = None
 
 
 def process_full(jobs: list[GridJob]) -> list[GridResult]:
@@ -86,7 +88,8 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
         row += end - start
         params.append(p._row_parameters(job.baseline, job.baseline_std))
     capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma) = _stacked_rows(pieces, counts, params)
-    flags, stale = _reading_flags(pieces, rows, capacitance)
+    clipped = _clipped(pieces, capacitance.shape)
+    flags, stale = _reading_flags(pieces, rows, capacitance, clipped)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags, stale)
     medians, enough = quiet_medians(ratio - 1.0, band)
     drift, suspect = _drift(pieces, rows, t_s, enough, medians)
@@ -105,6 +108,8 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     for (p, _, _), r in zip(pieces, rows):
         if p.curves:
             empirical_forces(p.curves, compensated[r], forces[r], saturated[r])
+    if clipped is not None:  # a lower bound: held as read, no σ
+        saturated |= clipped & (forces == forces)
     sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma), saturated, shared)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
@@ -135,11 +140,23 @@ def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -
     return capacitance, t_s, stacked if max(counts) == 1 else tuple(np.repeat(a, counts, axis=0) for a in stacked)
 
 
-def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+def _clipped(pieces: list[Piece], shape: tuple[int, int]) -> np.ndarray | None:
+    """The stacked rows' channels at the converter's top (GridJob.clipped), None where no job has any."""
+    if all(job.clipped is None for _, job, _ in pieces):
+        return None
+    return np.concatenate([np.zeros((sl.stop - sl.start, shape[1]), dtype=bool) if job.clipped is None
+                           else job.clipped[sl] for _, job, sl in pieces])
+
+
+def _reading_flags(pieces: list[Piece], rows: list[slice], capacitance: np.ndarray,
+                   clipped: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     """(no-reading, stale and no-zero bits of the stacked rows, the stale
-    readings' mask or None)."""
+    readings' mask or None); a channel at the converter's top (``clipped``)
+    repeats its count without being stale."""
     flags = np.isnan(capacitance).astype(np.uint8)  # NO_READING is bit 0
     stale = stale_rows(pieces, rows, capacitance)
+    if stale is not None and clipped is not None:
+        stale &= ~clipped
     if stale is not None:
         if np.count_nonzero(stale):
             np.bitwise_or(flags, STALE, out=flags, where=stale)

@@ -97,6 +97,21 @@ def own_level_window(zero_pF: np.ndarray, nominal_c0_pF: np.ndarray, top_relativ
     return own * PLAUSIBLE_LOW, own * (1.0 + top_relative) * PLAUSIBLE_MARGIN
 
 
+def clipped(capacitance_pF: np.ndarray, flagged: np.ndarray) -> np.ndarray | None:
+    """(N, n) mask of the channels at the converter's top in frames (N, n)
+    whose board flag says a channel hit the converter's range (``flagged``
+    (N,)): each such frame's largest reading (the protocol names no channel,
+    and a clipped one reads the top, above any other). Its force is a lower
+    bound: flagged saturated, no σ; and its repeated top count is no stale
+    converter. None when no frame is flagged."""
+    if not np.count_nonzero(flagged):
+        return None
+    out = np.zeros(capacitance_pF.shape, dtype=bool)
+    rows = capacitance_pF[flagged]
+    out[flagged] = rows == np.where(np.isnan(rows), -np.inf, rows).max(axis=1, keepdims=True)
+    return out
+
+
 def implausible(relative: np.ndarray, low, high) -> np.ndarray | None:
     """Mask of ΔC/C0 outside [low, high], or None when there is none (NaN
     compares False: a missing reading is not implausible). The bounds may be

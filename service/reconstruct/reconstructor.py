@@ -17,7 +17,9 @@ from typing import Callable
 import numpy as np
 
 from ..physics.mountings import MOUNTINGS
+from ..protocol import FLAG_SATURATED
 from ..readings import Reading, SensorInfo
+from . import level0
 from .baseline import DEFAULT_TARE_FRAMES
 from .force_frame import ForceFrame
 from .grid import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING
@@ -268,17 +270,21 @@ class Reconstructor(SensorStates):
         readings = [r for _, rs in members for r in rs] if len(members) > 1 else members[0][1]
         capacitance = np.array([r.capacitance_pF for r in readings])
         t_s = np.array([r.t_us for r in readings]) * 1e-6
+        # A board flag is rare: one look per reading, the mask only where one says a channel clipped.
+        flagged = np.array([r.board_flags & FLAG_SATURATED for r in readings], dtype=bool) \
+            if any(r.board_flags for r in readings) else None
         jobs, start = [], 0
         for state, rs in members:
             end = start + len(rs)
             jobs.append(GridJob(state.processor, capacitance[start:end], state.baseline.value, state.baseline.std,
-                                t_s[start:end]))
+                                t_s[start:end], None if flagged is None else
+                                level0.clipped(capacitance[start:end], flagged[start:end])))
             start = end
         return jobs
 
     def _process_grid(self, state: SensorState, readings: list[Reading]):
         job = self._jobs([(state, readings)])[0]
-        return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s)
+        return job.processor.process(job.capacitance, job.baseline, job.baseline_std, job.t_s, job.clipped)
 
     def _grid_frames(self, state: SensorState, readings: list[Reading], result) -> list[ForceFrame]:
         return self._grids_frames([(state, readings)], [result])[0]
