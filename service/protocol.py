@@ -152,7 +152,9 @@ class StreamCounters:
                     "late_frames": c.late_frames,
                     "conflicting": c.conflicting,
                 }
-                for sid, c in sorted(self.sensors.items())
+                # An id that never sent a valid frame is a damaged header's (its CRC errors are in the
+                # stream's count): listed, it showed phantom sensors (116, 255) in summaries.
+                for sid, c in sorted(self.sensors.items()) if c.frames
             },
         }
 

@@ -57,6 +57,19 @@ def test_bad_crc_is_dropped_and_counted():
     assert decoder.counters.bytes_discarded == len(bad)
 
 
+def test_a_damaged_header_names_no_phantom_sensor_in_the_counters():
+    """A frame whose sensor byte was damaged (1 → 116) fails its CRC and was
+    counted as sensor 116's: summaries listed a sensor that never sent a
+    frame. Ids without a valid frame are left out; the stream counts it."""
+    good = hand_frame(seq=1)
+    damaged = bytearray(hand_frame(seq=2))
+    damaged[4] = 116  # the sensor byte, after sync (2), version and type
+    decoder = Decoder()
+    decoder.feed(good + bytes(damaged))
+    counted = decoder.counters.as_dict()
+    assert counted["crc_errors"] == 1 and list(counted["sensors"]) == ["1"]
+
+
 def test_truncated_frame_then_good_frame():
     truncated = hand_frame(seq=1)[:20]
     frames = Decoder().feed(truncated + hand_frame(seq=2) + hand_frame(seq=3))
