@@ -15,7 +15,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from . import registry
-from .alignment import Alignment, align, total_response
+from .alignment import Alignment, align, board_response
 from .crosstalk_session import session_crosstalk, unleaked
 from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, read_reference
@@ -73,7 +73,8 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         if crosstalk is not None:
             session.capacitance_pF = unleaked(session.capacitance_pF, rows, cols, crosstalk["electrical"])
         lap("crosstalk")
-        alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
+        response = board_response(session.t_s, session.capacitance_pF)
+        alignment = align(session.t_s, response, reference.t_s, reference.force_N)
         lap("align")
         t_ref_board = alignment.to_board(reference.t_s)
         presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
