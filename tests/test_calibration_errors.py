@@ -10,7 +10,7 @@ from firmware_sim.board import BoardConfig, capture
 from firmware_sim.calibration_session import (Press, ScheduleScene, probe_schedule, reference_csv, run_presses,
                                               session, user_grid_calibration)
 from firmware_sim.sensors import SimGrid
-from service.calibration.alignment import align, total_response
+from service.calibration.alignment import align, board_response
 from service.calibration.calibrate import calibrate
 from service.calibration.reference import parse_reference, read_reference
 from service.calibration.segmentation import segment
@@ -126,7 +126,7 @@ def test_a_periodic_schedule_on_alike_taxels_is_refused_as_ambiguous(tmp_path):
     path, ref = write(tmp_path, sim.raw, sim.reference_csv)
     board, reference = load_session(path), read_reference(ref)
     with pytest.raises(ValueError, match="ambiguous alignment"):
-        align(board.t_s, total_response(board.capacitance_pF), reference.t_s, reference.force_N)
+        align(board.t_s, board_response(board.t_s, board.capacitance_pF), reference.t_s, reference.force_N)
 
 
 def test_a_reference_of_another_session_is_refused(tmp_path):

@@ -15,7 +15,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from . import registry
-from .alignment import Alignment, align, total_response
+from .alignment import Alignment, align, board_response
 from .crosstalk_session import session_crosstalk, unleaked
 from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, read_reference
@@ -77,7 +77,7 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         # dead columns are all NaN: alignment's medians would warn about them, and they add nothing to the sum
         capacitance = np.delete(session.capacitance_pF, list(dead), axis=1) if dead else session.capacitance_pF
         try:
-            alignment = align(session.t_s, total_response(capacitance), reference.t_s, reference.force_N)
+            alignment = align(session.t_s, board_response(session.t_s, capacitance), reference.t_s, reference.force_N)
         except ValueError as exc:
             if not dead:
                 raise

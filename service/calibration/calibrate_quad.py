@@ -8,7 +8,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from . import registry
-from .alignment import Alignment, align, total_response
+from .alignment import Alignment, align, board_response
 from .quad_fit import QuadFit, fit_quad
 from .reference import Reference, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
@@ -36,7 +36,8 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
         raise ValueError(f"{reference.path}: a quad calibration needs a 3-axis reference 't_s,fx_N,fy_N,fz_N'")
     reference = zeroed(reference, zero_reference)
     read = time.perf_counter()
-    alignment = align(session.t_s, total_response(session.capacitance_pF), reference.t_s, reference.force_N)
+    response = board_response(session.t_s, session.capacitance_pF, normalise=False)  # shear cancels in the plain sum
+    alignment = align(session.t_s, response, reference.t_s, reference.force_N)
     t_ref_board = alignment.to_board(reference.t_s)
     inside = (session.t_s >= t_ref_board[0]) & (session.t_s <= t_ref_board[-1])
     fxyz = np.stack([np.interp(session.t_s[inside], t_ref_board, reference.fxyz_N[:, k]) for k in range(3)], axis=1)
