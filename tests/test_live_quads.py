@@ -188,3 +188,26 @@ def test_a_quads_forces_do_not_depend_on_how_its_frames_were_batched_through_loa
             _assert_same(together[key], frame)
         assert other.cycle_counts()[0][2] == one_by_one.cycle_counts()[0][2]
     assert sum(one_by_one.cycle_counts()[0][2]) > 5, "load cycles were counted (the factor moved)"
+
+
+def test_a_quads_sigma_carries_half_its_fatigue_compensation_and_none_for_an_axis_held_at_its_end():
+    """A quad that does not fatigue, compensated by the paper's loss after
+    2 500 cycles, read 8 N as 11.24 ± 0.79 N (z 4). The compensation is one
+    sensor's: half of it is now σ. An axis held at its usable end (a lower
+    bound) had a σ (0.85 N), a grid's saturated force none: now none."""
+    from service.readings import SensorInfo
+    from service.reconstruct.calibration_upload import processor_for
+    from service.reconstruct.quad import FATIGUE_SIGMA_SHARE
+    from service.reconstruct.sensor_calibration import builtin
+
+    info = SensorInfo(1, "quad", 2, 2)
+    processor = processor_for(info, "full", "flat", builtin(info))
+    forces = np.array([[1.0, -0.5, 3.0], [0.0, 0.0, 2.0]])
+    fresh = processor.sigma(forces, 1e-4)
+    worn = processor.sigma(forces, 1e-4, np.array([0.8, 1.0]))
+    extra = forces[0] * FATIGUE_SIGMA_SHARE * (1 / 0.8 - 1)
+    assert worn[0] ** 2 - fresh[0] ** 2 == pytest.approx(extra ** 2, rel=1e-9)
+    assert np.array_equal(worn[1], fresh[1])
+    model = processor.model
+    held = processor.sigma(np.array([[model.shear_usable_N, 1.0, model.normal_usable_N]]), 1e-4)
+    assert np.isnan(held[0, 0]) and np.isnan(held[0, 2]) and np.isfinite(held[0, 1])

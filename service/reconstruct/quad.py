@@ -38,6 +38,9 @@ from .level0 import bounds, implausible, plausible_relative, quad_axes, relative
 QUAD_LEVELS = ("level0", "table", "full")
 FAULT_SIGMAS = 8.0
 FAULT_RELATIVE = 0.05  # model mismatch allowed in R, as a share of |Z|
+# The fatigue compensation is paper 001's one sensor's loss (fatigue.py); another sensor's may differ
+# by half of it either way: its σ, so a quad that does not fatigue is not read 25 % high at ±3 %.
+FATIGUE_SIGMA_SHARE = 0.5
 _LEVEL0_SLOPES = np.array([QUAD_SHEAR_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, QUAD_NORMAL_SLOPE_PER_N])
 
 
@@ -91,10 +94,14 @@ class QuadProcessor:
         """Continue another processor's (or a recording's) stale-electrode count, in new arrays."""
         self.runs = (np.array(last_pF, dtype=float), np.array(runs, dtype=np.int64))
 
-    def sigma(self, forces: np.ndarray, noise: np.ndarray | float) -> np.ndarray:
+    def sigma(self, forces: np.ndarray, noise: np.ndarray | float,
+              sensitivity: np.ndarray | float = 1.0) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
-        combination noise through the curve's slope at that force, and the
-        force times its slope's relative error. Frames without forces: NaN."""
+        combination noise through the curve's slope at that force, the
+        force times its slope's relative error, and FATIGUE_SIGMA_SHARE of
+        the fatigue compensation (``sensitivity``, scalar or (N,), as
+        ``process``). Frames without forces, and an axis held at its usable
+        end (a lower bound, as a grid's saturated force): NaN."""
         noise = TARE_FACTOR * np.asarray(noise, dtype=float)
         if noise.ndim:
             noise = noise[:, None]
@@ -110,7 +117,18 @@ class QuadProcessor:
             slopes = np.concatenate([shear_slope, c1 + 2.0 * c2 * fz], axis=1)
             reading = noise / np.maximum(slopes, 1e-9)
         se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
-        return np.sqrt(reading * reading + (forces * se) ** 2)
+        variance = reading * reading + (forces * se) ** 2
+        s = np.asarray(sensitivity, dtype=float)
+        if np.any(s != 1.0):
+            compensated = forces * (FATIGUE_SIGMA_SHARE * (1.0 / (s[:, None] if s.ndim else s) - 1.0))
+            variance = variance + compensated * compensated
+        sigma = np.sqrt(variance)
+        if self.level != "level0":
+            model = self.model
+            held = np.abs(forces) >= (model.shear_usable_N, model.shear_usable_N, model.normal_usable_N)
+            if np.count_nonzero(held):
+                sigma[held] = np.nan
+        return sigma
 
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float,
                 sensitivity: np.ndarray | float = 1.0, stale: np.ndarray | None = None) -> tuple[np.ndarray, list[list[str]]]:

@@ -67,9 +67,10 @@ def per_frame_sensitivity(states: list, counts: list[int], fz: np.ndarray,
 
 def _with_fatigue(processor, states: list, counts: list[int], capacitance: np.ndarray, baseline, noise,
                   sensitivity: np.ndarray, stale) -> tuple:
-    """(forces, quad flags) with each row's fatigue factor as frame by frame
-    (per_frame_sensitivity): a factor that moved changes Fz, which may move
-    where a cycle ends, so until they agree (at once, in practice)."""
+    """(forces, quad flags, each row's factor) with each row's fatigue factor
+    as frame by frame (per_frame_sensitivity): a factor that moved changes
+    Fz, which may move where a cycle ends, so until they agree (at once, in
+    practice)."""
     forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
     for _ in range(MAX_FATIGUE_ROUNDS):
         moved = per_frame_sensitivity(states, counts, forces[:, 2], sensitivity)
@@ -77,7 +78,7 @@ def _with_fatigue(processor, states: list, counts: list[int], capacitance: np.nd
             break
         sensitivity = moved
         forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-    return forces, quad_flags
+    return forces, quad_flags, sensitivity
 
 
 def stale_runs(states: list, capacitance: np.ndarray, counts: list[int]) -> tuple[np.ndarray | None, list]:
@@ -141,11 +142,11 @@ class QuadBatches:
         stale, kept = stale_runs(states, capacitance, counts)
         if len(readings) != len(members):
             baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
-            forces, quad_flags = _with_fatigue(processor, states, counts, capacitance, baseline, noise, sensitivity,
-                                               stale)
+            forces, quad_flags, sensitivity = _with_fatigue(processor, states, counts, capacitance, baseline, noise,
+                                                            sensitivity, stale)
         else:
             forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-        sigma = processor.sigma(forces, noise)
+        sigma = processor.sigma(forces, noise, sensitivity)
         keep_runs(kept)
         update_many([state.cycles for state in states], forces[:, 2:3], counts)
         return _frames(self.level, states, readings, forces, sigma, quad_flags, counts)
@@ -253,11 +254,11 @@ class QuadPlan:
         stale, kept = batch.stale(capacitance, scans)
         if scans > 1:
             baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
-            forces, quad_flags = _with_fatigue(processor, batch.states, [scans] * len(batch.states), capacitance,
-                                               baseline, noise, sensitivity, stale)
+            forces, quad_flags, sensitivity = _with_fatigue(processor, batch.states, [scans] * len(batch.states),
+                                                            capacitance, baseline, noise, sensitivity, stale)
         else:
             forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-        return forces, quad_flags, processor.sigma(forces, noise), kept
+        return forces, quad_flags, processor.sigma(forces, noise, sensitivity), kept
 
     def _apply(self, batch: _Batch, readings: list[Reading], result: tuple, scans: int) -> list[ForceFrame]:
         """Keep the batch's runs, count its load cycles and make its frames."""
