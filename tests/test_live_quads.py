@@ -211,3 +211,31 @@ def test_a_quads_sigma_carries_half_its_fatigue_compensation_and_none_for_an_axi
     model = processor.model
     held = processor.sigma(np.array([[model.shear_usable_N, 1.0, model.normal_usable_N]]), 1e-4)
     assert np.isnan(held[0, 0]) and np.isnan(held[0, 2]) and np.isfinite(held[0, 1])
+
+
+def test_a_quad_frame_with_an_electrode_clipped_at_the_converters_top_has_no_forces_and_is_not_stale():
+    """One electrode pinned at the converter's top (the frame's SATURATED
+    flag) is a lower bound that skews all three forces: they were numbers
+    with a σ, then the electrode was called stale. Now the frame has none,
+    flagged saturated by the board, and the electrode is never stale."""
+    from service.physics.quad_model import NOMINAL_C0_PF
+    from service.pipeline import Pipeline
+    from service.protocol import FLAG_SATURATED, FrameType, encode_frame
+    from service.reconstruct import Reconstructor
+
+    rng = np.random.default_rng(6)
+    frames = []
+    for k in range(400):
+        raw = np.round(NOMINAL_C0_PF * (1 + rng.normal(0, 2e-4, 4)) * 1e6).astype(np.int64)
+        clip = 200 <= k < 330
+        if clip:
+            raw[0] = 4_000_000  # 4 pF: the converter's top here
+        frames.append(encode_frame(FrameType.QUAD, 1, k, 1000 * (k + 1), raw.astype("<u4").tobytes(),
+                                   FLAG_SATURATED if clip else 0))
+    out = Pipeline(Reconstructor(level="full"), map_clock=False).feed(b"".join(frames), 1.0)
+    clipped = [f for f in out if 200 <= f.seq < 330]
+    assert len(clipped) == 130
+    assert all(np.isnan(f.forces_N).all() and np.isnan(f.sigma_N).all() for f in clipped)
+    assert all("saturated" in f.flags and "stale" not in f.flags for f in clipped)
+    after = [f for f in out if f.seq >= 331]
+    assert all(np.isfinite(f.forces_N).all() and not f.flags for f in after)
