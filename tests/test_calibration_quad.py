@@ -79,10 +79,34 @@ def test_the_command_takes_a_three_axis_reference_as_a_quad_session(run, tmp_pat
     assert main(["calibrate", str(out / "session.bin"), "--reference", str(out / "reference.csv"),
                  "--registry", registry]) == 0
     printed = capsys.readouterr().out
-    assert "coupling: c = " in printed and "stored " in printed
+    assert "coupling: c = " in printed and "stored " in printed and "fatigue: paper 001's loss" in printed
     with Registry(registry) as r:
         stored = [row for row in r.list() if row["active"]]
         assert len(stored) == 1 and r.get(stored[0]["id"])["kind"] == "quad"
+        assert r.get(stored[0]["id"])["fatigue"] == {"drop": 0.22, "tau_cycles": 1000.0}
+
+
+def test_a_quad_cycled_long_before_is_calibrated_without_fatigue_compensation(run, tmp_path, capsys):
+    """The paper's fatigue was applied from every calibration's count 0: a
+    sensor cycled long before (its loss settled) read 25 % high after 2 500
+    more cycles, with no way to say so. ``--fatigue none`` says so."""
+    from service.readings import SensorInfo
+    from service.reconstruct.sensor_calibration import from_document
+
+    _, out, _ = run
+    registry = str(tmp_path / "r.sqlite3")
+    assert main(["calibrate", str(out / "session.bin"), "--reference", str(out / "reference.csv"),
+                 "--registry", registry, "--fatigue", "none"]) == 0
+    assert "fatigue: none" in capsys.readouterr().out
+    with Registry(registry) as r:
+        document = r.get([row for row in r.list() if row["active"]][0]["id"])
+    fatigue = from_document(document, SensorInfo(0, "quad", 2, 2)).fatigue
+    assert fatigue.drop == 0.0 and float(np.min(fatigue.factor(np.array([2500])))) == 1.0
+    grid_reference = tmp_path / "grid.csv"
+    grid_reference.write_text("t_s,force_N\n0,0\n1,1\n")
+    assert main(["calibrate", str(out / "session.bin"), "--reference", str(grid_reference), "--fatigue", "paper",
+                 "--registry", registry]) != 0
+    assert "paper 000 reports none for the grid" in capsys.readouterr().err
 
 
 def test_a_session_without_enough_normal_range_is_refused(tmp_path):

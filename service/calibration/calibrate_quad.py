@@ -7,6 +7,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from ..reconstruct.fatigue import PAPER_001
 from . import registry
 from .alignment import Alignment, align, board_response
 from .quad_fit import QuadFit, fit_quad
@@ -52,8 +53,10 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
                            {"read": read - started, "align": aligned - read, "fit": done - aligned})
 
 
-def quad_document(result: QuadCalibration, created: str | None = None) -> dict:
-    """The registry record (without id)."""
+def quad_document(result: QuadCalibration, created: str | None = None, fatigue: str = "paper") -> dict:
+    """The registry record (without id). ``fatigue``: "paper" (paper 001's
+    loss from this calibration's count 0: a new sensor) or "none" (a sensor
+    whose loss has settled: cycled long before the session)."""
     fit = result.fit
     return {
         "schema": registry.SCHEMA, "kind": "quad",
@@ -63,6 +66,7 @@ def quad_document(result: QuadCalibration, created: str | None = None) -> dict:
         "shear_fit": list(fit.shear), "shear_fit_se": list(fit.shear_se),
         "coupling": fit.coupling, "coupling_se": fit.coupling_se, "coupling_shown_by_data": fit.coupling_kept,
         "c0_pF": fit.c0_pF.tolist(),
+        "fatigue": {"drop": PAPER_001.drop if fatigue == "paper" else 0.0, "tau_cycles": PAPER_001.tau_cycles},
         "sources": [{"role": "session", "name": str(result.session.path), "sha256": result.session.sha256},
                     {"role": "reference", "name": result.reference.path, "sha256": file_sha256(result.reference.path)}],
         "alignment": result.alignment.as_dict(),

@@ -44,6 +44,10 @@ def add_parsers(subparsers) -> None:
     cal.add_argument("--partial", action="store_true",
                      help="store the taxels that fit even if others fail (those keep their previous calibration)")
     cal.add_argument("--no-activate", action="store_true", help="store without making it the sensor's active one")
+    cal.add_argument("--fatigue", choices=["paper", "none"],
+                     help="a quad's sensitivity loss with load cycles from this calibration on: paper (001 §5.2: "
+                          "−22 %% over the first thousands of cycles; the default, for a new sensor) or none (a sensor "
+                          "cycled long before, whose loss has settled); grids: none (paper 000 reports none)")
     cal.set_defaults(func=cmd_calibrate)
 
     cals = subparsers.add_parser("calibrations", help="the calibration registry").add_subparsers(dest="action",
@@ -85,6 +89,8 @@ def cmd_calibrate(args) -> int:
     started = time.perf_counter()
     if _three_axis(args.reference):
         return _calibrate_quad(args, started)
+    if args.fatigue == "paper":
+        raise ValueError("--fatigue paper: paper 001's fatigue is the quad's; paper 000 reports none for the grid")
     result = calibrate(args.session, args.reference, args.sensor, args.full_scale, args.mounting, args.partial,
                        board=args.board, zero_reference=args.zero_reference)
     with Registry(args.registry) as registry:
@@ -120,11 +126,14 @@ def _calibrate_quad(args, started: float) -> int:
 
     result = calibrate_quad(args.session, args.reference, args.sensor, board=args.board,
                             zero_reference=args.zero_reference)
-    doc = quad_document(result)
+    doc = quad_document(result, fatigue=args.fatigue or "paper")
     check_usable(doc, result.session.info, "flat", "normal_fit", 0.0343, "/N")
     with Registry(args.registry) as registry:
         cid = registry.add(doc, activate=not args.no_activate)
     print("\n".join(quad_summary(result)))
+    print("fatigue: none (--fatigue none)" if args.fatigue == "none" else
+          "fatigue: paper 001's loss from this calibration's count 0 (a new sensor; one cycled long before reads "
+          "high as it goes: --fatigue none)")
     print(f"stored {cid} for {registry_key(result)} in {registry.path}{'' if args.no_activate else ' (active)'}; "
           f"calibrated in {time.perf_counter() - started:.2f} s")
     return 0
