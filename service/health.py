@@ -24,7 +24,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
     name = pipeline.interpreter.name
     unlisted = pipeline.interpreter.unlisted
     dropped = pipeline.interpreter.dropped
-    info_at = pipeline.interpreter.info_t_host
+    info_at, sent = pipeline.interpreter.info_t_host, pipeline.interpreter.sent_since_info
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
@@ -44,8 +44,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             # Sends nothing, and the INFO in force does not list it: an INFO once did, or it has sent nothing
             # since that INFO came (a board restarted without it). One that stops while the INFO it came
             # after is in force (a board whose INFO cannot list every sensor) is stale: a failure.
-            "retired": stale and (sid in dropped or (sid in unlisted and info_at is not None and latest is not None
-                                                     and latest.t_host < info_at)),
+            "retired": stale and (sid in dropped or (sid in unlisted and info_at is not None and sid not in sent)),
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),

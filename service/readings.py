@@ -207,6 +207,7 @@ class Interpreter:
         self.name_board = name_board
         self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
         self.info_t_host: float | None = None  # when the last INFO frame came (host clock)
+        self.sent_since_info: set[int] = set()  # sensors with a data frame after the last INFO frame
         self.sensors: dict[int, SensorInfo] = {}
         self.board_errors: deque[tuple[float, str]] = deque(maxlen=50)
         self._error_logged_at: float | None = None  # monotonic time of the last board error logged
@@ -245,6 +246,7 @@ class Interpreter:
         info = self._sensor_for(frame, t_host)
         if info is None:
             return None
+        self.sent_since_info.add(info.id)
         raw = np.frombuffer(frame.payload, dtype="<u4")
         capacitance = raw / AF_PER_PF
         # The two sentinels are the ends of the u32 range: one wrapped compare finds both.
@@ -267,7 +269,7 @@ class Interpreter:
         ``t_host``, and each reading gets its scan's host time from it."""
         accepted: list[tuple[SensorInfo, Frame]] = []
         groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
-        sensors, fits = self.sensors, self._fits
+        sensors, fits, since = self.sensors, self._fits, self.sent_since_info
         restart = False
         for frame in frames:
             ftype, sensor, _, _, _, payload, _, board_restart = frame
@@ -286,6 +288,8 @@ class Interpreter:
                 group = groups[size] = []
             group.append(len(accepted))
             accepted.append((info, frame))
+            if sensor not in since:
+                since.add(sensor)
             restart = restart or board_restart
         if not accepted:
             return []
@@ -332,6 +336,7 @@ class Interpreter:
         if frame.type == FrameType.INFO:
             self._on_info(frame.payload)
             self.info_t_host = t_host
+            self.sent_since_info.clear()  # in place: interpret_many holds it
             return None
         if frame.type == FrameType.ERROR:
             text = frame.payload.decode("utf-8", errors="replace")

@@ -720,6 +720,7 @@ def test_a_channel_clipped_at_the_converters_top_is_saturated_not_a_number_with_
     assert len(clipped) == 150
     for frame in clipped:
         assert frame.taxel_flag_lists().get("saturated") == [57] and "stale" not in frame.taxel_flag_lists()
+        assert frame.flags.count("saturated") == 1  # the board's and the taxel's: said once
         assert np.isfinite(frame.forces_N[57]) and frame.forces_N[57] > 10.0 and np.isnan(frame.sigma_N[57])
         assert np.isfinite(np.delete(frame.sigma_N, 57)).all()
     after = [f for f in out if f.seq >= 352]

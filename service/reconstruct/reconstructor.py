@@ -309,8 +309,8 @@ class Reconstructor(SensorStates):
             frames = []
             for r in readings:
                 flags = r.frame_flags()
-                if union is not None and union[i]:
-                    flags.extend(names[union[i]])
+                if union is not None and union[i]:  # "saturated" may be the board's already (a clipped channel)
+                    flags.extend([name for name in names[union[i]] if name not in flags] if flags else names[union[i]])
                 frames.append(ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, forces[i], r.capacitance_pF, flags, level,
                                          taxel_flags[i], calibration, sigma[i], r.t_host_scan))
                 i += 1
