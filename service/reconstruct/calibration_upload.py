@@ -30,7 +30,7 @@ def processor_for(info: SensorInfo, level: str, mounting: str,
     """The sensor's processor at ``level`` on ``calibration``; crosstalk
     measured in a calibration session is the full level's starting point."""
     if info.kind == "quad":
-        return QuadProcessor(level, calibration.quad, calibration.quad_relative_se)
+        return QuadProcessor(level, calibration.quad, calibration.quad_relative_se, calibration.quad_model_sigma_N)
     crosstalk = None
     if level == "full" and calibration.crosstalk is not None:
         crosstalk = Crosstalk(info.rows, info.cols, *calibration.crosstalk)

@@ -49,6 +49,7 @@ class QuadProcessor:
     level: str
     model: QuadModel = field(default_factory=QuadModel)
     relative_se: tuple[float, float] = (0.0, 0.0)  # σ/value of the normal and shear slopes (sigma.py)
+    model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz: what the calibration's fit leaves unexplained
     _noise_for: tuple | None = None
     _noisy_for: tuple | None = field(default=None, repr=False, compare=False)
     # (last reading (4,) pF, its electrodes' run lengths (4,)) that the next frames continue (stuck.py).
@@ -61,7 +62,7 @@ class QuadProcessor:
     def __post_init__(self) -> None:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
-        self.batch_key = (self.level, astuple(self.model), self.relative_se)
+        self.batch_key = (self.level, astuple(self.model), self.relative_se, self.model_sigma_N)
         self.plausible = plausible_relative(self.model.top_relative)
         self._bounds = bounds(*self.plausible)
 
@@ -98,7 +99,8 @@ class QuadProcessor:
               sensitivity: np.ndarray | float = 1.0) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
         combination noise through the curve's slope at that force, the
-        force times its slope's relative error, and FATIGUE_SIGMA_SHARE of
+        force times its slope's relative error, what the calibration's fit
+        left unexplained (``model_sigma_N``), and FATIGUE_SIGMA_SHARE of
         the fatigue compensation (``sensitivity``, scalar or (N,), as
         ``process``). Frames without forces, and an axis held at its usable
         end (a lower bound, as a grid's saturated force): NaN."""
@@ -118,6 +120,8 @@ class QuadProcessor:
             reading = noise / np.maximum(slopes, 1e-9)
         se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
         variance = reading * reading + (forces * se) ** 2
+        if any(self.model_sigma_N):
+            variance = variance + np.square(self.model_sigma_N)
         s = np.asarray(sensitivity, dtype=float)
         if np.any(s != 1.0):
             compensated = forces * (FATIGUE_SIGMA_SHARE * (1.0 / (s[:, None] if s.ndim else s) - 1.0))

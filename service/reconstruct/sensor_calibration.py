@@ -99,6 +99,7 @@ class SensorCalibration:
     crosstalk: tuple[float, float] | None = None  # (mechanical, electrical) measured in the session
     quad: QuadModel | None = None
     quad_relative_se: tuple[float, float] = (BUILTIN_RELATIVE_SE, BUILTIN_RELATIVE_SE)  # normal, shear slopes
+    quad_model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz residual RMS of a quad's fit
     fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
     tare_c0_pF: np.ndarray | None = None  # grid (n,): C0 as the multiplexer reads it (leakage applied), what a tare sees
     document: dict | None = field(default=None, compare=False, repr=False)
@@ -263,6 +264,19 @@ def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
     return curves, model_sigma
 
 
+def _quad_residual(document: dict) -> tuple[float, float, float]:
+    """The fit's residual RMS (Fx, Fy, Fz) through the model (statistics.rms_N of a calibrated quad;
+    zeros where absent: an upload of fits alone); ValueError naming a bad one."""
+    rms = (document.get("statistics") or {}).get("rms_N") or {}
+    out = []
+    for axis in "xyz":
+        value = rms.get(axis, 0.0) if isinstance(rms, dict) else None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1e3:
+            raise ValueError(f"statistics.rms_N.{axis}: {value!r} is not a residual in N")
+        out.append(float(value))
+    return out[0], out[1], out[2]
+
+
 def _quad(document: dict, cid: str) -> SensorCalibration:
     model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"), document.get("coupling") or 0.0)
     se = []
@@ -270,4 +284,5 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
         value = document.get(name)
         se.append(BUILTIN_RELATIVE_SE if value is None else abs(float(value[1] if name == "normal_fit_se" else value[0])) / slope)
     return SensorCalibration(cid, "quad", document.get("created"), None, quad=model, quad_relative_se=(se[0], se[1]),
+                             quad_model_sigma_N=_quad_residual(document),
                              fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)
