@@ -174,7 +174,9 @@ class Histories(dict):
     def for_frame(self, frame: ForceFrame) -> History:
         """The history that takes ``frame`` (a new one for a new or changed sensor)."""
         history = self.get(frame.sensor.id)
-        if history is None or (history.info is not frame.sensor and history.info != frame.sensor):
+        if history is not None and history.info is not frame.sensor and history.info == frame.sensor:
+            history.info = frame.sensor  # a new INFO's equal description: later frames skip the comparison
+        if history is None or history.info is not frame.sensor:
             share = self.budget_bytes // (len(self) + (history is None))
             outputs = frame.forces_N.size
             history = self[frame.sensor.id] = History(frame.sensor, self._capacity(share, frame.sensor, outputs), outputs)

@@ -95,9 +95,13 @@ class Pipeline:
         self.interpreter = Interpreter(clock, board_name=board_name, name_board=name_board or name_from_info)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
-            self.reconstructor.resolve = lambda info: calibrations.for_sensor(self.interpreter.board, info,
+            # As of the sensor's readings: the INFO its description was made under (reconstruction may come later).
+            def board_of(info: SensorInfo) -> dict:
+                return self.interpreter.board if info.board_info is None else info.board_info
+
+            self.reconstructor.resolve = lambda info: calibrations.for_sensor(board_of(info), info,
                                                                               self.reconstructor.mounting)
-            self.reconstructor.load_cycles = lambda info, cid: calibrations.load_cycles(self.interpreter.board, info, cid)
+            self.reconstructor.load_cycles = lambda info, cid: calibrations.load_cycles(board_of(info), info, cid)
         self.latest: dict[int, ForceFrame] = {}
         self.history = histories if histories is not None else Histories()
         self.rates: dict[int, RateMeter] = {}
@@ -112,9 +116,6 @@ class Pipeline:
         self._deferred: deque[tuple[list[Reading], float, int]] = deque()  # (grids, t_host, reads)
         self.bytes_fed = 0  # bytes of every read so far
         self._retares: list[tuple[int, int, bool]] = []  # (byte offset, sensor, judged), in order
-        # The board's identity (INFO's serial, name) when sensors' calibrations were last looked up: an
-        # INFO after their first frames (a board already streaming) names the board they are stored under.
-        self._board: tuple = (None, None)
 
     def schedule_retares(self, tares: list[tuple[int, int, bool]]) -> None:
         """Recorded tares (byte offset in the stream, sensor id, judged) to
@@ -269,10 +270,6 @@ class Pipeline:
                 self.bytes_fed += len(data)
                 # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.
                 readings += self.interpreter.interpret_many(self.decoder.feed(data), t_host, self.clock)
-                board = self.interpreter.board
-                if (board.get("serial"), board.get("board")) != self._board and self.reconstructor.resolve is not None:
-                    self._board = (board.get("serial"), board.get("board"))
-                    self.reconstructor.resolve_again()
         return readings
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:

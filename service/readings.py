@@ -12,7 +12,7 @@ import math
 import re
 import time
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import orjson
@@ -43,6 +43,9 @@ class SensorInfo:
     # another board on the same link makes it another sensor (new tare, its own calibration). None until
     # the link's board changed (the first INFO, after data or not, names the board the sensors were on).
     board_identity: str | None = None
+    # The board's INFO (top-level fields) in force when this description was made ({} before any): what
+    # its calibration is looked up under, as of its readings (the reconstruction may run later, joined).
+    board_info: dict | None = field(default=None, compare=False, hash=False, repr=False)
 
     @property
     def channels(self) -> int:
@@ -355,7 +358,7 @@ class Interpreter:
             if info is None:
                 self.rejected["unknown_shape"] += 1
                 return None
-            info = replace(info, board=self.name, board_identity=self._swapped_to)
+            info = replace(info, board=self.name, board_identity=self._swapped_to, board_info=self.board)
             self.sensors[frame.sensor] = info
             self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
@@ -382,7 +385,8 @@ class Interpreter:
         self._on_info(orjson.dumps({k: v for k, v in document.items() if k != "unlisted"}))
         _, unlisted = parse_info(orjson.dumps({"sensors": document.get("unlisted", [])}))
         for sid, info in unlisted.items():
-            self.sensors.setdefault(sid, replace(info, board=self.board_name, board_identity=self._swapped_to))
+            self.sensors.setdefault(sid, replace(info, board=self.board_name, board_identity=self._swapped_to,
+                                                 board_info=self.board))
 
     def _on_info(self, payload: bytes) -> None:
         try:
@@ -404,7 +408,7 @@ class Interpreter:
         if self.board_name is None:
             self.board_name = self.name_board(self.board)
         self.sensors.update({sid: replace(info, board=self.board_name,
-                                          board_identity=None if info.serial else self._swapped_to)
+                                          board_identity=None if info.serial else self._swapped_to, board_info=board)
                              for sid, info in sensors.items()})
         self._unannounced.difference_update(sensors)
         self._listed = set(sensors)

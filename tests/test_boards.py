@@ -318,10 +318,19 @@ def test_a_board_streaming_before_its_info_gets_its_stored_calibration_once_the_
 
     info_frame = encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(
         board | {"sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}]}))
-    pipeline = Pipeline(Reconstructor(level="table"), calibrations=CalibrationBook(path), board_name="a", map_clock=False)
-    before = pipeline.feed(b"".join(scan(k) for k in range(150)), 1.0)
-    after = pipeline.feed(info_frame + b"".join(scan(k) for k in range(150, 200)), 1.2)
+    def fresh() -> Pipeline:
+        return Pipeline(Reconstructor(level="table"), calibrations=CalibrationBook(path), board_name="a", map_clock=False)
+
+    scans = [scan(k) for k in range(200)]
+    chunks = [b"".join(scans[k:k + 10]) for k in range(0, 150, 10)] + [info_frame + b"".join(scans[150:155])]
+    chunks += [b"".join(scans[k:k + 5]) for k in range(155, 200, 5)]
+    pipeline = fresh()
+    live = [f for chunk in chunks for f in pipeline.feed(chunk, 1.0)]
+    before, after = live[:150], live[150:]
     assert {f.calibration for f in before} == {"builtin-table1"}
     assert {f.calibration for f in after} == {cid}
     assert not any("taring" in f.flags for f in after)  # the zero was kept
     assert pipeline.reconstructor.calibration(0).id == cid
+    joined = fresh().feed_many([(chunk, 1.0) for chunk in chunks])  # a replay joins recorded reads
+    assert [(f.seq, f.calibration) for f in joined] == [(f.seq, f.calibration) for f in live]
+    assert all(np.array_equal(a.forces_N, b.forces_N, equal_nan=True) for a, b in zip(joined, live))

@@ -88,7 +88,9 @@ class Reconstructor(SensorStates):
         sensor's frames together; returns ForceFrames in arrival order. A
         channel's late zero (it read nothing plausible while its sensor
         tared) completing inside the batch splits it there: the sensor's
-        earlier frames had no zero for it, however reads were joined."""
+        earlier frames had no zero for it, however reads were joined; so
+        does a sensor's new description (an INFO, which may swap its
+        calibration in: sensor_states.py)."""
         pending: list[tuple[SensorState | Exception, Reading]] = []
         taring: list[int] = []  # readings in their sensor's tare window, the one that completes it aside
         out: list[ForceFrame] = []
@@ -97,6 +99,10 @@ class Reconstructor(SensorStates):
             try:
                 state = sensors.get(reading.sensor.id)
                 if state is None or state.info is not reading.sensor:  # the usual reading skips the call
+                    if state is not None and pending and any(earlier is state for earlier, _ in pending):
+                        # A new description (an INFO) may swap its calibration in: its earlier readings first.
+                        out += self._batch_done(pending, taring)
+                        pending, taring = [], []
                     state = self._state(reading.sensor)
                 if pending and state.baseline.completes_late(reading.capacitance_pF) and \
                         any(earlier is state for earlier, _ in pending):

@@ -88,22 +88,22 @@ class SensorStates:
             self._swap(state, calibration, processor)
         return document
 
-    def resolve_again(self) -> list[int]:
-        """The board's identity changed (its INFO came after its first
-        frames: a board already streaming when the service connected):
-        each sensor's calibration is looked up again, and one that differs
-        from the one in use is swapped in, the zero kept (a calibration set
-        through ``set_calibration`` stays). Returns the sensors changed."""
-        changed = []
-        for sid, state in list(self._sensors.items()):
-            if sid in self._chosen:
-                continue
-            calibration = self._calibration_for(state.info)
-            if calibration.id != state.calibration.id:
-                self._swap(state, calibration, processor_for(state.info, self.level, self.mounting, calibration))
-                log.info("sensor %d: calibration %s now that its board is known", sid, calibration.id)
-                changed.append(sid)
-        return changed
+    def _described_again(self, state: SensorState, info: SensorInfo) -> None:
+        """A new INFO describes the sensor as before (``info`` equal, not the
+        same object): later readings carry ``info``, so it is kept (they
+        skip the comparison); and the INFO may name the board, which a board
+        already streaming when the service connected had not before the
+        sensor's first frames: its calibration is looked up again and one
+        that differs is swapped in, the zero kept (one set through
+        ``set_calibration`` stays). At the first reading after the INFO,
+        live or in a replay however its reads are joined."""
+        state.info = info
+        if info.id in self._chosen or self.resolve is None:
+            return
+        calibration = self._calibration_for(info)
+        if calibration.id != state.calibration.id:
+            self._swap(state, calibration, processor_for(info, self.level, self.mounting, calibration))
+            log.info("sensor %d: calibration %s now that its board's INFO named it", info.id, calibration.id)
 
     def _swap(self, state: SensorState, calibration: SensorCalibration, processor) -> None:
         """``calibration`` and its ``processor`` in place of the sensor's, its zero kept."""
@@ -170,7 +170,9 @@ class SensorStates:
 
     def _state(self, info: SensorInfo) -> SensorState:
         state = self._sensors.get(info.id)
-        if state is None or (state.info is not info and state.info != info):
+        if state is not None and state.info is not info and state.info == info:
+            self._described_again(state, info)
+        if state is None or state.info is not info:
             calibration = self._calibration_for(info)
             window = tare_window(info, self.mounting, calibration)
             state = SensorState(info, Baseline(info.channels, self.tare_frames, window,
