@@ -24,7 +24,7 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
     name = pipeline.interpreter.name
     unlisted = pipeline.interpreter.unlisted
     dropped = pipeline.interpreter.dropped
-    info_at, sent = pipeline.interpreter.info_t_host, pipeline.interpreter.sent_since_info
+    sent = pipeline.interpreter.sent_since_restart
     for sid, info in sorted(pipeline.interpreter.sensors.items()):
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
@@ -41,10 +41,10 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "calibration": calibration_state(pipeline, sid, now, book),
             "fatigue": pipeline.reconstructor.fatigue(sid),
             "not_in_info": sid in unlisted,
-            # Sends nothing, and the INFO in force does not list it: an INFO once did, or it has sent nothing
-            # since that INFO came (a board restarted without it). One that stops while the INFO it came
-            # after is in force (a board whose INFO cannot list every sensor) is stale: a failure.
-            "retired": stale and (sid in dropped or (sid in unlisted and info_at is not None and sid not in sent)),
+            # Sends nothing, and the INFO in force does not list it: an INFO once did, or the board restarted
+            # (its INFO, then frames from 0) and it sent nothing since. One that stops while the board runs on
+            # (a board whose INFO cannot list every sensor; an INFO? reply is no restart) is stale: a failure.
+            "retired": stale and (sid in dropped or (sid in unlisted and sid not in sent)),
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),

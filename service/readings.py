@@ -209,8 +209,11 @@ class Interpreter:
         self.unnamed = UNNAMED_BOARD  # the name until one is settled (a service of several boards makes it unique)
         self.name_board = name_board
         self.board: dict = {}  # INFO's top-level fields (board, fw, serial, rate_hz, ...)
-        self.info_t_host: float | None = None  # when the last INFO frame came (host clock)
-        self.sent_since_info: set[int] = set()  # sensors with a data frame after the last INFO frame
+        # Sensors with a data frame since the board last restarted (all that sent, before any restart): one
+        # not among them after a restart whose INFO does not list it is gone; an INFO alone (a reply to INFO?)
+        # is no restart.
+        self.sent_since_restart: set[int] = set()
+        self._restart_clears = False  # an INFO came: the next frame flagged board_restart begins a new set
         self.sensors: dict[int, SensorInfo] = {}
         self.board_errors: deque[tuple[float, str]] = deque(maxlen=50)
         self._error_logged_at: float | None = None  # monotonic time of the last board error logged
@@ -249,7 +252,10 @@ class Interpreter:
         info = self._sensor_for(frame, t_host)
         if info is None:
             return None
-        self.sent_since_info.add(info.id)
+        if frame.board_restart and self._restart_clears:
+            self.sent_since_restart.clear()
+            self._restart_clears = False
+        self.sent_since_restart.add(info.id)
         raw = np.frombuffer(frame.payload, dtype="<u4")
         capacitance = raw / AF_PER_PF
         # The two sentinels are the ends of the u32 range: one wrapped compare finds both.
@@ -272,7 +278,7 @@ class Interpreter:
         ``t_host``, and each reading gets its scan's host time from it."""
         accepted: list[tuple[SensorInfo, Frame]] = []
         groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
-        sensors, fits, since = self.sensors, self._fits, self.sent_since_info
+        sensors, fits, since = self.sensors, self._fits, self.sent_since_restart
         restart = False
         for frame in frames:
             ftype, sensor, _, _, _, payload, _, board_restart = frame
@@ -291,6 +297,9 @@ class Interpreter:
                 group = groups[size] = []
             group.append(len(accepted))
             accepted.append((info, frame))
+            if board_restart and self._restart_clears:
+                since.clear()  # in place: health reads the same set
+                self._restart_clears = False
             if sensor not in since:
                 since.add(sensor)
             restart = restart or board_restart
@@ -338,8 +347,7 @@ class Interpreter:
         ERROR frame or counted a rejected data frame, otherwise."""
         if frame.type == FrameType.INFO:
             self._on_info(frame.payload)
-            self.info_t_host = t_host
-            self.sent_since_info.clear()  # in place: interpret_many holds it
+            self._restart_clears = True
             return None
         if frame.type == FrameType.ERROR:
             text = frame.payload.decode("utf-8", errors="replace")

@@ -235,6 +235,14 @@ def test_a_sensor_no_info_listed_that_stopped_before_the_board_restarted_without
     service.pipeline.feed(b"".join(encode_frame(FrameType.QUAD, 0, s, 1000 * (s + 1), quad) for s in range(150, 300)), now)
     report = health_report(service)
     assert report["sensors"]["1"]["retired"] is True and not any("sensor 1" in p for p in report["problems"])
+    # An INFO alone (the reply to INFO? on a reconnect or a silence) is no restart: sensor 1 failed, and says so.
+    service = TactileService("sim://")
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(
+        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - 3.0)
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(
+        encode_frame(FrameType.QUAD, 0, s, 1000 * (s + 1), quad) for s in range(150, 300)), now)
+    report = health_report(service)
+    assert report["sensors"]["1"]["retired"] is False and "sensor 1 stale" in report["problems"]
 
 
 def test_below_zero_is_told_on_a_slow_board_too():
