@@ -12,6 +12,7 @@ import logging
 import re
 import threading
 import time
+from functools import partial
 from pathlib import Path
 
 from .board import BOARD_NAME, Board, BoardSpec
@@ -72,8 +73,9 @@ class TactileService:
         self.calibrations = calibrations if calibrations is not None else CalibrationBook(mounting=mounting)
         share = max(1, history_budget_bytes // len(specs))
         self._boards = [Board(spec, self.calibrations.with_pinned(list(spec.calibration)) if spec.calibration
-                              else self.calibrations, Histories(share), self._name_board, silence_s, grid_batch_s)
-                        for spec in specs]
+                              else self.calibrations, Histories(share), partial(self._name_board, k), silence_s,
+                              grid_batch_s)
+                        for k, spec in enumerate(specs)]
         # Boards without a name until their INFO settles one (never, if it is invalid) must not share
         # ``board``: /health showed one of two, and their sensors' addresses were the same.
         taken = set(names)
@@ -112,12 +114,13 @@ class TactileService:
         """The first board's pipeline (one-board set-ups and tests)."""
         return self.primary.pipeline
 
-    def _name_board(self, info: dict) -> str:
-        """A bare source's name from its first INFO, made unique among the boards."""
+    def _name_board(self, k: int, info: dict) -> str:
+        """Bare source ``k``'s name from its first INFO, made unique among the
+        boards' names, settled or not yet (``board-2`` until an INFO)."""
         name = name_from_info(info)
         if not BOARD_NAME.fullmatch(name):
             name = f"b{name}"[:32]
-        taken = {b.pipeline.interpreter.board_name for b in self._boards}
+        taken = {b.pipeline.interpreter.name for i, b in enumerate(self._boards) if i != k}
         unique, n = name, 2
         while unique in taken:
             unique, n = f"{name[:28]}-{n}", n + 1

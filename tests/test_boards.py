@@ -136,6 +136,10 @@ def test_bare_sources_whose_info_never_names_them_do_not_share_a_name():
     assert [b.name for b in service.all_boards] == ["board", "board-2"]
     assert sorted(health_report(service)["boards"]) == ["board", "board-2"]
     assert [f.sensor.address for b in service.all_boards for f in [b.pipeline.latest[0]]] == ["board/0", "board-2/0"]
+    # The second then gets a valid INFO naming neither board nor serial: not the first's provisional name.
+    nameless = encode_frame(FrameType.INFO, 255, 0, 0, b'{"sensors": [{"id": 0, "kind": "quad"}]}')
+    service.all_boards[1].pipeline.feed(nameless, time.time())
+    assert [b.name for b in service.all_boards] == ["board", "board-2"]
 
 
 def test_two_boards_reporting_one_serial_are_a_problem_in_health():
