@@ -725,3 +725,55 @@ def test_a_channel_clipped_at_the_converters_top_is_saturated_not_a_number_with_
         assert np.isfinite(np.delete(frame.sigma_N, 57)).all()
     after = [f for f in out if f.seq >= 352]
     assert all(not f.taxel_flag_lists() and np.isfinite(f.sigma_N).all() for f in after)
+
+
+def test_a_calibrations_own_c0_pattern_sets_its_sensors_level_window():
+    """A 4x4 grid with 4 pF corners and 10 pF elsewhere, its calibration
+    stating those C0s: judged against the shape's nominal (uniform) C0 the
+    corners were off the sensor's level, lost their zeros and never got one."""
+    from service.pipeline import Pipeline
+    from service.protocol import FrameType, encode_frame
+    from service.readings import SensorInfo
+    from service.reconstruct import Reconstructor
+
+    c0 = np.full(16, 10.0)
+    c0[[0, 3, 12, 15]] = 4.0
+    rng = np.random.default_rng(2)
+    reconstructor = Reconstructor(level="table")
+    reconstructor.set_calibration(SensorInfo(0, "grid", 4, 4), {"sensitivity_pct_per_N": [1.25] * 16, "c0_pF": c0.tolist()})
+    info = encode_frame(FrameType.INFO, 255, 0, 0, b'{"board": "b", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 4}]}')
+    out = Pipeline(reconstructor, map_clock=False).feed(info + b"".join(
+        encode_frame(FrameType.GRID, 0, k, 1000 * (k + 1), np.round((c0 + rng.normal(0, 0.002, 16)) * 1e6).astype("<u4").tobytes())
+        for k in range(300)), 1.0)
+    assert reconstructor.unzeroed(0) == [] and np.isfinite(out[-1].forces_N).all()
+
+
+def test_a_recording_begun_after_a_channel_was_set_aside_replays_as_live():
+    """A replay starts from the zeros recorded at its start (Baseline.preset):
+    it forgot the narrowed window of a channel set aside at the tare, so the
+    channel's 5× readings gave it a zero there and not live (252 of 450
+    frames differed). The window is that of the zeros kept, both ways."""
+    from service.physics.quad_model import NOMINAL_C0_PF
+    from service.pipeline import Pipeline
+    from service.protocol import FrameType, encode_frame
+    from service.reconstruct import Reconstructor
+
+    rng = np.random.default_rng(6)
+
+    def quad(k: int) -> bytes:
+        raw = NOMINAL_C0_PF * (1 + rng.normal(0, 2e-4, 4))
+        if k < 300:
+            raw[0] *= 5.0  # a converter fault from power-up, gone at scan 300
+        return encode_frame(FrameType.QUAD, 1, k, 1000 * (k + 1), np.round(raw * 1e6).astype("<u4").tobytes())
+
+    scans = [quad(k) for k in range(600)]
+    live = Pipeline(Reconstructor(level="full"), map_clock=False)
+    live_frames = {f.seq: f for k in range(600) for f in live.feed(scans[k], 1 + k * 1e-3)}
+    began = Pipeline(Reconstructor(level="full"), map_clock=False)
+    for k in range(150):
+        began.feed(scans[k], 1 + k * 1e-3)
+    replay = Pipeline(Reconstructor(level="full"), map_clock=False)
+    replay.reconstructor.preset_baselines(began.reconstructor.baselines())
+    replayed = replay.feed_many([(scans[k], 1 + k * 1e-3) for k in range(150, 600)])
+    assert len(replayed) == 450 and np.isfinite(live_frames[550].forces_N).all()
+    assert all(np.array_equal(f.forces_N, live_frames[f.seq].forces_N, equal_nan=True) for f in replayed)

@@ -99,6 +99,7 @@ class Baseline:
         self.value, self.std = value_pF.copy(), std_pF.copy()
         self._seen = self.frames
         self._late = np.isnan(self.value)
+        self._narrow_late()
         self._any_late = bool(self._late.any())
 
     def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
@@ -143,7 +144,7 @@ class Baseline:
     def _set_aside_off_level(self) -> None:
         """Channels whose zero lies outside the sensor's own level's window
         lose it; they and those that had none wait for a late zero inside
-        that window."""
+        the window of the zeros kept (what a replay starting from them finds)."""
         window = self.own_level(self.value) if self.own_level is not None else None
         if window is None:
             return
@@ -154,7 +155,12 @@ class Baseline:
             self._sum[off], self._sum_sq[off], self._count[off] = 0.0, 0.0, 0
             self._samples[:, off] = np.nan
             self._late |= off
-        if self._late.any():
+        self._narrow_late()
+
+    def _narrow_late(self) -> None:
+        """The late channels take readings only within the window around the level of the zeros there are."""
+        window = self.own_level(self.value) if self.own_level is not None and self._late.any() else None
+        if window is not None:
             low, high = self._window if self._window is not None else (-np.inf, np.inf)
             self.window = (np.where(self._late, window[0], low), np.where(self._late, window[1], high))
 

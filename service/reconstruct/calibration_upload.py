@@ -47,8 +47,11 @@ def tare_window(info: SensorInfo, mounting: str, calibration: SensorCalibration)
 
 
 def own_level(info: SensorInfo, mounting: str, calibration: SensorCalibration):
-    """The window around a finished tare's own level (level0.own_level_window), for the sensor's Baseline."""
+    """The window around a finished tare's own level (level0.own_level_window), for the sensor's Baseline:
+    against the calibration's C0 pattern (a sensor whose taxels' C0 differ 2.5× is not faulty)."""
     nominal, top = _nominal(info, mounting, calibration)
+    if info.kind == "grid":
+        nominal = calibration.grid.c0_pF
     return partial(own_level_window, nominal_c0_pF=nominal, top_relative=top)
 
 

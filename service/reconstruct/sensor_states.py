@@ -111,6 +111,7 @@ class SensorStates:
         if runs is not None:  # a converter stuck before the new calibration is still stuck
             processor.restore_stale_runs(*runs)
         state.processor, state.calibration = processor, calibration
+        state.baseline.own_level = own_level(state.info, self.mounting, calibration)  # its C0 pattern from now on
         state.cycles = self._cycles(state.info, calibration)  # counts belong to a calibration: a new one starts anew
         state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
         self._calibration_applied(state.info.id)
