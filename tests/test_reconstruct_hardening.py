@@ -777,3 +777,32 @@ def test_a_recording_begun_after_a_channel_was_set_aside_replays_as_live():
     replayed = replay.feed_many([(scans[k], 1 + k * 1e-3) for k in range(150, 600)])
     assert len(replayed) == 450 and np.isfinite(live_frames[550].forces_N).all()
     assert all(np.array_equal(f.forces_N, live_frames[f.seq].forces_N, equal_nan=True) for f in replayed)
+
+
+@pytest.mark.parametrize("level", ["full", "table", "level0"])
+def test_a_channel_clipped_at_the_converters_bottom_leaves_the_largest_reading_alone(level):
+    """SATURATED says a channel left the range at either end: with one pinned
+    at 1 aF the frame's largest reading (a pressed, healthy taxel) was taken
+    for a top clip: saturated, no σ. The bottom one is implausible anyway."""
+    from service.physics.paper_data import grid_calibration
+    from service.pipeline import Pipeline
+    from service.protocol import FLAG_SATURATED, FrameType, encode_frame
+    from service.reconstruct import Reconstructor
+
+    c0 = grid_calibration(8, 8).c0_pF
+    rng = np.random.default_rng(5)
+    frames = []
+    for k in range(300):
+        c = c0 + rng.normal(0, 0.002, 64)
+        bottom = k >= 200
+        if bottom:
+            c[10] *= 1.06  # a press of a few N on taxel 10
+        raw = np.round(c * 1e6).astype(np.int64)
+        if bottom:
+            raw[3] = 1
+        frames.append(encode_frame(FrameType.GRID, 0, k, 1000 * (k + 1), raw.astype("<u4").tobytes(),
+                                   FLAG_SATURATED if bottom else 0))
+    out = Pipeline(Reconstructor(level=level), map_clock=False).feed(b"".join(frames), 1.0)
+    for frame in (f for f in out if f.seq >= 200):
+        assert "saturated" not in frame.taxel_flag_lists() and np.isfinite(frame.sigma_N[10])
+        assert 3 in frame.taxel_flag_lists()["out_of_range"] and np.isnan(frame.forces_N[3])

@@ -221,8 +221,8 @@ class GridProcessor:
         forces, saturated, out_of_range = self.response.inverse(relative, noise)
         if self.curves:
             empirical_forces(self.curves, relative, forces, saturated)
-        if clipped is not None:
-            saturated |= clipped
+        if clipped is not None:  # a lower bound where there is a force: held as read, no σ
+            saturated |= clipped & (forces == forces)
         # Taxel by taxel, so an implausible reading is set aside afterwards.
         # It lies above the table's top (saturated) or below −5σ (out of
         # range) — unless the tare was absurdly noisy — so a frame with

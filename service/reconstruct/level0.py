@@ -97,18 +97,24 @@ def own_level_window(zero_pF: np.ndarray, nominal_c0_pF: np.ndarray, top_relativ
     return own * PLAUSIBLE_LOW, own * (1.0 + top_relative) * PLAUSIBLE_MARGIN
 
 
-def clipped(capacitance_pF: np.ndarray, flagged: np.ndarray) -> np.ndarray | None:
+def clipped(capacitance_pF: np.ndarray, flagged: np.ndarray, baseline_pF: np.ndarray) -> np.ndarray | None:
     """(N, n) mask of the channels at the converter's top in frames (N, n)
-    whose board flag says a channel hit the converter's range (``flagged``
-    (N,)): each such frame's largest reading (the protocol names no channel,
-    and a clipped one reads the top, above any other). Its force is a lower
-    bound: flagged saturated, no σ; and its repeated top count is no stale
-    converter. None when no frame is flagged."""
+    whose board flag says a channel left the converter's range (``flagged``
+    (N,)): the protocol names no channel. A channel pinned at the bottom
+    reads below PLAUSIBLE_LOW of its zero (``baseline_pF``, (n,) or (N, n))
+    and is implausible anyway, so such a frame has no top to find; else the
+    frame's largest reading, if above its zero (a clipped one reads the top,
+    above any other). Its force is a lower bound: flagged saturated, no σ;
+    and its repeated top count is no stale converter. None when no frame is
+    flagged."""
     if not np.count_nonzero(flagged):
         return None
     out = np.zeros(capacitance_pF.shape, dtype=bool)
     rows = capacitance_pF[flagged]
-    out[flagged] = rows == np.where(np.isnan(rows), -np.inf, rows).max(axis=1, keepdims=True)
+    zero = np.broadcast_to(baseline_pF, capacitance_pF.shape)[flagged]
+    top = rows == np.where(np.isnan(rows), -np.inf, rows).max(axis=1, keepdims=True)
+    bottom = (rows < PLAUSIBLE_LOW * zero).any(axis=1, keepdims=True)  # NaN compares False
+    out[flagged] = top & (rows > zero) & ~bottom
     return out
 
 

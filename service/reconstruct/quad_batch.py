@@ -83,15 +83,16 @@ def _with_fatigue(processor, states: list, counts: list[int], capacitance: np.nd
     return forces, quad_flags, sensitivity
 
 
-def without_clipped(readings: list[Reading], capacitance: np.ndarray) -> np.ndarray:
-    """The readings' electrodes (R, 4), a frame with one at the converter's
-    top (its board flag says a channel hit the range: level0.clipped) made
-    missing: one electrode's lower bound skews all three forces, so the
-    frame has none (its board flag says why), and the repeated top count is
-    no stale converter."""
+def without_clipped(readings: list[Reading], capacitance: np.ndarray, states: list, counts: list[int]) -> np.ndarray:
+    """The readings' electrodes (R, 4) (``counts[k]`` rows of ``states[k]``),
+    a frame with one at the converter's top (its board flag says a channel
+    left the range: level0.clipped) made missing: one electrode's lower
+    bound skews all three forces, so the frame has none (its board flag
+    says why), and the repeated top count is no stale converter."""
     if not any(r.board_flags for r in readings):  # the usual read: one look per reading
         return capacitance
-    mask = clipped(capacitance, np.array([r.board_flags & FLAG_SATURATED for r in readings], dtype=bool))
+    zeros = np.repeat(np.array([state.baseline.value for state in states]), counts, axis=0)
+    mask = clipped(capacitance, np.array([r.board_flags & FLAG_SATURATED for r in readings], dtype=bool), zeros)
     if mask is None:
         return capacitance
     return np.where(mask.any(axis=1)[:, None], np.nan, capacitance)
@@ -154,7 +155,7 @@ class QuadBatches:
         noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state in states])
         sensitivity = np.array([fatigue_factor(state) for state in states])
         processor = states[0].processor
-        capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]))
+        capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), states, counts)
         stale, kept = stale_runs(states, capacitance, counts)
         if len(readings) != len(members):
             baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
@@ -266,7 +267,8 @@ class QuadPlan:
         """(forces, quad flags, σ, runs to keep) of a batch's readings, changing nothing."""
         baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
         processor = batch.processor
-        capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]))
+        capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), batch.states,
+                                      [scans] * len(batch.states))
         stale, kept = batch.stale(capacitance, scans)
         if scans > 1:
             baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))

@@ -284,7 +284,7 @@ class Reconstructor(SensorStates):
             end = start + len(rs)
             jobs.append(GridJob(state.processor, capacitance[start:end], state.baseline.value, state.baseline.std,
                                 t_s[start:end], None if flagged is None else
-                                level0.clipped(capacitance[start:end], flagged[start:end])))
+                                level0.clipped(capacitance[start:end], flagged[start:end], state.baseline.value)))
             start = end
         return jobs
 
