@@ -97,8 +97,10 @@ def _shared_serials(boards) -> list[str]:
     calibrations and load-cycle counts are stored under it (a firmware's default serial, a cloned board)."""
     by_serial: dict[str, list[str]] = {}
     for board in boards:
-        serial = board.pipeline.interpreter.board.get("serial") if isinstance(board, Board) else None
-        if serial:
+        interpreter = board.pipeline.interpreter if isinstance(board, Board) else None
+        serial = interpreter.board.get("serial") if interpreter is not None else None
+        # Sensors with serials of their own are keyed by them: only those without share the board's.
+        if serial and any(not info.serial for info in interpreter.sensors.values()):
             by_serial.setdefault(str(serial), []).append(board.name)
     return [f"boards {', '.join(names)} report one serial {serial!r}: their sensors' calibrations and load-cycle "
             "counts are kept under it, shared (a firmware's default serial? give each board its own)"

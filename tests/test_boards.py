@@ -155,6 +155,11 @@ def test_two_boards_reporting_one_serial_are_a_problem_in_health():
         board.pipeline.feed(info, time.time())
     problems = health_report(service)["problems"]
     assert any(p.startswith("boards a, b report one serial 'TMX-SAME'") for p in problems), problems
+    for board, serial in zip(service.all_boards, ("Q-1", "Q-2")):  # sensors with serials of their own share nothing
+        board.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(
+            {"board": "tmux", "serial": "TMX-SAME", "sensors": [{"id": 0, "kind": "quad", "serial": serial}]})),
+            time.time())
+    assert not any("one serial" in p for p in health_report(service)["problems"])
 
 
 def test_a_tare_of_a_board_not_connected_says_so():
