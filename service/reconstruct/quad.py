@@ -65,6 +65,10 @@ class QuadProcessor:
         self.batch_key = (self.level, astuple(self.model), self.relative_se, self.model_sigma_N)
         self.plausible = plausible_relative(self.model.top_relative)
         self._bounds = bounds(*self.plausible)
+        # sigma's per-axis constants, made once: at 1 kHz a call's small arrays are its cost
+        self._se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
+        self._model_variance = np.square(self.model_sigma_N) if any(self.model_sigma_N) else None
+        self._held_at = np.array([self.model.shear_usable_N, self.model.shear_usable_N, self.model.normal_usable_N])
 
     def noise(self, baseline: np.ndarray, baseline_std: np.ndarray) -> float:
         """Noise of the combinations' ΔC/C0 from the tare spread (once per tare)."""
@@ -118,18 +122,16 @@ class QuadProcessor:
                 shear_slope = shear_slope * (1.0 - model.coupling * model.normal_response(fz))
             slopes = np.concatenate([shear_slope, c1 + 2.0 * c2 * fz], axis=1)
             reading = noise / np.maximum(slopes, 1e-9)
-        se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
-        variance = reading * reading + (forces * se) ** 2
-        if any(self.model_sigma_N):
-            variance = variance + np.square(self.model_sigma_N)
+        variance = reading * reading + (forces * self._se) ** 2
+        if self._model_variance is not None:
+            variance += self._model_variance
         s = np.asarray(sensitivity, dtype=float)
-        if np.any(s != 1.0):
+        if (s != 1.0).any():
             compensated = forces * (FATIGUE_SIGMA_SHARE * (1.0 / (s[:, None] if s.ndim else s) - 1.0))
-            variance = variance + compensated * compensated
+            variance += compensated * compensated
         sigma = np.sqrt(variance)
         if self.level != "level0":
-            model = self.model
-            held = np.abs(forces) >= (model.shear_usable_N, model.shear_usable_N, model.normal_usable_N)
+            held = np.abs(forces) >= self._held_at
             if np.count_nonzero(held):
                 sigma[held] = np.nan
         return sigma
