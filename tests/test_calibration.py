@@ -10,7 +10,7 @@ import pytest
 
 from firmware_sim.calibration_session import session, validation_capture
 from service.calibration import registry as reg
-from service.calibration.calibrate import calibrate, document
+from service.calibration.calibrate import calibrate, document, summary_lines
 from service.calibration.cli import add_parsers
 from service.physics.taxel_response import TaxelResponse
 from service.calibration.fit import unit_response
@@ -156,6 +156,10 @@ def test_partial_session_keeps_the_previous_values_of_taxels_not_pressed(run):
     doc = document(partial, previous)
     assert doc["taxels"]["source"][0] == "this session" and doc["taxels"]["source"][1] == "0123456789abcdef"
     assert doc["taxels"]["sensitivity_pct_per_N"][1] == previous["taxels"]["sensitivity_pct_per_N"][1]
+    # Named, not silent: they appeared nowhere (a reference covering part of the session left five so).
+    assert doc["statistics"]["taxels_not_pressed"] == [t for t in range(64) if t not in (0, 9)]
+    assert f"not pressed, so not calibrated (they keep their previous values): taxels {[t for t in range(64) if t not in (0, 9)]}" \
+        in summary_lines(partial)
 
 
 def test_the_command_calibrates_stores_lists_exports_and_imports(run, tmp_path, capsys):

@@ -157,9 +157,16 @@ def document(result: Calibration, previous: dict | None = None, created: str | N
                        "reference_rest_warning": result.reference.zero_warning,
                        "reference_skipped_lines": result.reference.skipped,
                        "taxels_fitted": sorted(result.fits), "taxels_failed": {str(t): m for t, m in result.problems.items()},
+                       "taxels_not_pressed": not_pressed(result),
                        "residual_rms_N_median": float(np.median([f.residual_rms_N for f in result.fits.values()]))},
         "taxels": taxels,
     }
+
+
+def not_pressed(result: Calibration) -> list[int]:
+    """Taxels (row-major) that no press of the session was credited to (none within the reference's span, or
+    none at all): neither fitted nor failed, they keep their previous values, and are named as such."""
+    return [t for t in range(result.session.info.channels) if t not in result.fits and t not in result.problems]
 
 
 def summary_lines(result: Calibration) -> list[str]:
@@ -181,6 +188,9 @@ def summary_lines(result: Calibration) -> list[str]:
         lines.append(f"{name:<9}{c0:>7}   {sens:>7}  {origin:>7}    {gain}   {rms}   {presses:>5}  {max_n:>5}  {model}")
     for t, why in sorted(result.problems.items()):
         lines.append(f"not calibrated: {why}")
+    missed = not_pressed(result)
+    if missed:
+        lines.append(f"not pressed, so not calibrated (they keep their previous values): taxels {missed}")
     for p in result.flagged_presses:
         lines.append(f"press at {p.start_s:.2f} s set aside: {p.problem}")
     return lines
