@@ -806,3 +806,24 @@ def test_a_channel_clipped_at_the_converters_bottom_leaves_the_largest_reading_a
     for frame in (f for f in out if f.seq >= 200):
         assert "saturated" not in frame.taxel_flag_lists() and np.isfinite(frame.sigma_N[10])
         assert 3 in frame.taxel_flag_lists()["out_of_range"] and np.isnan(frame.forces_N[3])
+
+
+def test_a_quad_with_two_electrodes_off_while_it_tared_sets_none_aside():
+    """With 2 of 4 electrodes at 5× the median lies between the two groups:
+    the healthy electrodes were set aside and could never be zeroed again.
+    No level most channels agree on: none is set aside."""
+    from functools import partial
+
+    from service.physics.quad_model import NOMINAL_C0_PF
+    from service.reconstruct.baseline import Baseline
+    from service.reconstruct.level0 import own_level_window
+
+    nominal = np.full(4, NOMINAL_C0_PF)
+    baseline = Baseline(4, frames=10, own_level=partial(own_level_window, nominal_c0_pF=nominal, top_relative=0.36))
+    for _ in range(10):
+        baseline.update(nominal * np.array([5.0, 5.0, 1.0, 1.0]))
+    assert baseline.ready and np.isfinite(baseline.value).all()
+    one_off = Baseline(4, frames=10, own_level=partial(own_level_window, nominal_c0_pF=nominal, top_relative=0.36))
+    for _ in range(10):
+        one_off.update(nominal * np.array([0.41, 1.0, 1.0, 1.0]))
+    assert np.isnan(one_off.value[0]) and np.isfinite(one_off.value[1:]).all()

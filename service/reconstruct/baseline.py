@@ -149,6 +149,8 @@ class Baseline:
         if window is None:
             return
         off = (self.value < window[0]) | (self.value > window[1])  # NaN compares False
+        if np.count_nonzero(off) > np.count_nonzero(self.value == self.value) // 4:
+            return  # no level most channels agree on (2 of a quad's 4 off): nothing to tell the faulty by
         if off.any():
             self.value = np.where(off, np.nan, self.value)
             self.std = np.where(off, np.nan, self.std)
