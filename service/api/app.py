@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
+from fastapi_offline import FastAPIOffline
 
 from . import (
     dashboard,
@@ -48,7 +49,8 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
                max_body_bytes: int = DEFAULT_MAX_BODY_BYTES) -> FastAPI:
     """An app serving ``service`` behind the request guard (guard.py);
     RuntimeError when the dashboard's files are missing."""
-    app = FastAPI(title="tactile", version="0.1.0", lifespan=lifespan, default_response_class=JSONResponse,
+    # /docs and /redoc load their scripts from the package, not a CDN a lab without internet cannot reach.
+    app = FastAPIOffline(title="tactile", version="0.1.0", lifespan=lifespan, default_response_class=JSONResponse,
                   description="Calibrated forces from capacitive tactile sensors. See docs/api.md.")
     app.state.service = service
     app.state.token = token
