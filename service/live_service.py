@@ -21,7 +21,7 @@ from .fanout.hub import Hub
 from .health import health_report
 from .history import DEFAULT_BUDGET_BYTES, Histories
 from .latency import LatencyMeter
-from .readings import UNNAMED_BOARD, name_from_info
+from .board_info import UNNAMED_BOARD, name_from_info
 from .readout import DEFAULT_SILENCE_S
 from .reconstruct import DEFAULT_LEVEL
 from .record.recorder import Recorder

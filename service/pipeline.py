@@ -18,7 +18,9 @@ from typing import Callable, Protocol
 from .clock_map import ClockMap
 from .history import Histories
 from .protocol_bulk import BulkDecoder
-from .readings import Interpreter, Reading, SensorInfo, name_from_info
+from .board_info import name_from_info
+from .interpreter import Interpreter
+from .readings import Reading, SensorInfo
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
 
@@ -84,7 +86,7 @@ class Pipeline:
         INFO to identify it. ``map_clock``: estimate each scan's host time
         from the receive times (False for a stream without them, a raw
         capture). ``board_name``: the board's name in every sensor's address
-        (board/id); without it ``name_board`` (readings.name_from_info by
+        (board/id); without it ``name_board`` (board_info.name_from_info by
         default) names the board from its first INFO. ``grid_batch_s``: live,
         grids wait up to this long to be reconstructed together with the
         reads that come meanwhile (CPU for latency: docs/performance.md)."""

@@ -14,7 +14,8 @@ from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimGrid, SimQuad
 from service.physics.paper_data import table1
 from service.protocol import Decoder
-from service.readings import Interpreter, Reading
+from service.interpreter import Interpreter
+from service.readings import Reading
 from service.reconstruct import Reconstructor
 from service.reconstruct import reconstructor as reconstructor_module
 from service.reconstruct.stuck import run_lengths

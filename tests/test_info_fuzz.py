@@ -9,7 +9,7 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from service.protocol import Decoder, FrameType, encode_frame
-from service.readings import Interpreter
+from service.interpreter import Interpreter
 
 text = st.text(st.characters(blacklist_categories=("Cs",)), max_size=8)  # JSON cannot carry lone surrogates
 numbers = st.one_of(st.integers(-(2**70), 2**70), st.integers(-3, 300), st.floats(allow_nan=False, allow_infinity=False))

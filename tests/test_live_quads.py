@@ -17,7 +17,8 @@ import pytest
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimQuad
 from service.protocol import Decoder
-from service.readings import Interpreter, Reading
+from service.interpreter import Interpreter
+from service.readings import Reading
 from service.reconstruct import Reconstructor
 from service.reconstruct.quad_batch import QuadPlan
 

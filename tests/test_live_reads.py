@@ -13,7 +13,7 @@ import pytest
 
 from service.clock_map import ClockMap
 from service.protocol import Decoder, FrameType, encode_frame
-from service.readings import Interpreter
+from service.interpreter import Interpreter
 
 DATA = Path(__file__).parent / "data"
 

@@ -6,7 +6,8 @@ import orjson
 import pytest
 
 from service.protocol import FLAG_SATURATED, Decoder, FrameType, encode_frame
-from service.readings import Interpreter, parse_info
+from service.board_info import parse_info
+from service.interpreter import Interpreter
 
 
 def feed(interpreter, *frames):
@@ -112,14 +113,14 @@ def test_a_flood_of_board_errors_is_logged_escaped_and_once_a_minute(caplog, mon
     """A board sending a 1 KB ERROR every 5 ms wrote 370 KB/s of log, its
     control bytes (terminal escapes) verbatim: now one line a minute, escaped,
     saying how many were held back; /health keeps the last 50 as sent."""
-    import service.readings as readings
+    import service.interpreter as interpreter_module
 
     clock = [100.0]
-    monkeypatch.setattr(readings.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(interpreter_module.time, "monotonic", lambda: clock[0])
     interpreter = Interpreter()
     decoder = Decoder()
     text = b"\x1b[2J\x1b[31mFAKE: service stopped\nmux " + b"x" * 900
-    with caplog.at_level("WARNING", logger="service.readings"):
+    with caplog.at_level("WARNING", logger="service.interpreter"):
         for k in range(400):  # 2 s at 5 ms, then one 61 s later (a replay's reads may all have one stamp)
             clock[0] = 100.0 + 0.005 * k
             for frame in decoder.feed(encode_frame(FrameType.ERROR, 255, k, k, text)):

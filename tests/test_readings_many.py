@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from service.protocol import Decoder, Frame, FrameType, encode_frame
-from service.readings import OPEN_SENTINEL, Interpreter
+from service.interpreter import Interpreter
+from service.readings import OPEN_SENTINEL
 
 DATA = Path(__file__).parent / "data"
 

@@ -11,7 +11,8 @@ from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimGrid, SimQuad
 from service.physics.paper_data import table1
 from service.protocol import Decoder
-from service.readings import Interpreter, Reading, SensorInfo
+from service.interpreter import Interpreter
+from service.readings import Reading, SensorInfo
 from service.reconstruct import Reconstructor
 from service.reconstruct import reconstructor as reconstructor_module
 from service.reconstruct.grid import NO_READING, OUT_OF_RANGE, SATURATED, STALE

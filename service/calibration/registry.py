@@ -18,7 +18,7 @@ built-in calibration BUILTIN_ID.
 Location: the ``path`` argument, else $TACTILE_REGISTRY, else
 $XDG_DATA_HOME/tactile/registry.sqlite3 (~/.local/share when unset).
 
-This module imports nothing above service.physics, service.readings and the
+This module imports nothing above service.physics, service.readings, service.board_info and the
 calibration's reconstruction side (reconstruct/sensor_calibration.py): the
 live service loads calibrations through it.
 """
@@ -30,7 +30,8 @@ import sqlite3
 from pathlib import Path
 
 from ..physics.paper_data import BUILTIN_GRID_ID, grid_calibration
-from ..readings import SensorInfo, name_from_info
+from ..board_info import name_from_info
+from ..readings import SensorInfo
 from ..reconstruct.sensor_calibration import SCHEMA, calibration_id, canonical, check_for_its_sensor
 
 BUILTIN_ID = BUILTIN_GRID_ID

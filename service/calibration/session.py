@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from ..protocol import FLAG_SATURATED, T_US_MODULUS, Decoder, FrameType
-from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Interpreter, SensorInfo
+from ..interpreter import Interpreter
+from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, SensorInfo
 from ..record.readers import is_timed_by_host, timed_chunks
 from .dead_taxels import dead_taxels
 

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from ..protocol import Decoder
-from ..readings import Interpreter
+from ..interpreter import Interpreter
 from ..reconstruct import Reconstructor
 from ..reconstruct.baseline import DEFAULT_TARE_FRAMES
 from ..reconstruct.calibration_upload import processor_for
