@@ -12,6 +12,7 @@ import sys
 
 from . import cli_commands as commands
 from .calibration.cli import add_parsers as add_calibration_parsers
+from .calibration.cli import existing_registry, new_or_existing_registry
 from .cli_recordings import cmd_record, cmd_replay
 from .cli_serve import cmd_gateway, cmd_serve
 from .cli_signals import interrupted, watchdog_for
@@ -31,6 +32,22 @@ def _slice_us(text: str) -> int:
     if value and not MIN_SLICE_US <= value <= MAX_SLICE_US:
         raise argparse.ArgumentTypeError(f"slice {value} us is outside {MIN_SLICE_US}..{MAX_SLICE_US} (or 0 for the default)")
     return value
+
+
+def _port(text: str, free_ok: bool = False) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"port {text!r} is not a whole number") from None
+    low = 0 if free_ok else 1
+    if not low <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"port {value} is outside {low}..65535")
+    return value
+
+
+def _port_or_free(text: str) -> int:
+    """A port, or 0 for any free one."""
+    return _port(text, free_ok=True)
 
 
 def _positive(text: str) -> float:
@@ -65,15 +82,17 @@ def _scene(text: str) -> str:
     return text
 
 
-def _add_reconstruction_options(parser: argparse.ArgumentParser) -> None:
+def _add_reconstruction_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
+    """``stores``: the command stores into the registry (serve: uploads, load cycles), so it may make one."""
     parser.add_argument("--level", default=DEFAULT_LEVEL, choices=LEVELS,
                         help="fidelity level; auto takes the cheapest meeting the scene's error budget and says which "
                              "(default: %(default)s)")
     parser.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
                         help="grid mounting: picks the load-shape table (default: %(default)s)")
-    parser.add_argument("--registry", metavar="PATH",
+    parser.add_argument("--registry", metavar="PATH", type=new_or_existing_registry if stores else existing_registry,
                         help="calibration registry: each sensor's active calibration is used (default: "
-                             "$TACTILE_REGISTRY, else $XDG_DATA_HOME/tactile/registry.sqlite3)")
+                             "$TACTILE_REGISTRY, else $XDG_DATA_HOME/tactile/registry.sqlite3)" + (
+                                 "; made, saying so, if missing" if stores else "; it must exist"))
     parser.add_argument("--calibration", action="append", metavar="ID|FILE",
                         help="use this calibration (a registry id or an exported JSON file) for the sensor it was "
                              "made for, over the registry's active one (repeatable; a recording's own come first)")
@@ -83,7 +102,7 @@ def _add_http_options(parser: argparse.ArgumentParser) -> None:
     """Where and to whom the API is served (serve, replay --serve, gateway)."""
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s; beyond localhost "
                                                                 "a token is required, see --token)")
-    parser.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
+    parser.add_argument("--port", type=_port, default=8000, help="HTTP port (default: %(default)s)")
     parser.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"],
                         help="server log level (default: %(default)s)")
     parser.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
@@ -96,7 +115,7 @@ def _add_http_options(parser: argparse.ArgumentParser) -> None:
                              "(repeatable; default: only the service's own dashboard)")
 
 
-def _add_serving_options(parser: argparse.ArgumentParser) -> None:
+def _add_serving_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
     """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
     _add_http_options(parser)
     parser.add_argument("--recordings-dir", default="recordings", metavar="DIR",
@@ -105,7 +124,7 @@ def _add_serving_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--silence-s", type=_positive, default=2.0, metavar="S",
                         help="after this long without a byte, ask the board INFO? and then reopen the link "
                              "(default: %(default)s)")
-    _add_reconstruction_options(parser)
+    _add_reconstruction_options(parser, stores)
     parser.add_argument("--grid-batch-ms", type=float, default=0.0, metavar="MS",
                         help="let grids wait up to MS to be reconstructed together with the reads that come "
                              "meanwhile: less CPU for up to MS more grid latency; quads never wait (default: "
@@ -137,7 +156,7 @@ def _add_serve(sub) -> None:
     serve.add_argument("--board-name", metavar="NAME",
                        help="name a single bare --source (as NAME=URL does): its address in the API and its key in "
                             "tactile/<board>/… (default: the serial, else the board name, from INFO)")
-    _add_serving_options(serve)
+    _add_serving_options(serve, stores=True)
     _add_zenoh_options(serve)
     serve.set_defaults(func=cmd_serve)
 
@@ -177,7 +196,7 @@ def _add_sim(sub) -> None:
     sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")
     where = sim.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a new pseudo-terminal and print its path")
-    where.add_argument("--tcp", type=int, metavar="PORT", help="serve on TCP (0 picks a free port)")
+    where.add_argument("--tcp", type=_port_or_free, metavar="PORT", help="serve on TCP (0 picks a free port)")
     where.add_argument("--capture", metavar="FILE", help="write the simulator's exact bytes to FILE")
     sim.add_argument("--host", default="127.0.0.1", help="TCP bind address (default: %(default)s)")
     sim.add_argument("--seconds", type=_positive, default=10.0, help="capture length, s (default: %(default)s)")
@@ -196,6 +215,7 @@ def _add_record(sub) -> None:
     record.add_argument("--source", default=DEFAULT_SOURCE, help="pyserial URL or device path (default: %(default)s)")
     record.add_argument("--out", required=True, metavar="RUN.mcap", help="the MCAP file to write")
     record.add_argument("--raw", metavar="RUN.bin", help="also write the raw bytes, exactly as received")
+    record.add_argument("--overwrite", action="store_true", help="replace files that exist (default: refuse them)")
     record.add_argument("--seconds", type=_positive, help="stop after this long (default: until Ctrl-C); "
                                                            "exit 1 if not one byte came")
     _add_reconstruction_options(record)

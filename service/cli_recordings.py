@@ -31,7 +31,13 @@ def cmd_record(args) -> int:
     book = book_from_options(args.registry, args.calibration, args.mounting)
     pipeline = Pipeline(Reconstructor(level=args.level, mounting=args.mounting), calibrations=book)
     outputs = [Path(p) for p in (args.out, args.raw) if p]
+    if len(outputs) == 2 and outputs[0].resolve() == outputs[1].resolve():
+        raise ValueError(f"--out and --raw name the same file ({args.out}): the raw bytes would overwrite the recording")
     new = [p for p in outputs if not p.exists()]
+    existing = [p for p in outputs if p not in new]
+    if existing and not args.overwrite:  # as POST /record/start: a recording is not lost to a repeated command
+        raise ValueError(f"{' and '.join(f'{p} ({p.stat().st_size} bytes)' for p in existing)} exist"
+                         f"{'s' if len(existing) == 1 else ''}: name another file, or give --overwrite")
     recorder = Recorder(args.out, args.raw)
     recorder.attach(pipeline)
     readout = Readout(args.source, ThreadSink(pipeline.feed, pipeline.link_lost))
@@ -53,18 +59,19 @@ def cmd_record(args) -> int:
         readout.stop()
         watcher.stop(final_look=False)
         status = recorder.stop()
-    print(json.dumps(status, indent=1))
     if status["error"]:
+        print(json.dumps(status, indent=1))
         return 1
     if readout.link.last_data_time is None:  # not one byte came
         removed = [p for p in new if p.exists() and _unlink(p)]  # only files this command created
-        kept = [p for p in outputs if p not in new]
+        kept = existing
         why = f" ({readout.link.last_error})" if readout.link.last_error else ""
         note = f"; removed the empty {' and '.join(map(str, removed))}" if removed else ""
         note += f"; {' and '.join(map(str, kept))} existed before and now hold an empty recording" if kept else ""
         print(f"tactile record: nothing recorded: no byte from {args.source} in {time.monotonic() - started:.1f} s"
               f"{why}{note}", file=sys.stderr)
         return 1
+    print(json.dumps(status, indent=1))
     return 0
 
 

@@ -12,6 +12,7 @@ import socket
 import sys
 import threading
 import time
+from pathlib import Path
 
 from .cli_signals import noting_sigint
 from .sources import check_source
@@ -137,6 +138,9 @@ def cmd_serve(args) -> int:
     check_port_free(args.host, args.port)  # before anything is printed: not a URL that points at another instance
     token = _token(args)
     publisher = zenoh_publisher(args)
+    if args.registry is not None and not Path(args.registry).exists():
+        print(f"tactile: registry {args.registry} did not exist: made empty (every sensor on its built-in "
+              "calibration until one is uploaded)", file=sys.stderr, flush=True)
     book = book_from_options(args.registry, args.calibration, args.mounting, getattr(args, "recording", None))
     service = TactileService(sched_slice_us=args.sched_slice_us or None, recordings_dir=args.recordings_dir,
                              silence_s=args.silence_s, calibrations=book, boards=specs, mounting=args.mounting,

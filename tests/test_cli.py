@@ -50,6 +50,52 @@ def test_record_of_a_source_that_delivers_keeps_its_file_and_exits_0(tmp_path, c
     assert "nothing recorded" not in capsys.readouterr().err
 
 
+def test_record_refuses_to_overwrite_a_recording_unless_told(tmp_path, capsys):
+    """A repeated command lost the earlier recording without a word (POST /record/start refuses it: 409)."""
+    out = tmp_path / "run.mcap"
+    out.write_bytes(b"yesterday's run")
+    assert cli.main(["record", "--source", "sim://?scene=idle", "--out", str(out), "--seconds", "0.5"]) == 2
+    assert f"{out} (15 bytes) exists: name another file, or give --overwrite" in capsys.readouterr().err
+    assert out.read_bytes() == b"yesterday's run"
+    assert cli.main(["record", "--source", "sim://?scene=idle", "--out", str(out), "--seconds", "0.5",
+                     "--overwrite"]) == 0
+    assert out.read_bytes()[:8] == b"\x89MCAP0\r\n"
+
+
+def test_record_refuses_one_file_for_the_recording_and_the_raw_bytes(tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    assert cli.main(["record", "--source", "sim://?scene=idle", "--out", str(out), "--raw",
+                     str(tmp_path / "." / "run.mcap"), "--seconds", "0.5"]) == 2
+    assert "--out and --raw name the same file" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("port", ["0", "65536", "99999", "-1", "http"])
+def test_a_port_outside_the_tcp_range_is_refused_by_name(port, capsys):
+    """--port 99999 printed a dashboard URL on 99999 and listened on 34463 (the value modulo 65536)."""
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["serve", "--port", port])
+    assert exit_.value.code == 2
+    assert f"argument --port: port {port if port.lstrip('-').isdigit() else repr(port)}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["replay", "x.bin"], ["record", "--out", "x.mcap"], ["calibrations", "list"],
+                                     ["calibrations", "show", "ab12"]])
+def test_a_registry_named_for_reading_must_exist(command, tmp_path, capsys):
+    """A mistyped --registry made a new empty registry: every sensor silently on its built-in calibration."""
+    typo = tmp_path / "typo.sqlite3"
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(command + ["--registry", str(typo)])
+    assert exit_.value.code == 2 and f"no registry at {typo}" in capsys.readouterr().err
+    assert not typo.exists()
+
+
+def test_a_registry_stored_into_is_made_only_in_a_directory_that_exists(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["calibrations", "import", "c.json", "--registry", str(tmp_path / "no" / "dir" / "r.sqlite3")])
+    assert f"no directory {tmp_path / 'no' / 'dir'} for the registry" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+
+
 def test_replay_of_a_file_without_a_valid_frame_exits_1_naming_it(tmp_path, capsys):
     text = tmp_path / "notes.txt"
     text.write_text("not a capture\n" * 100)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -16,10 +17,28 @@ from ..physics.mountings import MOUNTINGS
 from .registry import Registry
 
 
-def _registry_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--registry", metavar="PATH",
+def existing_registry(text: str) -> str:
+    """A ``--registry`` a command reads: a path that does not exist is a
+    mistake to name, not an empty registry to make (a typo there silently
+    left every sensor on its built-in calibration)."""
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"no registry at {text} (one is made by `tactile calibrate` or "
+                                         "`tactile calibrations import` naming it; without --registry the default one is used)")
+    return text
+
+
+def new_or_existing_registry(text: str) -> str:
+    """A ``--registry`` a command stores into: made if missing, in a directory that exists."""
+    if not Path(text).is_file() and not Path(text).parent.is_dir():
+        raise argparse.ArgumentTypeError(f"no directory {Path(text).parent} for the registry {text}")
+    return text
+
+
+def _registry_option(parser: argparse.ArgumentParser, stores: bool = False) -> None:
+    parser.add_argument("--registry", metavar="PATH", type=new_or_existing_registry if stores else existing_registry,
                         help="calibration registry (default: $TACTILE_REGISTRY, else "
-                             "$XDG_DATA_HOME/tactile/registry.sqlite3)")
+                             "$XDG_DATA_HOME/tactile/registry.sqlite3)" + (
+                                 "; made if missing" if stores else "; it must exist"))
 
 
 def add_parsers(subparsers) -> None:
@@ -30,7 +49,7 @@ def add_parsers(subparsers) -> None:
                      help="the reference instrument's log: t_s,force_N (a grid) or t_s,fx_N,fy_N,fz_N (a quad)")
     cal.add_argument("--sensor", type=int, metavar="ID", help="sensor id on the board (default: the only grid, "
                                                               "or the only quad for a 3-axis reference)")
-    _registry_option(cal)
+    _registry_option(cal, stores=True)
     cal.add_argument("--board", metavar="NAME",
                      help="the board's name in the service (--source NAME=URL): a board without a serial keys its "
                           "sensors' calibrations by it; also picks that board's bytes from a recording of several")
@@ -73,7 +92,7 @@ def add_parsers(subparsers) -> None:
                           "or through the origin (they differ by ~2.5 %%): required for a CSV")
     imp.add_argument("--sensor-key", help="a CSV's sensor, as the registry names it (e.g. sensor:A8-2291 or "
                                           "board:TMX-000123/sensor:0)")
-    _registry_option(imp)
+    _registry_option(imp, stores=True)
     listing.set_defaults(func=cmd_list)
     for name, func in (("show", cmd_show), ("activate", cmd_activate), ("export", cmd_export), ("import", cmd_import)):
         cals.choices[name].set_defaults(func=func)
@@ -198,8 +217,6 @@ def cmd_export(args) -> int:
 
 
 def cmd_import(args) -> int:
-    from pathlib import Path
-
     document = None
     if Path(args.file).suffix.lower() == ".csv":
         from .table_import import table_document
