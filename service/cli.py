@@ -232,7 +232,8 @@ def _add_replay(sub) -> None:
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout); "
                                                               "OUT.parquet: one row per data frame, a Parquet table")
     _add_serving_options(replay)
-    replay.set_defaults(func=cmd_replay)
+    # None: as the recording was made (its /settings), else the defaults (cli_recordings.replay_settings)
+    replay.set_defaults(func=cmd_replay, level=None, mounting=None)
 
 
 def _add_tables(sub) -> None:

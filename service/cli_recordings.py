@@ -15,7 +15,10 @@ from pathlib import Path
 
 from .cli_commands import progress_bar
 from .cli_serve import LinkWatcher, cmd_serve, quiet_readout_transitions
+from .reconstruct.levels import DEFAULT_LEVEL
 from .sources import check_source
+
+DEFAULTS = {"level": DEFAULT_LEVEL, "mounting": "flat"}  # a replay's, where its recording does not say
 
 
 def cmd_record(args) -> int:
@@ -73,6 +76,24 @@ def cmd_record(args) -> int:
         return 1
     print(json.dumps(status, indent=1))
     return 0
+
+
+def replay_settings(args, path: str) -> None:
+    """``args.level`` and ``args.mounting`` a replay of ``path`` serves
+    with: what the recording says, unless given (then said where they
+    differ from it: the forces will differ from the recorded ones). An
+    export leaves None as it is: each board takes its own (replay_boards)."""
+    from .record.mcap_reader import read_settings
+
+    recorded = read_settings(path) if Path(path).suffix == ".mcap" and Path(path).is_file() else {}
+    for name in ("level", "mounting"):
+        given = getattr(args, name)
+        made = sorted({board[name] for board in recorded.values()})
+        if given is not None and made and made != [given]:
+            print(f"tactile replay: {path} was recorded at {name} {' and '.join(made)}; replaying at {given}, so its "
+                  "forces differ from the recorded ones", file=sys.stderr)
+        if given is None and args.serve:  # one setting for the served boards: the recording's if it has one
+            setattr(args, name, made[0] if len(made) == 1 else DEFAULTS[name])
 
 
 def _unlink(path: Path) -> bool:
@@ -150,9 +171,12 @@ def cmd_replay(args) -> int:
     from .record.mcap_reader import boards_in
     from .replay import replay_boards
 
+    if args.file and args.raw:
+        raise ValueError(f"name one recording: {args.file} or --raw {args.raw}")
     path = args.file or args.raw
     if path is None:
         raise ValueError("name a recording: tactile replay FILE (or --raw FILE)")
+    replay_settings(args, path)
     if args.serve:
         import math
         import urllib.parse
@@ -174,7 +198,7 @@ def cmd_replay(args) -> int:
     bar = progress_bar(total=Path(path).stat().st_size, unit="B", unit_scale=True, desc=Path(path).name)
     writer = None
     try:
-        book = book_from_options(args.registry, args.calibration, args.mounting, path)
+        book = book_from_options(args.registry, args.calibration, args.mounting or "flat", path)
         if columnar:
             from .record.export_parquet import Parquet
 

@@ -10,7 +10,8 @@ not depend on how the stream is cut.
 A raw capture's readings are held until each sensor's auto-tare is
 complete, so every exported frame has forces. A recording is replayed as it
 ran live (the tare window null and flagged), with the tares made while it
-was recorded made again before the same read, so its forces come out bit for
+was recorded made again before the same read, and at the level and mounting
+it was recorded with (unless told otherwise), so its forces come out bit for
 bit as recorded. One begun on a running service starts from the zeros then
 in force (recorded as ``/baselines``), not from a tare on whatever load it
 begins with; the full level's tracked state (drift, crosstalk estimates)
@@ -26,7 +27,7 @@ from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
-from .record.mcap_reader import read_baselines, read_numbered, read_tares
+from .record.mcap_reader import read_baselines, read_numbered, read_settings, read_tares
 from .record.readers import is_timed_by_host, timed_chunks
 
 JOIN_READS = 256  # recorded reads of a board joined into one call at full speed
@@ -38,7 +39,7 @@ class Writer(Protocol):
     def write(self, frames: list[ForceFrame]) -> None: ...
 
 
-def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL, mounting: str = "flat",
+def replay(path: str | Path, export: BinaryIO | None = None, level: str | None = None, mounting: str | None = None,
            pacer: Pacer | None = None, writer: Writer | None = None, calibrations=None) -> Pipeline:
     """Replay a one-board recording (.mcap) or raw capture (any other suffix)
     (``replay_boards`` for any number of boards); returns its pipeline,
@@ -49,15 +50,17 @@ def replay(path: str | Path, export: BinaryIO | None = None, level: str = DEFAUL
     return next(iter(pipelines.values()))
 
 
-def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str = DEFAULT_LEVEL,
-                  mounting: str = "flat", pacer: Pacer | None = None, writer: Writer | None = None,
+def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str | None = None,
+                  mounting: str | None = None, pacer: Pacer | None = None, writer: Writer | None = None,
                   calibrations=None) -> dict[str, Pipeline]:
     """Replay a recording (.mcap, of one board or several) or raw capture
     (any other suffix); write one JSON line per data frame to ``export``,
     or each batch of frames to ``writer`` (record.export_parquet.Parquet,
     say), every board's in the order its reads were received.
     ``calibrations``: a calibration/book.py CalibrationBook (None: built-in
-    calibrations). Returns each board's pipeline by its name."""
+    calibrations). ``level``, ``mounting``: None reconstructs each board
+    as it was recorded (``/settings``), else at DEFAULT_LEVEL, flat.
+    Returns each board's pipeline by its name."""
     pacer = pacer or Pacer(math.inf)
     hold = not is_timed_by_host(path)
     own = writer is None and export is not None  # a paced replay's lines go out as they come (a pipe may read them)
@@ -71,8 +74,11 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
         pipeline = pipelines.get(board)
         if pipeline is None:
             began = zeros.get(board, {})  # a recording begun mid-stream has no INFO: its name then, its zeros
+            recorded = settings.get(board, {})
+            reconstructor = Reconstructor(hold_until_tared=hold, level=level or recorded.get("level", DEFAULT_LEVEL),
+                                          mounting=mounting or recorded.get("mounting", "flat"))
             pipeline = pipelines[board] = Pipeline(
-                Reconstructor(hold_until_tared=hold, level=level, mounting=mounting), clock=lambda: 0.0,
+                reconstructor, clock=lambda: 0.0,
                 keep_history=False, calibrations=calibrations, map_clock=not hold,
                 board_name=board or only or began.get("board"))
             if writer is not None:
@@ -87,6 +93,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str =
     chunks = read_numbered(path) if not hold else ((None, 0, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
     tares = {} if hold else {board: sorted(made, key=lambda tare: tare[0]) for board, made in read_tares(path).items()}
     zeros = {} if hold else read_baselines(path)  # a recording begun on a running service: the zeros it began with
+    settings = {} if hold else read_settings(path)
     if hold:
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     t_last = 0.0

@@ -88,6 +88,17 @@ def read_tares(path: str | Path) -> dict[str | None, list[tuple[int, int, bool]]
     return tares
 
 
+def read_settings(path: str | Path) -> dict[str | None, dict]:
+    """{board (as ``read_boards`` names them): {"level", "mounting"}} its
+    forces were reconstructed with while recording (the first said; none
+    in a recording made before they were recorded)."""
+    settings: dict[str | None, dict] = {}
+    for topic, message in _topics_of(path, lambda topic: raw_board(topic, "settings") is not False):
+        doc = orjson.loads(message.data)
+        settings.setdefault(raw_board(topic, "settings"), {"level": doc["level"], "mounting": doc["mounting"]})
+    return settings
+
+
 def read_baselines(path: str | Path) -> dict[str | None, dict]:
     """The zeros in force when the recording began, per board (as
     ``read_boards`` names them): {"board": its name then, "sensors": [...],

@@ -10,7 +10,8 @@ every read of the port), per sensor
 calibration document, written before the first frame that uses it, so a
 replay reconstructs with it whatever the registry holds then), ``/tare``
 (tactile.Tare: a tare made while recording, with the read before which it
-took effect, so a replay makes it there). log_time is the host receive time (ns); publish_time the
+took effect, so a replay makes it there), ``/settings`` (tactile.Settings: the level and mounting the
+board's forces were reconstructed with, which its replay takes). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
 
 Chunks are small (64 KiB, ~0.2 s at 1 kHz) and the file is flushed after
@@ -52,7 +53,7 @@ class McapLog:
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
                                  ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
                                  ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE),
-                                 ("baselines", schemas.BASELINES))
+                                 ("baselines", schemas.BASELINES), ("settings", schemas.SETTINGS))
         }
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -103,6 +104,10 @@ class McapLog:
         began; ``info``: the board's INFO then in force (Interpreter.info_document), if any."""
         self._add(f"{prefix}/baselines", "baselines", t_host,
                   {"board": board, "sensors": sensors, **({"info": info} if info is not None else {})})
+
+    def settings(self, board: str, level: str, mounting: str, t_host: float, prefix: str = "") -> None:
+        """How the board's forces are reconstructed, before its first read."""
+        self._add(f"{prefix}/settings", "settings", t_host, {"board": board, "level": level, "mounting": mounting})
 
     def diagnostics(self, t_host: float, diagnostics: dict, prefix: str = "") -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

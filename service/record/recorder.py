@@ -166,6 +166,9 @@ class Recorder:
             after_reads, judge = payload
             self._log.tare(pipeline.interpreter.name, after_reads, judge, t_host, prefix)
             self.messages += 1
+        elif kind == "settings":
+            self._log.settings(pipeline.interpreter.name, *payload, t_host, prefix)
+            self.messages += 1
         elif kind == "baselines":
             zeros, info = payload
             self._log.baselines(pipeline.interpreter.name, zeros, info, t_host, prefix)
@@ -202,6 +205,9 @@ class _Listeners:
         if self.recorder.active:
             if self._first_read is None:  # on the feeding thread, before this read is decoded: its number
                 self._first_read = self.pipeline.reads
+                reconstructor = self.pipeline.reconstructor
+                self.recorder._queue.put(("settings", (self.pipeline, (reconstructor.level, reconstructor.mounting)),
+                                          t_host))
                 with self.pipeline._lock:  # a tare from the API's thread may be resetting one
                     zeros = self.pipeline.reconstructor.baselines()
                     info = self.pipeline.interpreter.info_document()

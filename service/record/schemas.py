@@ -86,6 +86,18 @@ TARE = {
     },
 }
 
+SETTINGS = {
+    "title": "tactile.Settings",
+    "description": "How a board's forces were reconstructed while recording: what its replay reconstructs with "
+                   "unless told otherwise (its forces equal the recorded ones only so)",
+    "type": "object",
+    "properties": {
+        "board": {"type": "string"},
+        "level": {"type": "string", "description": "fidelity level in use (level0, table, full; auto's choice)"},
+        "mounting": {"type": "string"},
+    },
+}
+
 FORCES = {
     "title": "tactile.Forces",
     "description": "Reconstructed forces of one frame (the replay export shape)",
