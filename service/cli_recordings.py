@@ -78,6 +78,20 @@ def cmd_record(args) -> int:
     return 0
 
 
+EXPORT_SUFFIXES = {".jsonl": "jsonl", ".ndjson": "jsonl", ".parquet": "parquet"}
+
+
+def export_format(export: str) -> str:
+    """``--export``'s format by its suffix, in any case ('-': JSON lines to stdout); ValueError for any other."""
+    if export == "-":
+        return "jsonl"
+    found = EXPORT_SUFFIXES.get(Path(export).suffix.lower())
+    if found is None:  # .csv, .gz … got plain JSON lines without a word
+        raise ValueError(f"--export {export}: no format for {Path(export).suffix or 'a name without a suffix'}; "
+                         f"name it {' or '.join(EXPORT_SUFFIXES)} (or - for JSON lines on stdout)")
+    return found
+
+
 def replay_settings(args, path: str) -> None:
     """``args.level`` and ``args.mounting`` a replay of ``path`` serves
     with: what the recording says, unless given (then said where they
@@ -193,7 +207,7 @@ def cmd_replay(args) -> int:
     speed = args.speed if args.speed is not None else float("inf")
     to_stdout = args.export == "-"
     export_is_new = bool(args.export) and not to_stdout and not Path(args.export).exists()
-    columnar = bool(args.export) and Path(args.export).suffix == ".parquet"
+    columnar = bool(args.export) and export_format(args.export) == "parquet"
     out = sys.stdout.buffer if to_stdout else open(args.export, "wb") if args.export and not columnar else None
     bar = progress_bar(total=Path(path).stat().st_size, unit="B", unit_scale=True, desc=Path(path).name)
     writer = None
@@ -228,11 +242,15 @@ def cmd_replay(args) -> int:
             which = f" for board {name}" if len(pipelines) > 1 else ""
             print(f"tactile replay: level auto chose {pipeline.reconstructor.level}{which}: "
                   f"{pipeline.reconstructor.level_reason}", file=sys.stderr)
-    counters = {"frames": sum(p.decoder.counters.as_dict()["frames"] for p in pipelines.values()),
-                "bytes_in": sum(p.decoder.counters.as_dict()["bytes_in"] for p in pipelines.values())}
-    if counters["frames"] == 0:
+    counted = [p.decoder.counters.as_dict() for p in pipelines.values()]
+    frames, bytes_in = sum(c["frames"] for c in counted), sum(c["bytes_in"] for c in counted)
+    # An INFO alone is a valid frame: a capture whose every data frame is corrupt must not pass as exported.
+    data = sum(s["frames"] for c in counted for s in c["sensors"].values())
+    if data == 0:
         removed = export_is_new and _unlink(Path(args.export))
-        print(f"tactile replay: {path}: no valid frame in {counters['bytes_in']} bytes (is it a capture of the "
-              f"board?)" + (f"; removed the empty {args.export}" if removed else ""), file=sys.stderr)
+        crc = sum(c["crc_errors"] for c in counted)
+        what = "no valid frame" if frames == 0 else f"no valid data frame ({frames} INFO/ERROR, {crc} CRC errors)"
+        print(f"tactile replay: {path}: {what} in {bytes_in} bytes (is it a capture of the board?)"
+              + (f"; removed the empty {args.export}" if removed else ""), file=sys.stderr)
         return 1
     return 0

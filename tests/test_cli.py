@@ -251,3 +251,41 @@ def test_an_unknown_scene_is_refused_naming_the_known_ones(capsys):
         cli.main(["sim", "--capture", os.devnull, "--scene", "bogus"])
     assert exit_.value.code == 2
     assert "unknown scene 'bogus'; known scenes: idle, press, slow_press" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["out.csv", "out.jsonl.gz", "out"])
+def test_an_export_of_no_known_format_is_refused_by_name(name, tmp_path, capsys):
+    """They got plain JSON lines without a word."""
+    capture = tmp_path / "c.bin"
+    capture.write_bytes(b"\x00" * 10)
+    assert cli.main(["replay", "--raw", str(capture), "--export", str(tmp_path / name)]) == 2
+    assert f"--export {tmp_path / name}: no format for" in capsys.readouterr().err
+    assert not (tmp_path / name).exists()
+
+
+def test_an_export_suffix_in_capitals_is_its_format(tmp_path):
+    from firmware_sim.board import BoardConfig, SimGrid, capture
+
+    raw = tmp_path / "c.bin"
+    raw.write_bytes(capture(BoardConfig(scene="idle", sensors=[SimGrid(0)]), 1.5)[0])
+    assert cli.main(["replay", "--raw", str(raw), "--export", str(tmp_path / "out.PARQUET")]) == 0
+    assert (tmp_path / "out.PARQUET").read_bytes()[:4] == b"PAR1"
+
+
+def test_a_capture_whose_every_data_frame_is_corrupt_exits_1_saying_so(tmp_path, capsys):
+    """Its INFO counted as a valid frame: 0 rows exported and exit 0."""
+    from firmware_sim.board import BoardConfig, SimGrid, capture
+    from service.protocol import Decoder
+
+    data = bytearray(capture(BoardConfig(scene="idle", sensors=[SimGrid(0)]), 0.5)[0])
+    frames = Decoder().feed(bytes(data))
+    assert frames[0].type.name == "INFO" and len(frames) > 400
+    info_end = data.index(b"\xa5\x5a", 1)  # the INFO comes first: every frame after it gets a bad CRC
+    for pos in range(info_end, len(data) - 1):
+        if data[pos:pos + 2] == b"\xa5\x5a":
+            data[pos + 14] ^= 0xFF
+    raw = tmp_path / "bad.bin"
+    raw.write_bytes(bytes(data))
+    assert cli.main(["replay", "--raw", str(raw), "--export", str(tmp_path / "out.jsonl")]) == 1
+    err = capsys.readouterr().err
+    assert "no valid data frame (1 INFO/ERROR" in err and "removed the empty" in err
