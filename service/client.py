@@ -63,6 +63,14 @@ def _sensor_path(sensor: int | str) -> str:
     return f"/sensors/{urllib.parse.quote(str(sensor))}".replace("%2F", "/")
 
 
+def _retry_after(error: urllib.error.HTTPError) -> float | None:
+    """A 429's ``Retry-After`` in seconds (None: it gives none)."""
+    try:
+        return max(0.0, float(error.headers.get("Retry-After")))
+    except (TypeError, ValueError):
+        return None
+
+
 def _none_if_nan(value) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
@@ -95,9 +103,21 @@ class TactileClient:
         data = orjson.dumps(body) if body is not None else None
         what = f"{method} {self.base_url}{path}"
         request = urllib.request.Request(self.base_url + path, data=data, method=method, headers=headers)
+        deadline = time.monotonic() + self.timeout
         try:
-            with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                payload = response.read()
+            while True:
+                try:
+                    with urllib.request.urlopen(request, timeout=self.timeout) as response:
+                        payload = response.read()
+                    break
+                except urllib.error.HTTPError as exc:
+                    # The service admits history reads at a bounded rate (docs/api.md): a read refused for now
+                    # is asked again when it says, within the timeout, as a program polling would have to.
+                    wait = _retry_after(exc) if method == "GET" and exc.code == 429 else None
+                    if wait is None or time.monotonic() + wait > deadline:
+                        raise
+                    exc.close()
+                    time.sleep(wait)
         except urllib.error.HTTPError as exc:
             try:
                 detail = orjson.loads(exc.read() or b"{}").get("detail") or exc.reason

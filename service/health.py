@@ -29,7 +29,8 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
         meter = pipeline.rates.get(sid)
         latest = pipeline.latest.get(sid)
         history = pipeline.history.get(sid)
-        age = None if latest is None else now - latest.t_host
+        # A read stamped while this snapshot began reads as a few µs old, not in the future.
+        age = None if latest is None else max(0.0, now - latest.t_host)
         stale = age is None or age > stale_after
         sensors[str(sid)] = {
             "board": name,
@@ -86,7 +87,7 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  "tared, or one far off the sensor's own level: a fault then): their forces are null until they read plausibly" for sid, s in sensors.items() if s.get("unzeroed_channels")]
     problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
-                 f"(POST /sensors/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
+                 f"(POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [f"sensor {sid} sends data but the board's INFO does not list it (its shape is taken from its frames)"
                  for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems

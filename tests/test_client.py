@@ -218,3 +218,17 @@ def test_a_binary_stream_follows_a_grid_that_changed_shape():
     assert [(f.get("rows"), f.get("cols"), len(f["raw"]["capacitance_pF"])) for f in got] == \
         [(4, 4, 16), (None, None, 4), (8, 8, 64), (None, None, 4)]
     assert got[2]["header"]["board"] == "b" and len(got[2]["force_N"]) == 64
+
+
+def test_history_reads_beyond_the_admitted_rate_wait_their_turn_within_the_timeout(served):
+    """The service admits 4 history reads a second (admission.py): ten in a row raised six 429s."""
+    client = TactileClient(served[0], timeout=5.0)
+    time.sleep(1.1)  # the burst refilled, whatever the tests before took
+    started = time.monotonic()
+    answers = [client.history(0, seconds=0.05, max_points=5) for _ in range(10)]
+    assert all(len(frames) == 5 for frames in answers)
+    assert time.monotonic() - started > 1.0  # some of them were told to wait (Retry-After: 1)
+    hurried = TactileClient(served[0], timeout=0.5)  # a wait past its timeout is not taken: the 429 is told
+    with pytest.raises(TactileError, match="429 history reads are admitted at 4 per second"):
+        for _ in range(10):
+            hurried.history(0, seconds=0.05, max_points=5)
