@@ -1,5 +1,5 @@
 """A naive reference decoder for the bench: protocol v1 read straight from
-its text (/work/shared/protocol.md), first-order forces, the replay's JSON lines.
+its text (docs/protocol.md), first-order forces, the replay's JSON lines.
 
 Frame by frame: find the sync, check version, length and CRC, skip one
 byte on any failure; GRID 8×8 and QUAD payloads become forces to first

@@ -1,0 +1,29 @@
+"""Every relative link in README.md and docs/*.md names a file of the product
+(docs/calibration.md sent readers to ../shared/protocol.md, which a clone
+does not have), and every `service/….py` a doc names exists."""
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+MODULE = re.compile(r"`((?:service|firmware_sim|scripts|tests)/[\w/]+\.py)")
+OUTSIDE = re.compile(r"`(\.\./[^`\s]+)`")  # a path above the doc's folder, as text
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_relative_links_name_files_of_the_product(doc):
+    targets = [t for t in LINK.findall(doc.read_text()) if not re.match(r"[a-z]+:", t)]
+    missing = [t for t in targets if not (doc.parent / t).resolve().exists()]
+    assert missing == []
+    assert all((doc.parent / t).resolve().is_relative_to(ROOT) for t in targets)
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_modules_and_paths_a_doc_names_exist(doc):
+    text = doc.read_text()
+    assert [m for m in MODULE.findall(text) if not (ROOT / m).exists()] == []
+    inside = [(doc.parent / p).resolve() for p in OUTSIDE.findall(text)]
+    assert [p for p in inside if not (p.is_relative_to(ROOT) and p.exists())] == []
