@@ -199,7 +199,9 @@ def _add_sim(sub) -> None:
     where.add_argument("--tcp", type=_port_or_free, metavar="PORT", help="serve on TCP (0 picks a free port)")
     where.add_argument("--capture", metavar="FILE", help="write the simulator's exact bytes to FILE")
     sim.add_argument("--host", default="127.0.0.1", help="TCP bind address (default: %(default)s)")
-    sim.add_argument("--seconds", type=_positive, default=10.0, help="capture length, s (default: %(default)s)")
+    sim.add_argument("--seconds", type=_positive,
+                     help="a capture's length, s (default: 10); on a pty or TCP, stop after this long (default: "
+                          "at Ctrl-C)")
     sim.add_argument("--scene", type=_scene, default="demo", help=_SceneHelp("scene"))
     sim.add_argument("--rate", type=_positive, default=1000.0, help="scans per second per sensor (default: %(default)s)")
     sim.add_argument("--noise", type=float, default=1.0, help="white capacitance noise, fF rms (default: %(default)s)")

@@ -51,13 +51,18 @@ def cmd_sim(args) -> int:
 
     config = _sim_config(args)
     if args.capture:
-        data, board = capture(config, args.seconds)
+        seconds = args.seconds or 10.0
+        data, board = capture(config, seconds)
         with open(args.capture, "wb") as out:
             out.write(data)
-        print(f"wrote {len(data)} bytes ({args.seconds} s of scene {config.scene!r}) to {args.capture}")
+        print(f"wrote {len(data)} bytes ({seconds:g} s of scene {config.scene!r}) to {args.capture}")
         return 0
     stop = threading.Event()
-    try:
+    timer = threading.Timer(args.seconds, stop.set) if args.seconds else None
+    if timer is not None:
+        timer.daemon = True
+        timer.start()
+    try:  # Ctrl-C goes on to the CLI (exit 130, as every command), the board stopped first
         if args.pty:
             master, slave, path = frontends.open_pty()
             print(f"simulated board on {path} (scene {config.scene!r}); Ctrl-C to stop", flush=True)
@@ -67,8 +72,10 @@ def cmd_sim(args) -> int:
             host, port = server.getsockname()[:2]
             print(f"simulated board on socket://{host}:{port} (scene {config.scene!r}); Ctrl-C to stop", flush=True)
             frontends.serve_tcp(Board(config), server, stop)
-    except KeyboardInterrupt:
+    finally:
         stop.set()
+        if timer is not None:
+            timer.cancel()
     return 0
 
 

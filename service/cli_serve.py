@@ -18,16 +18,21 @@ from .cli_signals import noting_sigint
 from .sources import check_source
 
 
+_SAYING = threading.Lock()
+
+
 class LinkWatcher:
     """Says on stderr what a readout's link does, once per change: waiting for
     a source that is not there (once per outage, with the error), connected,
     lost and back within one look, stale (connected, silent), finished (a
     replay's end). ``link`` returns the readout's LinkState (or None before
     there is one); ``poll`` looks once, ``start`` every ``period_s`` from a
-    daemon thread."""
+    daemon thread. ``board`` returns the board's name, said on each line
+    when a service reads several (two `connected to sim://` say nothing)."""
 
-    def __init__(self, link, stale_after_s=lambda: 0.5, out=None, period_s: float = 0.5) -> None:
+    def __init__(self, link, stale_after_s=lambda: 0.5, out=None, period_s: float = 0.5, board=None) -> None:
         self._link = link
+        self._board = board
         self._stale_after_s = stale_after_s
         self._out = out
         self._period_s = period_s
@@ -37,7 +42,11 @@ class LinkWatcher:
         self._thread = threading.Thread(target=self._run, name="tactile-link-watcher", daemon=True)
 
     def say(self, text: str) -> None:
-        print(f"tactile: {text}", file=self._out or sys.stderr, flush=True)
+        out = self._out or sys.stderr
+        board = f"board {self._board()}: " if self._board is not None else ""
+        with _SAYING:  # one line at a time: two boards' watchers ran their lines together
+            out.write(f"tactile: {board}{text}\n")
+            out.flush()
 
     def poll(self, now: float | None = None) -> None:
         link = self._link()
@@ -150,8 +159,10 @@ def cmd_serve(args) -> int:
                      allow_origins=tuple(args.allow_origin))
     reading = ", ".join(spec.source if spec.name is None else f"{spec.name}={spec.source}" for spec in specs)
     quiet_readout_transitions()
+    several = len(service.all_boards) > 1
     watchers = [LinkWatcher(lambda b=board: b.readout.link if b.readout is not None else None,
-                            lambda b=board: stale_after_s(b.pipeline.interpreter.board)).start()
+                            lambda b=board: stale_after_s(b.pipeline.interpreter.board),
+                            board=(lambda b=board: b.name) if several else None).start()
                 for board in service.all_boards]
     try:
         return _run_http(app, args, token, f"reading {reading}")

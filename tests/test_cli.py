@@ -191,7 +191,8 @@ def test_a_free_port_passes_the_check():
 # 5. Ctrl-C ends long commands at once, without a traceback
 
 
-@pytest.mark.parametrize("argv", [["model", "convergence", "--out", "{tmp}"], ["bench", "--seconds", "5"]])
+@pytest.mark.parametrize("argv", [["model", "convergence", "--out", "{tmp}"], ["bench", "--seconds", "5"],
+                                  ["sim", "--tcp", "0"], ["sim", "--pty"]])
 def test_ctrl_c_ends_a_long_command_within_a_second(argv, tmp_path):
     process = interruptible(*(a.format(tmp=tmp_path) for a in argv))
     try:
@@ -289,3 +290,34 @@ def test_a_capture_whose_every_data_frame_is_corrupt_exits_1_saying_so(tmp_path,
     assert cli.main(["replay", "--raw", str(raw), "--export", str(tmp_path / "out.jsonl")]) == 1
     err = capsys.readouterr().err
     assert "no valid data frame (1 INFO/ERROR" in err and "removed the empty" in err
+
+
+def test_link_messages_of_several_boards_name_their_board_one_whole_line_each():
+    """Two boards' watchers printed 'connected to socket://…tactile: connected to /dev/pts/0' on one line,
+    and two sim:// boards both said only 'connected to sim://'."""
+    import io
+    import threading
+
+    out = io.StringIO()
+    watchers = [LinkWatcher(lambda: None, out=out, board=lambda n=name: n) for name in ("left", "right")]
+
+    def chatter(watcher):
+        for _ in range(300):
+            watcher.say("connected to sim://")
+
+    threads = [threading.Thread(target=chatter, args=(w,)) for w in watchers]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 600
+    assert set(lines) == {"tactile: board left: connected to sim://", "tactile: board right: connected to sim://"}
+
+
+def test_a_simulated_board_on_tcp_stops_after_its_seconds():
+    """--seconds was a capture's length only: a pty or TCP board ran until Ctrl-C whatever it said."""
+    started = time.monotonic()
+    result = subprocess.run([TACTILE, "sim", "--tcp", "0", "--seconds", "1"], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 0 and "simulated board on socket://127.0.0.1:" in result.stdout
+    assert time.monotonic() - started < 10
