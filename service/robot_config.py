@@ -26,6 +26,7 @@ from .physics.mountings import MOUNTINGS
 from .reconstruct.levels import LEVELS
 
 NAMED_SOURCE = re.compile(r"([A-Za-z][A-Za-z0-9_-]{0,31})=(.+)")
+LOOKS_NAMED = re.compile(r"([^=:/]*)=(.+)")  # a name before '=' that is not in a URL's path or query
 BOARD_KEYS = {"name", "source", "level", "mounting", "calibration"}
 
 
@@ -34,6 +35,12 @@ def parse_source(text: str, level: str, mounting: str) -> BoardSpec:
     named = NAMED_SOURCE.fullmatch(text)
     if named:
         return BoardSpec(named.group(2), named.group(1), level, mounting)
+    meant = LOOKS_NAMED.fullmatch(text)
+    if meant:  # NAME=URL with a name no board can have: say so, not that '1bad=sim' is no URL scheme
+        try:
+            check_board_name(meant.group(1))
+        except ValueError as exc:
+            raise ValueError(f"--source {text}: {exc}") from None
     return BoardSpec(text, None, level, mounting)
 
 

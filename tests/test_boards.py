@@ -108,6 +108,10 @@ def test_several_sources_on_the_command_line_and_in_a_robot_file(tmp_path):
     robot.write_text('[[board]]\nname = "9palm"\nsource = "sim://"\n')
     with pytest.raises(ValueError, match="must start with a letter"):
         load_robot(robot, "full", "flat")
+    # A bad name before '=' is named as such, not taken for a URL scheme ('1bad=sim' is no URL scheme).
+    with pytest.raises(ValueError, match=r"--source 1bad=sim://: board name '1bad' must start with a letter"):
+        board_specs(parse(["serve", "--source", "1bad=sim://"]))
+    assert [s.name for s in board_specs(parse(["serve", "--source", "sim://?scene=press&seed=3"]))] == [None]
 
 
 def test_a_bare_source_is_named_from_its_info():
