@@ -56,6 +56,7 @@ class ScriptedService:
         self.health = copy.deepcopy(HEALTH)
         self.sensors = {"board": {"board": "sim"}, "sensors": [{"id": 0, "kind": "grid", "rows": ROWS, "cols": COLS, "name": "grid0"}]}
         self.recording = None
+        self.history = []  # of sensor 0
         self.record_start = lambda body: (200, {"path": f"/srv/recordings/{body['name']}", "raw_path": None, "active": True, "messages": 0})
         self.posts = []
         self.socket = None
@@ -76,7 +77,7 @@ class ScriptedService:
         if route.request.method == "POST":
             return self.answer_post(route, path)
         answers = {"/health": lambda: {**self.health, "recording": self.recording}, "/sensors": lambda: self.sensors,
-                   "/record": lambda: self.recording}
+                   "/record": lambda: self.recording, "/sensors/0/history": lambda: self.history}
         self.json(route, answers[path]())
 
     def answer_post(self, route, path):
@@ -185,6 +186,21 @@ def test_history_of_a_steady_load_sits_below_a_labelled_top(service):
     plot_top, plot_height = 16, rows_with_trace["height"] - 34
     assert rows_with_trace["rows"], "no trace drawn"
     assert min(rows_with_trace["rows"]) > plot_top + 0.1 * plot_height
+
+
+def test_a_sensor_silent_when_the_page_opens_is_drawn_from_its_last_seconds(service):
+    """The stream sends nothing for it (a replay that has ended, a board gone
+    quiet): its last frame and history come from /sensors/0/history."""
+    service.health["sensors"]["0"]["stale"] = True
+    service.history = [grid_frame(seq, pressed({27: seq / 25}), stamp=100 + seq / 30) for seq in range(1, 101)]
+    service.open()
+    service.page.wait_for_selector('section[data-sensor="0"][data-frames="100"]', timeout=5000)
+    service.page.evaluate("() => new Promise(done => requestAnimationFrame(() => requestAnimationFrame(done)))")
+    assert service.page.text_content('section[data-sensor="0"] .meta').startswith("seq 100 · ΣF 4.00 N")
+    cell = pixels_around(service.page, 27, reach=0.45)
+    orange = sum(1 for i in range(0, len(cell), 4) if cell[i] > 250 and 120 < cell[i + 1] < 190)  # 4 N's colour
+    assert orange > len(cell) // 4 // 4  # a quarter of the cell: the rest is its number and the centre of pressure
+    assert float(service.page.get_attribute('section[data-sensor="0"] canvas.history', "data-top")) >= 4.0
 
 
 @pytest.mark.parametrize("link, replay, state, words", [

@@ -1,9 +1,11 @@
 """The dashboard against `tactile` run as a command, in a directory the test
 owns: the Record button names the file the service writes, and the end of a
-replay is shown. Saves /tmp/dashboard-replay-finished.png.
+replay is shown, also to a page opened after it. Saves
+/tmp/dashboard-replay-finished.png.
 """
 import contextlib
 import json
+import re
 import shutil
 import socket
 import subprocess
@@ -14,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.chromium import VIEWPORT
+from tests.chromium import VIEWPORT, sync_api
+from tests.test_dashboard import taxel_pixel
 
 TACTILE = shutil.which("tactile", path=str(Path(sys.executable).parent)) or shutil.which("tactile")
 REPLAY_SCREENSHOT = Path("/tmp/dashboard-replay-finished.png")
@@ -98,6 +101,48 @@ def test_the_end_of_a_replay_is_shown(browser, tmp_path):
         assert page.text_content("#status").startswith("Replay finished")
         assert int(page.get_attribute('section[data-sensor="0"]', "data-frames")) > 0  # its last frames stay on screen
         page.screenshot(path=str(REPLAY_SCREENSHOT))
+        page.close()
+
+
+def history_trace(page, sensor):
+    """(columns, rows) of a grid's history canvas that its orange ΣF trace crosses (the legend left out)."""
+    return page.evaluate(
+        """(sensor) => {
+            const canvas = document.querySelector(`section[data-sensor="${sensor}"] canvas.history`);
+            const { width, height, data } = canvas.getContext("2d").getImageData(0, 0, canvas.width, canvas.height);
+            const columns = new Set(), rows = new Set();
+            for (let y = 12; y < height; y++) for (let x = 0; x < width; x++) {
+                const i = 4 * (y * width + x);
+                if (data[i] > 200 && data[i + 1] > 140 && data[i + 1] < 210 && data[i + 2] < 120) { columns.add(x); rows.add(y); }
+            }
+            return [columns.size, rows.size];
+        }""",
+        sensor,
+    )
+
+
+def test_a_page_opened_after_a_replay_has_ended_shows_its_last_frames(browser, tmp_path):
+    """The stream has nothing more to send once a replay has ended: a page
+    opened then still draws each sensor's last frame and the history of the
+    replay's end, not "waiting for data…"."""
+    capture = tmp_path / "press.bin"
+    # 2 s: the quiet second the tare needs, then the press rising to its 5 N peak at the very end.
+    subprocess.run([TACTILE, "sim", "--capture", str(capture), "--seconds", "2", "--scene", "press", "--rate", "250"],
+                   check=True, capture_output=True, timeout=20)
+    with tactile("replay", str(capture), "--serve", "--speed", "2", cwd=tmp_path) as url:
+        deadline = time.monotonic() + 15
+        while get_json(url + "health")["link"].get("state") != "finished":
+            assert time.monotonic() < deadline, "the replay never finished"
+            time.sleep(0.1)
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(url)
+        page.wait_for_selector('#status[data-state="finished"]', timeout=5000)
+        sync_api.expect(page.locator(".panel .meta")).to_have_text([re.compile("^seq ")] * 2, timeout=10_000)
+        last = get_json(url + "sensors/0/latest")
+        assert page.text_content('section[data-sensor="0"] .meta').startswith(f"seq {last['header']['seq']} · ")
+        assert taxel_pixel(page, 0, 27, 8)[0] > 200 and taxel_pixel(page, 0, 0, 8)[0] < 20  # the pressed taxel is hot
+        columns, rows = history_trace(page, 0)
+        assert columns > 20 and rows > 30  # the replay's end is plotted, the press rising
         page.close()
 
 

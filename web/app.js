@@ -2,7 +2,9 @@
 // Live dashboard: one panel per sensor, sorted by id (grouped by board when the
 // service reads several), redrawn at the display rate from the latest frame of
 // each sensor (the stream is decimated server-side), with a force history of
-// the last 10 s, a link status banner and the recording's path.
+// the last 10 s, a link status banner and the recording's path. A sensor that
+// is silent when the page opens (a replay that has ended) is drawn from its
+// last seconds, which the service keeps.
 
 const GRID_MAX_N = 5;             // colour scale top, newtons per taxel
 const CONTACT_THRESHOLD_N = 0.05; // the service's own contact threshold (docs/reconstruction.md)
@@ -10,6 +12,8 @@ const PITCH_MM = 4;
 const SHEAR_MAX_N = 10;           // quad arrow full scale
 const FZ_MAX_N = 20;              // quad bar full scale
 const HISTORY_S = 10;
+const STREAM_RATE_HZ = 30;        // frames a second per sensor, decimated server-side
+const RECENT_S = 5;               // as much as /sensors/…/history keeps
 const STALE_AFTER_S = 1;          // only for services that do not report link.state
 const FLAG_HOLD_MS = 1500;        // a flag raised for one frame stays long enough to be read
 const TAXEL_MARKS = [["saturated", "S"], ["out_of_range", "R"], ["crosstalk_corrected", "x"], ["stale", "?"]];
@@ -130,7 +134,7 @@ function createPanel(id, info) {
   if (info.kind === "grid") el.append(colourScale());
   el.append(history, meta, calibration);
   const panel = { id, el, title, flags, live, history, meta, calibration, board: info.board ?? null,
-                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "" };
+                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "", recentAsked: false };
   describePanel(panel, info);
   placePanel(panel);
   return panel;
@@ -456,13 +460,31 @@ function onFrames(frames) {
 }
 
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws?max_rate=30`);
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws?max_rate=${STREAM_RATE_HZ}`);
   ws.onopen = () => { streamOpen = true; loadSensors(); };
   ws.onmessage = (event) => {
     const msg = JSON.parse(event.data);
     if (msg.type === "frames") onFrames(msg.frames);
   };
   ws.onclose = () => { streamOpen = false; setTimeout(connect, 1000); };
+}
+
+// The stream sends nothing for a silent sensor (a replay that has ended, a
+// board gone quiet): a page opened meanwhile starts such a panel from the
+// sensor's last seconds instead, as dense as the stream and with its fields.
+async function loadRecent(panel) {
+  panel.recentAsked = true;
+  const address = panel.board === null ? panel.id : `${encodeURIComponent(panel.board)}/${panel.id}`;
+  try {
+    const answer = await fetch(`/sensors/${address}/history?seconds=${RECENT_S}` +
+                               `&max_points=${RECENT_S * STREAM_RATE_HZ}&fields=force,sigma,contact,flags`);
+    if (answer.status === 429) panel.recentAsked = false; // heavy reads are admitted at a bounded rate: the next poll asks again
+    if (!answer.ok) return;
+    const frames = await answer.json();
+    if (!panel.frame) onFrames(frames); // unless the sensor has spoken again meanwhile
+  } catch (err) {
+    // The banner says when the service is unreachable.
+  }
 }
 
 // ---- status banner --------------------------------------------------------
@@ -603,7 +625,9 @@ async function pollHealth() {
   document.getElementById("stats").textContent = statsText(health);
   for (const [id, sensor] of Object.entries(health.sensors || {})) {
     const panel = panels.get(sensorKey(sensor.board, sensor.id ?? Number(id)));
-    if (panel) showCalibration(panel, sensor.calibration, sensor.fatigue);
+    if (!panel) continue;
+    showCalibration(panel, sensor.calibration, sensor.fatigue);
+    if (sensor.stale && !panel.frame && !panel.recentAsked) loadRecent(panel);
   }
   const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();
   if (recording) showRecording(recording);
@@ -624,8 +648,7 @@ async function tare() {
 document.getElementById("tare").addEventListener("click", tare);
 recordButton.addEventListener("click", toggleRecording);
 
-loadSensors();
+loadSensors().then(pollHealth); // the panels first: the first poll fills those of silent sensors
 connect();
-pollHealth();
 setInterval(pollHealth, 1000);
 requestAnimationFrame(render);
