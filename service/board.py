@@ -109,6 +109,11 @@ class Board:
                                  grid_batch_s=grid_batch_s)
         self.handover: LoopHandover | None = None
         self.readout: Readout | None = None
+        # Load-cycle counts are a physical sensor's wear: a simulated one is new every run (the counts of the
+        # runs before made the demo quad read ever higher), a replayed one's are the recording's, not news.
+        self.keeps_cycles = not self.source.startswith(("sim://", "replay://"))
+        if self.source.startswith("sim://"):
+            self.pipeline.reconstructor.load_cycles = None
         if self.source.startswith("replay://"):
             self._schedule_recorded_tares()
 
@@ -149,6 +154,8 @@ class Board:
 
     def save_cycles(self) -> None:
         """Keep every sensor's load-cycle counts in the registry (a failure is logged, never raised)."""
+        if not self.keeps_cycles:
+            return
         # Only the sensors the board describes now: another board on the link left its own sensors' states behind.
         current = self.pipeline.interpreter.sensors
         counts = {sid: entry for sid, entry in self.pipeline.reconstructor.cycle_counts().items()

@@ -120,3 +120,30 @@ def test_a_fatigue_factor_follows_the_cycles_counted_within_one_large_batch():
     hold = slice(-250, None)
     assert np.mean([f.forces_N[2] for f in at_once[hold]]) == pytest.approx(3.0, abs=0.01)
     np.testing.assert_allclose([f.forces_N[2] for f in at_once[hold]], [f.forces_N[2] for f in one_by_one[hold]], rtol=5e-3)
+
+
+def test_a_simulated_board_neither_takes_nor_keeps_load_cycles(tmp_path):
+    """A sim:// sensor is new every run: the counts of earlier runs (1 195 after a few demos) made the demo quad
+    read ever higher, and each run added its own to the user's registry."""
+    import sqlite3
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from service.calibration.registry import Registry
+    from service.live_service import TactileService
+    from service.physics.paper_data import BUILTIN_QUAD_ID
+
+    path = tmp_path / "registry.sqlite3"
+    key = "board:tactile-sim-8x8-quad/sensor:1"
+    with Registry(path) as registry:
+        registry.save_cycles([(key, BUILTIN_QUAD_ID, [3000])])
+    service = TactileService("sim://?sensors=grid,quad&scene=press", calibrations=CalibrationBook(path))
+    with TestClient(create_app(service), base_url="http://localhost"):
+        deadline = time.monotonic() + 10
+        while service.pipeline.reconstructor.fatigue(1) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert service.pipeline.reconstructor.fatigue(1)["cycles_max"] == 0
+    rows = sqlite3.connect(path).execute("SELECT sensor_key, counts FROM cycles").fetchall()
+    assert rows == [(key, "[3000]")]
