@@ -103,7 +103,7 @@ class RemoteBoard:
         if lost:  # the remote service's last word on its link no longer holds
             why = "its service's liveliness token is gone" if self.alive is False else \
                 f"nothing heard for {LOST_AFTER_S} s"
-            problems.insert(0, f"lost: {why}")
+            problems.insert(0, f"lost: the service of board {self.name} ({why})")
             part["link"] = {**(part["link"] or {}), "source": self.source, "state": "down", "up": False,
                             "last_error": f"the service of board {self.name} is lost ({why})"}
         return {

@@ -94,6 +94,7 @@ def test_a_gateway_serves_every_board_of_two_services_and_reports_one_lost(tmp_p
     assert lost_after is not None and lost_after < 1.0, lost_after
     assert health["boards"]["arm-a"]["status"] == "ok" and health["boards"]["arm-b"]["status"] == "degraded"
     assert any("arm-b" in problem and "lost" in problem for problem in health["problems"])
+    assert "lost: the service of board arm-b (" in health["boards"]["arm-b"]["problems"][0]  # named on its own too
     assert health["boards"]["arm-b"]["link"]["state"] == "down" and health["boards"]["arm-a"]["link"]["state"] == "up"
     before = [h for t, h in received if t < killed]
     for address in ("arm-a/0", "arm-a/1", "arm-b/0"):
