@@ -8,29 +8,52 @@ decoder as live bytes.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from ..protocol import T_US_MODULUS, Decoder
+from ..protocol import DATA_TYPES, T_US_MODULUS, Decoder, Frame
 from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096
 BULK_BYTES = 1 << 20  # untimed reads: as fast as possible, few calls per stage
 
 
+class BoardClock:
+    """A board's time (s) from its data frames: ``t`` the newest, t_us
+    unwrapped (0.0 before the first frame).
+
+    A restart (protocol.md: INFO, then every sensor's seq and t_us from 0;
+    the decoder flags each sensor's first frame after it) is no wrap, and
+    says nothing of how long the board was off: the run after it continues
+    from the newest time of the run before, without a wait (each sensor's
+    flagged frame re-anchors the run; they are a scan apart at most). Only
+    data frames count: an INFO is not flagged, and a power-up INFO's clock
+    near 0 would pass for a wrap."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+        self._offset, self._wraps, self._last_us = 0.0, 0, None
+
+    def feed(self, frames: Iterable[Frame]) -> float:
+        for frame in frames:
+            if frame.type not in DATA_TYPES:
+                continue
+            if frame.board_restart:
+                self._offset, self._wraps = self.t - frame.t_us * 1e-6, 0
+            elif self._last_us is not None and frame.t_us < self._last_us - T_US_MODULUS // 2:
+                self._wraps += 1
+            self._last_us = frame.t_us
+            self.t = max(self.t, self._offset + (self._wraps * T_US_MODULUS + frame.t_us) * 1e-6)
+        return self.t
+
+
 def raw_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
     """4 KiB chunks of a raw capture, each timed (s) by the latest board
-    time it completes (t_us unwrapped), or by the previous chunk's time."""
-    decoder = Decoder()
-    t, wraps, last_t_us = 0.0, 0, None
+    time it completes (``BoardClock``), or by the previous chunk's time."""
+    decoder, clock = Decoder(), BoardClock()
     with open(path, "rb") as source:
         while chunk := source.read(CHUNK_BYTES):
-            for frame in decoder.feed(chunk):
-                if last_t_us is not None and frame.t_us < last_t_us - T_US_MODULUS // 2:
-                    wraps += 1
-                last_t_us = frame.t_us
-                t = max(t, (wraps * T_US_MODULUS + frame.t_us) * 1e-6)
-            yield t, chunk
+            yield clock.feed(decoder.feed(chunk)), chunk
 
 
 def bulk_chunks(path: str | Path, size: int = BULK_BYTES) -> Iterator[tuple[float, bytes]]:
