@@ -5,10 +5,16 @@ receive time; a raw capture (exactly what a port delivered, possibly
 corrupt) has no times, so each of its chunks is timed by the board clock of
 the frames it completes. Either way the chunks replay through the same
 decoder as live bytes.
+
+Receive times are the host's wall clock (time.time(), as the live pipeline
+stamps them), which an NTP step moves by any amount while recording: paced,
+a recording is timed by them with such steps taken out (``HostTime``).
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 
 from ..protocol import DATA_TYPES, T_US_MODULUS, Decoder, Frame
@@ -16,6 +22,9 @@ from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096
 BULK_BYTES = 1 << 20  # untimed reads: as fast as possible, few calls per stage
+STEP_S = 1.0  # receive times apart from the board clock by more than this between two reads: the host clock stepped
+
+log = logging.getLogger(__name__)
 
 
 class BoardClock:
@@ -47,6 +56,61 @@ class BoardClock:
         return self.t
 
 
+class _Board:
+    """What HostTime keeps of one board: its bytes decoded, its clock, the
+    (pacing time, board time) of its last read that completed data frames
+    and the pacing time of its last read."""
+
+    def __init__(self) -> None:
+        self.decoder, self.clock = Decoder(), BoardClock()
+        self.timed: tuple[float, float] | None = None
+        self.last: float | None = None
+
+
+class HostTime:
+    """Pacing times of a recording's reads: their receive times with the
+    host clock's steps taken out (an NTP step of +1 h while recording
+    stalled a paced replay for an hour; one of -1 h let the hour after it
+    through unpaced).
+
+    Between two reads of a board that complete data frames, receive time
+    moves as the board clock does, to within the delivery's delay; where
+    they part by more than STEP_S, the host clock was stepped, and the
+    pacing follows the board clock across it (a log line says so). A pause
+    in the recording (the board silent, STOP … START, a cable out) shows on
+    both clocks and is kept, as is any time across a board restart (its
+    clock cannot tell it). A read that completes no data frame has no board
+    time to be checked by: it moves the pacing on by STEP_S at most, and
+    the next read that does completes any wait. Called with each read, in
+    file order: (board, receive time s, bytes) → pacing time s."""
+
+    def __init__(self) -> None:
+        self._step = 0.0  # s taken off every receive time: the host clock's steps found so far
+        self._boards: dict[str | None, _Board] = {}
+
+    def __call__(self, board: str | None, t_host: float, chunk: bytes) -> float:
+        state = self._boards.get(board)
+        if state is None:
+            state = self._boards[board] = _Board()
+        frames = [frame for frame in state.decoder.feed(chunk) if frame.type in DATA_TYPES]
+        t = t_host - self._step
+        if frames:
+            t_board = state.clock.feed(frames)
+            if state.timed is not None and not any(frame.board_restart for frame in frames):
+                step = (t - state.timed[0]) - (t_board - state.timed[1])
+                if abs(step) > STEP_S:
+                    log.warning("%s: receive times step %+.3f s against the board clock at %s: taken for a step "
+                                "of the host clock (NTP), paced by the board clock across it", board or "recording",
+                                step, datetime.fromtimestamp(t_host, timezone.utc).isoformat(timespec="milliseconds"))
+                    self._step += step
+                    t -= step
+            state.timed = (t, t_board)
+        elif state.last is not None:
+            t = min(t, state.last + STEP_S)
+        state.last = t
+        return t
+
+
 def raw_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
     """4 KiB chunks of a raw capture, each timed (s) by the latest board
     time it completes (``BoardClock``), or by the previous chunk's time."""
@@ -70,15 +134,21 @@ READERS = {".mcap": read_raw}  # by suffix; any other file is a raw capture
 def timed_chunks(path: str | Path, paced: bool = True, board: str | None = None) -> Iterator[tuple[float, bytes]]:
     """(time s, bytes) of a recording; FileNotFoundError or ValueError (not
     the format its suffix says) at once, before the first chunk is asked for.
-    ``paced=False`` (nothing waits for the times): a raw capture in large
-    untimed chunks. A recording keeps its reads as they came: a live
-    pipeline's frames depend on where a read ends (a tare completed within
-    a read applies to the whole read), and its replay equals the live run."""
+    A recording is timed by ``HostTime``; ``paced=False`` (nothing waits
+    for the times): by its receive times as recorded, and a raw capture
+    comes in large untimed chunks. A recording keeps its reads as they
+    came: a live pipeline's frames depend on where a read ends (a tare
+    completed within a read applies to the whole read), and its replay
+    equals the live run."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such recording: {path}")
     if path.suffix in READERS:
-        return READERS[path.suffix](path, board)
+        chunks = READERS[path.suffix](path, board)
+        if not paced:
+            return chunks
+        host_time = HostTime()
+        return ((host_time(board, t, chunk), chunk) for t, chunk in chunks)
     if board is not None:
         raise ValueError(f"{path} is a raw capture of one board: it has no board {board!r} to choose")
     return raw_chunks(path) if paced else bulk_chunks(path)
