@@ -28,7 +28,7 @@ from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
 from .record.mcap_reader import read_baselines, read_numbered, read_settings, read_tares
-from .record.readers import is_timed_by_host, timed_chunks
+from .record.readers import HostTime, is_timed_by_host, timed_chunks
 
 JOIN_READS = 256  # recorded reads of a board joined into one call at full speed
 
@@ -96,6 +96,9 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
     settings = {} if hold else read_settings(path)
     if hold:
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
+    # Paced, a recording waits by its receive times with the host clock's steps taken out (not what the
+    # pipeline gets: its stamps stay as recorded).
+    pacing_time = HostTime() if paced and not hold else lambda board, t, chunk: t
     t_last = 0.0
     # At full speed a recording's reads (a frame or two per sensor each, as the live port gave them) are joined,
     # a board's consecutive reads up to JOIN_READS, never across a tare made while recording (a raw capture's
@@ -110,7 +113,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
 
     try:
         for board, number, t_recorded, chunk in chunks:
-            pacer.wait(t_recorded)
+            pacer.wait(pacing_time(board, t_recorded, chunk))
             pending = tares.get(board)
             retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
             if paced or hold or board != joined_board or retare or len(joined) >= JOIN_READS:

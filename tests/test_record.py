@@ -291,3 +291,60 @@ def test_a_recording_is_synced_to_disk_when_it_stops_and_every_few_seconds(tmp_p
     status = recorder.stop()
     assert status["fsyncs"] >= 3  # ~0.6 s of writing at one sync per 0.2 s, and one at the stop
     assert synced[-2:] == [str(tmp_path / "run.mcap"), str(tmp_path / "run.bin")]  # both files, last thing done
+
+
+def stepped_recording(path, step_s):
+    """30 s of a board at 100 Hz, one read per scan received 2 ms after it: the board silent (STOP …
+    START) from 3 s to 23 s, the host clock stepped by ``step_s`` (NTP) at 26 s."""
+    from firmware_sim.board import Board
+    from service.record.mcap_writer import McapLog
+
+    board = Board(BoardConfig(rate_hz=100, seed=2))
+    with open(path, "wb") as stream:
+        log = McapLog(stream)
+        log.raw(board.power_up(), 1e9)
+        for k in range(1, 3001):
+            board.streaming = not 300 < k <= 2300
+            data = board.advance(k / 100)
+            if data:
+                log.raw(data, 1e9 + k / 100 + 0.002 + (step_s if k > 2600 else 0.0))
+        log.close()
+    return path
+
+
+def virtual_pacer():
+    now, slept = [0.0], []
+
+    def sleep(dt):
+        slept.append(dt)
+        now[0] += dt
+
+    return Pacer(1.0, clock=lambda: now[0], sleep=sleep), slept
+
+
+@pytest.mark.parametrize("step_s", [3600.0, -3600.0, 0.0])
+def test_a_paced_recording_keeps_its_pauses_but_not_the_host_clocks_steps(tmp_path, step_s, caplog):
+    """Receive times are the wall clock's: a step of +1 h while recording stalled a paced replay (export and
+    --serve) for an hour, one of -1 h let the rest through unpaced. The board clock shows the step for what
+    it is; the 20 s the board was silent show on both clocks and stay a 20 s wait."""
+    from service.sources.protocol_replay import Serial
+
+    path = stepped_recording(tmp_path / "step.mcap", step_s)
+    fast, paced = io.BytesIO(), io.BytesIO()
+    replay(path, fast)
+    pacer, slept = virtual_pacer()
+    replay(path, paced, pacer=pacer)
+    assert sum(slept) == pytest.approx(30.002, abs=0.01) and max(slept) == pytest.approx(20.0, abs=0.01)
+    assert paced.getvalue() == fast.getvalue() and fast.getvalue().count(b"\n") == 2 * 1000
+    assert sum("host clock" in r.message for r in caplog.records) == (step_s != 0)
+
+    # --serve: the replay:// port, paced alike, delivers every byte.
+    pacer, slept = virtual_pacer()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("service.sources.protocol_replay.Pacer", lambda speed: pacer)
+        port = Serial(f"replay://{path}?speed=1")
+        served = b""
+        while not (port.finished and not port.in_waiting):
+            served += port.read(1 << 16)
+    assert served == b"".join(chunk for _, chunk in read_raw(path))
+    assert sum(slept) == pytest.approx(30.002, abs=0.01) and max(slept) == pytest.approx(20.0, abs=0.01)

@@ -126,3 +126,31 @@ def test_a_dash_exports_to_stdout(tmp_path, capsysbinary, monkeypatch):
     lines = capsysbinary.readouterr().out.splitlines()
     assert len(lines) == 600 and orjson.loads(lines[0])["seq"] == 0  # 0.3 s of a grid and a quad
     assert not (tmp_path / "-").exists()
+
+
+@pytest.mark.parametrize("uptime_us", [3_000_000_000, 100_000_000])
+def test_a_paced_raw_capture_goes_on_across_a_board_restart_without_a_wait(tmp_path, uptime_us):
+    """A board up past 2**31 µs (~36 min) restarts: its clock falls back to 0, no wrap (a replay waited
+    21 min for one); up 100 s, the run after the restart was not paced at all (timed 100 s back). The
+    time the board was off is unknown: the run after goes on from the run before without a wait."""
+    from service.record.pacing import Pacer
+    from service.record.readers import raw_chunks
+
+    before, _ = capture(BoardConfig(rate_hz=200, clock_offset_us=uptime_us), 2.0)
+    after, _ = capture(BoardConfig(rate_hz=200, seed=1), 2.0)  # power-up: INFO, every seq and t_us from 0
+    path = tmp_path / "restart.bin"
+    path.write_bytes(before + after)
+    times = [t for t, _ in raw_chunks(path)]
+    now, slept = [0.0], []
+
+    def sleep(dt):
+        slept.append(dt)
+        now[0] += dt
+
+    fast, paced = io.BytesIO(), io.BytesIO()
+    replay(path, fast)
+    replay(path, paced, pacer=Pacer(1.0, clock=lambda: now[0], sleep=sleep))
+    assert times == sorted(times) and times[-1] - times[0] == pytest.approx(4.0, abs=0.1)  # 4 s of scans
+    assert sum(slept) == pytest.approx(times[-1] - times[0]) and max(slept) < 0.1
+    assert len(slept) > 0.9 * (len(times) - 1)  # every chunk after the restart paced too
+    assert paced.getvalue() == fast.getvalue() and fast.getvalue().count(b"\n") > 1000

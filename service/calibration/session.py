@@ -73,7 +73,7 @@ def _chunks(path: str, board: str | None = None):
     decode every chunk once more to time it, and the calibration needs no
     receive times)."""
     if is_timed_by_host(path):
-        yield from (chunk for _, chunk in timed_chunks(path, board=board))
+        yield from (chunk for _, chunk in timed_chunks(path, paced=False, board=board))  # no time wanted
         return
     if not Path(path).is_file():
         raise FileNotFoundError(f"no such recording: {path}")

@@ -5,32 +5,119 @@ receive time; a raw capture (exactly what a port delivered, possibly
 corrupt) has no times, so each of its chunks is timed by the board clock of
 the frames it completes. Either way the chunks replay through the same
 decoder as live bytes.
+
+Receive times are the host's wall clock (time.time(), as the live pipeline
+stamps them), which an NTP step moves by any amount while recording: paced,
+a recording is timed by them with such steps taken out (``HostTime``).
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+import logging
+from collections.abc import Iterable, Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 
-from ..protocol import T_US_MODULUS, Decoder
+from ..protocol import DATA_TYPES, T_US_MODULUS, Decoder, Frame
 from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096
 BULK_BYTES = 1 << 20  # untimed reads: as fast as possible, few calls per stage
+STEP_S = 1.0  # receive times apart from the board clock by more than this between two reads: the host clock stepped
+
+log = logging.getLogger(__name__)
+
+
+class BoardClock:
+    """A board's time (s) from its data frames: ``t`` the newest, t_us
+    unwrapped (0.0 before the first frame).
+
+    A restart (protocol.md: INFO, then every sensor's seq and t_us from 0;
+    the decoder flags each sensor's first frame after it) is no wrap, and
+    says nothing of how long the board was off: the run after it continues
+    from the newest time of the run before, without a wait (each sensor's
+    flagged frame re-anchors the run; they are a scan apart at most). Only
+    data frames count: an INFO is not flagged, and a power-up INFO's clock
+    near 0 would pass for a wrap."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+        self._offset, self._wraps, self._last_us = 0.0, 0, None
+
+    def feed(self, frames: Iterable[Frame]) -> float:
+        for frame in frames:
+            if frame.type not in DATA_TYPES:
+                continue
+            if frame.board_restart:
+                self._offset, self._wraps = self.t - frame.t_us * 1e-6, 0
+            elif self._last_us is not None and frame.t_us < self._last_us - T_US_MODULUS // 2:
+                self._wraps += 1
+            self._last_us = frame.t_us
+            self.t = max(self.t, self._offset + (self._wraps * T_US_MODULUS + frame.t_us) * 1e-6)
+        return self.t
+
+
+class _Board:
+    """What HostTime keeps of one board: its bytes decoded, its clock, the
+    (pacing time, board time) of its last read that completed data frames
+    and the pacing time of its last read."""
+
+    def __init__(self) -> None:
+        self.decoder, self.clock = Decoder(), BoardClock()
+        self.timed: tuple[float, float] | None = None
+        self.last: float | None = None
+
+
+class HostTime:
+    """Pacing times of a recording's reads: their receive times with the
+    host clock's steps taken out (an NTP step of +1 h while recording
+    stalled a paced replay for an hour; one of -1 h let the hour after it
+    through unpaced).
+
+    Between two reads of a board that complete data frames, receive time
+    moves as the board clock does, to within the delivery's delay; where
+    they part by more than STEP_S, the host clock was stepped, and the
+    pacing follows the board clock across it (a log line says so). A pause
+    in the recording (the board silent, STOP … START, a cable out) shows on
+    both clocks and is kept, as is any time across a board restart (its
+    clock cannot tell it). A read that completes no data frame has no board
+    time to be checked by: it moves the pacing on by STEP_S at most, and
+    the next read that does completes any wait. Called with each read, in
+    file order: (board, receive time s, bytes) → pacing time s."""
+
+    def __init__(self) -> None:
+        self._step = 0.0  # s taken off every receive time: the host clock's steps found so far
+        self._boards: dict[str | None, _Board] = {}
+
+    def __call__(self, board: str | None, t_host: float, chunk: bytes) -> float:
+        state = self._boards.get(board)
+        if state is None:
+            state = self._boards[board] = _Board()
+        frames = [frame for frame in state.decoder.feed(chunk) if frame.type in DATA_TYPES]
+        t = t_host - self._step
+        if frames:
+            t_board = state.clock.feed(frames)
+            if state.timed is not None and not any(frame.board_restart for frame in frames):
+                step = (t - state.timed[0]) - (t_board - state.timed[1])
+                if abs(step) > STEP_S:
+                    log.warning("%s: receive times step %+.3f s against the board clock at %s: taken for a step "
+                                "of the host clock (NTP), paced by the board clock across it", board or "recording",
+                                step, datetime.fromtimestamp(t_host, timezone.utc).isoformat(timespec="milliseconds"))
+                    self._step += step
+                    t -= step
+            state.timed = (t, t_board)
+        elif state.last is not None:
+            t = min(t, state.last + STEP_S)
+        state.last = t
+        return t
 
 
 def raw_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
     """4 KiB chunks of a raw capture, each timed (s) by the latest board
-    time it completes (t_us unwrapped), or by the previous chunk's time."""
-    decoder = Decoder()
-    t, wraps, last_t_us = 0.0, 0, None
+    time it completes (``BoardClock``), or by the previous chunk's time."""
+    decoder, clock = Decoder(), BoardClock()
     with open(path, "rb") as source:
         while chunk := source.read(CHUNK_BYTES):
-            for frame in decoder.feed(chunk):
-                if last_t_us is not None and frame.t_us < last_t_us - T_US_MODULUS // 2:
-                    wraps += 1
-                last_t_us = frame.t_us
-                t = max(t, (wraps * T_US_MODULUS + frame.t_us) * 1e-6)
-            yield t, chunk
+            yield clock.feed(decoder.feed(chunk)), chunk
 
 
 def bulk_chunks(path: str | Path, size: int = BULK_BYTES) -> Iterator[tuple[float, bytes]]:
@@ -47,15 +134,21 @@ READERS = {".mcap": read_raw}  # by suffix; any other file is a raw capture
 def timed_chunks(path: str | Path, paced: bool = True, board: str | None = None) -> Iterator[tuple[float, bytes]]:
     """(time s, bytes) of a recording; FileNotFoundError or ValueError (not
     the format its suffix says) at once, before the first chunk is asked for.
-    ``paced=False`` (nothing waits for the times): a raw capture in large
-    untimed chunks. A recording keeps its reads as they came: a live
-    pipeline's frames depend on where a read ends (a tare completed within
-    a read applies to the whole read), and its replay equals the live run."""
+    A recording is timed by ``HostTime``; ``paced=False`` (nothing waits
+    for the times): by its receive times as recorded, and a raw capture
+    comes in large untimed chunks. A recording keeps its reads as they
+    came: a live pipeline's frames depend on where a read ends (a tare
+    completed within a read applies to the whole read), and its replay
+    equals the live run."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such recording: {path}")
     if path.suffix in READERS:
-        return READERS[path.suffix](path, board)
+        chunks = READERS[path.suffix](path, board)
+        if not paced:
+            return chunks
+        host_time = HostTime()
+        return ((host_time(board, t, chunk), chunk) for t, chunk in chunks)
     if board is not None:
         raise ValueError(f"{path} is a raw capture of one board: it has no board {board!r} to choose")
     return raw_chunks(path) if paced else bulk_chunks(path)
