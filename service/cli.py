@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from . import cli_commands as commands
@@ -286,6 +287,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(interrupted(name), file=sys.stderr, flush=True)
         return 130
+    except BrokenPipeError:  # the reader of the output stopped (`| head`): end quietly, as a pipeline's tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (ValueError, OSError) as exc:
         print(f"tactile {args.command}: error: {exc}", file=sys.stderr)
         return 2

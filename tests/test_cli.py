@@ -321,3 +321,14 @@ def test_a_simulated_board_on_tcp_stops_after_its_seconds():
     result = subprocess.run([TACTILE, "sim", "--tcp", "0", "--seconds", "1"], capture_output=True, text=True, timeout=30)
     assert result.returncode == 0 and "simulated board on socket://127.0.0.1:" in result.stdout
     assert time.monotonic() - started < 10
+
+
+def test_output_into_a_pipe_its_reader_closed_ends_quietly(tmp_path):
+    """`tactile calibrations show ID | head` ended with 'error: [Errno 32] Broken pipe'."""
+    env = {**os.environ, "TACTILE_REGISTRY": str(tmp_path / "r.sqlite3")}
+    process = subprocess.Popen([TACTILE, "calibrations", "show", "builtin-table1"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, env=env)
+    process.stdout.close()  # before it writes: its first write meets a pipe without a reader
+    with process.stderr:
+        err = process.stderr.read().decode()
+    assert process.wait(timeout=30) == 0 and err == ""
