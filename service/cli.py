@@ -61,6 +61,15 @@ def _positive(text: str) -> float:
     return value
 
 
+def _bench_seconds(text: str) -> float:
+    """The scenes begin with 1 s unloaded (the tare's): the loaded errors need frames after it."""
+    value = _positive(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"{text} s holds no loaded frame (each scene begins with 1 s unloaded, "
+                                         "for the tare): give at least 2")
+    return value
+
+
 def _speed(text: str) -> float:
     try:
         return parse_speed(text)
@@ -266,8 +275,8 @@ def _add_model(sub) -> None:
 
 def _add_bench(sub) -> None:
     bench = sub.add_parser("bench", help="speed against error of every fidelity level on the simulator's scenes")
-    bench.add_argument("--seconds", type=_positive, default=10.0,
-                       help="simulated seconds per scenario (default: %(default)s)")
+    bench.add_argument("--seconds", type=_bench_seconds, default=10.0,
+                       help="simulated seconds per scenario, at least 2 (default: %(default)s)")
     bench.add_argument("--process-seconds", type=float, default=60.0,
                        help="simulated seconds of the capture the whole-process figures replay "
                             "(default: %(default)s; 0 skips them)")

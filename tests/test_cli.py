@@ -332,3 +332,10 @@ def test_output_into_a_pipe_its_reader_closed_ends_quietly(tmp_path):
     with process.stderr:
         err = process.stderr.read().decode()
     assert process.wait(timeout=30) == 0 and err == ""
+
+
+def test_bench_refuses_seconds_that_hold_no_loaded_frame(capsys):
+    """--seconds 1 printed nan in every 'RMS loaded' cell: each scene begins with 1 s unloaded."""
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["bench", "--seconds", "1"])
+    assert exit_.value.code == 2 and "1 s holds no loaded frame" in capsys.readouterr().err

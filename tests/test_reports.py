@@ -87,7 +87,7 @@ def test_without_matplotlib_write_docs_fails_clearly_and_writes_nothing(tmp_path
 def test_bench_out_without_matplotlib_is_a_cli_error(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(bench, "run", lambda seconds: _bench_report())
     monkeypatch.setitem(sys.modules, "matplotlib", None)
-    assert main(["bench", "--seconds", "0.1", "--out", str(tmp_path / "docs")]) == 2
+    assert main(["bench", "--seconds", "2", "--out", str(tmp_path / "docs")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("tactile bench: error: writing bench.png needs matplotlib")
     assert 'pip install -e ".[docs]" in the source tree' in err
