@@ -458,6 +458,110 @@ def test_a_grid_channel_implausible_since_power_up_is_null_and_flagged_never_sil
     assert np.isfinite(tared[-1].forces_N[2])  # its late zero came after 20 readings of its own
 
 
+def late_cable_scans(scans: int = 1500) -> list[bytes]:
+    """Per scan at 1 kHz, the bytes of: grid 0 and quad 1 with their cables
+    plugged in at scan 300 (open sentinels on every channel before), grid 2
+    working with taxel 5 open until then, grid 3 open throughout, grid 4 and
+    quad 5 working. Grids 0, 2, 4 are pressed on taxel 36 (+6 %, ~5 N) and
+    the quads on all four electrodes (+3 %, ~0.9 N) at scans 900–1300."""
+    from service.physics.paper_data import grid_calibration
+    from service.physics.quad_model import NOMINAL_C0_PF
+    from service.protocol import FrameType, encode_frame
+
+    c0 = grid_calibration(8, 8).c0_pF
+    rng = np.random.default_rng(8)
+    out = []
+    for k in range(scans):
+        press = 0.06 * math.sin(math.pi * (k - 900) / 400) if 900 <= k < 1300 else 0.0
+        scan = []
+        for sid in range(6):
+            kind = FrameType.QUAD if sid in (1, 5) else FrameType.GRID
+            if kind == FrameType.QUAD:
+                pf = NOMINAL_C0_PF * (1 + rng.normal(0, 2e-4, 4)) * (1 + press / 2)
+            else:
+                pf = c0 + rng.normal(0, 0.002, 64)
+                pf[36] *= 1 + press
+            raw = np.round(pf * 1e6).astype("<u4")
+            if sid == 3 or (sid in (0, 1) and k < 300):
+                raw[:] = 0xFFFFFFFF
+            if sid == 2 and k < 300:
+                raw[5] = 0xFFFFFFFF
+            scan.append(encode_frame(kind, sid, k, 1000 * (k + 1), raw.tobytes()))
+        out.append(b"".join(scan))
+    return out
+
+
+def test_a_sensor_plugged_in_after_its_tare_tares_from_its_first_reading():
+    """A cable plugged in late: grid 0 and quad 1 sent open sentinels on
+    every channel through their tare window (scans 0–99) and until scan 300.
+    Their tare made no zero at all, so once they read, each channel waited
+    for a late zero of its own: 99 frames null, the grid's taxels flagged
+    ``no_reading`` (a sentinel, where none was) without a frame flag, the
+    quad's frames ``out_of_range`` on nominal readings. Now the first
+    reading begins the sensor's tare: live, scans 300–398 are its window,
+    null and flagged ``taring`` as any; from 399 on it reads as its working
+    twin. A channel open only while a working sensor tared (grid 2's taxel
+    5) still gets its late zero, and a dead sensor (grid 3) stays null,
+    flagged, named unzeroed."""
+    from service.pipeline import Pipeline
+
+    scans = late_cable_scans()
+    live = Pipeline(Reconstructor(level="full"), map_clock=False)
+    frames: dict[tuple[int, int], object] = {}
+    unzeroed = {}
+    for start in range(0, len(scans), 7):  # reads of 7 scans: the plug-in (300) inside one
+        for f in live.feed(b"".join(scans[start:start + 7]), 1 + start * 1e-3):
+            frames[f.sensor.id, f.seq] = f
+        if start + 7 in (203, 301, 406):
+            unzeroed[start + 7] = {sid: live.reconstructor.unzeroed(sid) for sid in range(6)}
+    everything = list(range(64))
+    assert unzeroed[203] == {0: everything, 1: [0, 1, 2, 3], 2: [5], 3: everything, 4: [], 5: []}
+    assert unzeroed[301] == {0: [], 1: [], 2: [5], 3: everything, 4: [], 5: []}  # 0 and 1 taring
+    assert unzeroed[406] == {0: [], 1: [], 2: [], 3: everything, 4: [], 5: []}
+
+    def flags(sid, seqs):
+        return [frames[sid, k].flags for k in seqs]
+
+    for sid in (0, 1):
+        assert flags(sid, range(99)) == [["open_channel", "taring"]] * 99  # the 100th reading completes a window
+        assert flags(sid, range(99, 300)) == [["open_channel"]] * 201
+        assert flags(sid, range(300, 399)) == [["taring"]] * 99
+        assert all(np.isnan(frames[sid, k].forces_N).all() for k in range(300))
+        assert all(np.isnan(frames[sid, k].forces_N).all() for k in range(300, 399))
+        assert flags(sid, range(399, 1500)) == [[]] * 1101
+    assert all(frames[0, k].taxel_flag_lists() == {"no_reading": everything} for k in range(100, 300))
+    twin = {0: 4, 1: 5}
+    for sid, k in ((0, 399), (0, 1100), (1, 399), (1, 1100)):
+        np.testing.assert_allclose(frames[sid, k].forces_N, frames[twin[sid], k].forces_N, rtol=0.03, atol=0.05)
+    assert frames[0, 1100].forces_N[36] == pytest.approx(5.1, rel=0.05)
+    assert frames[1, 1100].forces_N[2] == pytest.approx(0.89, rel=0.05)
+    # Grid 2's taxel 5 waits for its late zero, the rest of the grid reading as before.
+    assert flags(2, range(100, 1500)) == [["open_channel"]] * 200 + [[]] * 1200
+    waiting = [frames[2, k] for k in range(300, 399)]
+    assert all(f.taxel_flag_lists() == {"no_reading": [5]} and np.isfinite(np.delete(f.forces_N, 5)).all() for f in waiting)
+    assert np.isfinite(frames[2, 399].forces_N).all()
+    # Grid 3, dead: null and flagged on every frame, its tare never begun again.
+    assert flags(3, range(100, 1500)) == [["open_channel"]] * 1400
+    assert all(np.isnan(frames[3, k].forces_N).all() and frames[3, k].taxel_flag_lists() == {"no_reading": everything}
+               for k in range(100, 1500))
+
+    # A replay holds a tare window's readings and gives them forces from its zero, as for any tare; one
+    # starting from zeros recorded before the plug-in (none for 0 and 1) tares them at the same reading.
+    replayed = Pipeline(Reconstructor(level="full", hold_until_tared=True), map_clock=False)
+    began = Pipeline(Reconstructor(level="full"), map_clock=False)
+    began.feed(b"".join(scans[:200]), 1.0)
+    preset = Pipeline(Reconstructor(level="full", hold_until_tared=True), map_clock=False)
+    preset.reconstructor.preset_baselines(began.reconstructor.baselines())
+    for pipeline, first in ((replayed, 0), (preset, 200)):
+        out = {(f.sensor.id, f.seq): f for f in pipeline.feed_many([(s, 1.0) for s in scans[first:]])}
+        for sid in (0, 1):
+            assert [out[sid, k].flags for k in range(300, 1500)] == [[]] * 1200
+            assert all(np.isfinite(out[sid, k].forces_N).all() for k in range(300, 1500))
+            # as live but for the full level's tracking, which went through the window's frames here
+            worst = max(np.abs(out[sid, k].forces_N - frames[sid, k].forces_N).max() for k in range(399, 1500))
+            assert worst < 0.02
+
+
 @pytest.mark.parametrize("level", ["level0", "table", "full"])
 def test_a_quad_electrode_implausible_since_power_up_nulls_its_frames_flagged(level):
     rng = np.random.default_rng(6)

@@ -21,6 +21,12 @@ class Baseline:
     valid reading in the window keeps a NaN baseline (no force) until it has
     given ``frames`` valid readings of its own, then gets its baseline late:
     a trace that was open at start-up and recovers is not lost for good.
+    A window that gave no channel a zero (a cable plugged in after it: open
+    sentinels throughout) is no tare of the sensor at all: its first valid
+    reading begins the window again, so the readings that make the zero are
+    a tare window's (null and flagged ``taring`` live) and the zero is made
+    as any (glitches, steps, own level), not channel by channel. A sensor
+    that never sends one keeps no zero, its channels named as such.
     The sensor must be unloaded while it tares: a load present then becomes
     the new zero (the price of auto-tare; a later tare with the sensor free
     corrects it).
@@ -67,6 +73,7 @@ class Baseline:
         self.std = np.full(channels, np.nan)
         self._late = np.zeros(channels, dtype=bool)
         self._any_late = False  # checked per reading: a bool, not an array scan
+        self.zeroless = False  # ready, and no channel has a zero: the next valid reading begins the window again
         self.restarts = 0  # windows begun again for a step since the last tare asked for
 
     @property
@@ -90,6 +97,7 @@ class Baseline:
         self.std = np.full_like(self.std, np.nan)
         self._late[:] = False
         self._any_late = False
+        self.zeroless = False
 
     def preset(self, value_pF: np.ndarray, std_pF: np.ndarray) -> None:
         """Take a zero made elsewhere (a recording's, made live before it
@@ -101,6 +109,7 @@ class Baseline:
         self._late = np.isnan(self.value)
         self._narrow_late()
         self._any_late = bool(self._late.any())
+        self.zeroless = bool(self._late.all())  # as live: it tares from its first valid reading
 
     def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
         """Take ``values_pF`` (channels,) as the zero of ``channels`` (bool
@@ -108,18 +117,24 @@ class Baseline:
         so caches keyed on it see the change."""
         self.value = np.where(channels, values_pF, self.value)
 
-    def completes_late(self, capacitance_pF: np.ndarray) -> bool:
-        """Whether this reading (n,) pF would complete a late channel's zero
-        (changing ``value`` for the readings after it), changing nothing."""
+    def changes_zero(self, capacitance_pF: np.ndarray) -> bool:
+        """Whether this reading (n,) pF would change the zero of the readings
+        after it — complete a late channel's, or begin the window again of a
+        sensor that has none — changing nothing."""
         if not self._any_late or not self.ready:
             return False
         valid = self._valid(capacitance_pF, self._late)
+        if self.zeroless:
+            return bool(valid.any())
         return bool(np.any(self._late & valid & (self._count + 1 >= self.frames)))
 
     def update(self, capacitance_pF: np.ndarray) -> bool:
         """Feed one reading of shape (channels,); return whether the baseline
         is ready (the reading that completes it is already tared)."""
         if self.ready:
+            if self.zeroless and self._valid(capacitance_pF, self._late).any():
+                self._begin()  # the sensor's first valid reading (class docstring): not a restart for a step
+                return self.update(capacitance_pF)
             if self._any_late:
                 self._accumulate(capacitance_pF, self._late)
                 done = self._late & (self._count >= self.frames)
@@ -139,6 +154,7 @@ class Baseline:
             self._late = self._count == 0
             self._set_aside_off_level()
             self._any_late = bool(self._late.any())
+            self.zeroless = bool(self._late.all())  # never by a set-aside: at most a quarter of the zeros go
         return self.ready
 
     def _set_aside_off_level(self) -> None:

@@ -12,6 +12,15 @@ plate over the whole array — a uniform press and a drift cannot be told
 apart), and frames are flagged ``drift_suspect`` once that has lasted
 ``suspect_after_s``, or while the drift exceeds ``max_drift``.
 
+A frame needs MIN_REFERENCE_TAXELS valid taxels to be a reference at all:
+one pressed taxel is left out only where the frame's median lies on an
+unloaded one. A lone taxel is its own median (a 1×1 grid's press was taken
+for drift: 2.8 N of a 3.7 N press, then out of range after its release);
+two taxels' median is their mean, so half a press under two bands is taken
+for drift and neither is quiet above it. With three, one press leaves the
+median on an unloaded taxel. Below that the estimate is frozen, as under a
+plate: no correction, and ``drift_suspect`` after ``suspect_after_s``.
+
 Times are the board's clock, which wraps every 2³² µs and starts again
 from 0 when the board restarts: followed as one unwrapped time (a step back
 within MAX_WRAP_STEP_S of the wrap is the wrap; any other step back, a
@@ -27,15 +36,16 @@ import numpy as np
 
 T_WRAP_S = 2**32 * 1e-6
 MAX_WRAP_STEP_S = 1.0  # a step back this close to the wrap is the wrap (scans come at least once a second)
+MIN_REFERENCE_TAXELS = 3  # valid taxels a frame needs for its median to ignore a one-taxel press (docstring)
 
 
 def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per frame of (N, n) ΔC/C0: the median of the quiet taxels (within
     ``band`` — (n,) or (N, n) — of the frame's median), and whether they are
-    enough (at least half the valid ones; the median means nothing where
-    not). Both (N,). Rows are independent, so frames of several sensors can
-    go through one call. (np.nanmedian goes through masked arrays and costs
-    ~100 µs a row.)"""
+    enough (at least half the valid ones, of at least MIN_REFERENCE_TAXELS;
+    the median means nothing where not). Both (N,). Rows are independent,
+    so frames of several sensors can go through one call. (np.nanmedian
+    goes through masked arrays and costs ~100 µs a row.)"""
     if len(relative) == 1:  # one frame: a third of the numpy calls
         median, enough = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
         return np.array([median]), np.array([enough])
@@ -52,18 +62,18 @@ def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, n
     count = np.count_nonzero(quiet, axis=1)
     ordered = np.sort(np.where(quiet, relative, np.inf), axis=1)
     medians = (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2]) / 2
-    return medians, (count * 2 >= valid) & (count > 0)
+    return medians, (count * 2 >= valid) & (valid >= MIN_REFERENCE_TAXELS)  # so count ≥ 2
 
 
 def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, bool]:
     ordered = np.sort(row)  # NaN sorts last
     valid = np.count_nonzero(ordered == ordered)
-    if not valid:
+    if valid < MIN_REFERENCE_TAXELS:
         return float("nan"), False
     centre = (ordered[(valid - 1) // 2] + ordered[valid // 2]) / 2
     quiet = np.sort(row[np.abs(row - centre) < band])  # NaN compares False, silently
     n = quiet.size
-    if not n or n * 2 < valid:
+    if n * 2 < valid:  # valid ≥ 3: none quiet is not enough either
         return float("nan"), False
     return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), True
 

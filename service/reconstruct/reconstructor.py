@@ -89,8 +89,10 @@ class Reconstructor(SensorStates):
         channel's late zero (it read nothing plausible while its sensor
         tared) completing inside the batch splits it there: the sensor's
         earlier frames had no zero for it, however reads were joined; so
-        does a sensor's new description (an INFO, which may swap its
-        calibration in: sensor_states.py)."""
+        does the first plausible reading of a sensor whose tare gave it no
+        zero at all (its window begins again there: baseline.py), and a
+        sensor's new description (an INFO, which may swap its calibration
+        in: sensor_states.py)."""
         pending: list[tuple[SensorState | Exception, Reading]] = []
         taring: list[int] = []  # readings in their sensor's tare window, the one that completes it aside
         out: list[ForceFrame] = []
@@ -104,11 +106,15 @@ class Reconstructor(SensorStates):
                         out += self._batch_done(pending, taring)
                         pending, taring = [], []
                     state = self._state(reading.sensor)
-                if pending and state.baseline.completes_late(reading.capacitance_pF) and \
+                if pending and state.baseline.changes_zero(reading.capacitance_pF) and \
                         any(earlier is state for earlier, _ in pending):
                     out += self._batch_done(pending, taring)
                     pending, taring = [], []
-                if state.baseline.update(reading.capacitance_pF):
+                zeroless = state.baseline.zeroless
+                ready = state.baseline.update(reading.capacitance_pF)
+                if zeroless and not state.baseline.zeroless:  # its first plausible reading began its tare (baseline.py)
+                    self._window_begun(state, state.judge_tare)
+                if ready:
                     if not state.tare_judged:
                         self._judge_tare(state)
                 else:

@@ -267,10 +267,15 @@ class SensorStates:
                 raise KeyError(sid)
             state = self._sensors[sid]
             state.baseline.tare()
-            state.tare_judged, state.judge_tare, state.loaded, state.below_c0 = False, judge, None, []
-            if isinstance(state.processor, GridProcessor):
-                state.processor.reset()
+            self._window_begun(state, judge)
         return ids
+
+    @staticmethod
+    def _window_begun(state: SensorState, judge: bool) -> None:
+        """A tare window began: the last one's judgement and loaded taxels, and the drift tracked on its zero, go."""
+        state.tare_judged, state.judge_tare, state.loaded, state.below_c0 = False, judge, None, []
+        if isinstance(state.processor, GridProcessor):
+            state.processor.reset()
 
     def loaded_now(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
         """Taxels that a reading (n,) pF shows loaded against the calibration's
