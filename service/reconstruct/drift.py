@@ -19,7 +19,9 @@ for drift: 2.8 N of a 3.7 N press, then out of range after its release);
 two taxels' median is their mean, so half a press under two bands is taken
 for drift and neither is quiet above it. With three, one press leaves the
 median on an unloaded taxel. Below that the estimate is frozen, as under a
-plate: no correction, and ``drift_suspect`` after ``suspect_after_s``.
+plate: no correction, and ``drift_suspect`` after ``suspect_after_s`` —
+except on a grid of fewer taxels (grid.py), which never has a reference:
+its drift is not tracked, as at the table level, and no frame says so.
 
 Times are the board's clock, which wraps every 2³² µs and starts again
 from 0 when the board restarts: followed as one unwrapped time (a step back

@@ -30,6 +30,7 @@ so it moves none of its neighbours.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,7 +40,7 @@ from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS, TaxelResponse, table_t
 from . import level0
 from .baseline import NOISE_FLOOR_PF
 from .crosstalk import Crosstalk, CrosstalkEstimator
-from .drift import DriftTracker
+from .drift import MIN_REFERENCE_TAXELS, DriftTracker
 from .levels import GRID_LEVELS
 from .sigma import empirical_forces, level0_sigma, table_sigma
 from .stuck import STUCK_FRAMES, run_lengths
@@ -111,6 +112,8 @@ class GridProcessor:
         self._bounds = level0.bounds(*self.plausible)
         self._ratio_bounds = level0.bounds(self.plausible[0] + 1.0, self.plausible[1] + 1.0)
         n = self.calibration.rows * self.calibration.cols
+        if n < MIN_REFERENCE_TAXELS:  # never a drift reference (drift.py): untracked, as at the table level, not
+            self.drift.suspect_after_s = math.inf  # a drift_suspect on every frame that would say nothing
         self.gain_relative_se = np.zeros(n) if self.gain_relative_se is None else self.gain_relative_se
         self.model_sigma_N = np.zeros(n) if self.model_sigma_N is None else self.model_sigma_N
         if self.level == "full":
