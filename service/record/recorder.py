@@ -222,6 +222,9 @@ class _Listeners:
             info = self.pipeline.interpreter.info_document()
             if zeros or info:  # a recording begun on a running service: the INFO and zeros its replay starts from
                 put(("baselines", (self.pipeline, (zeros, info)), t_host))
+            # The start of a frame this read completes, which the decoder already holds: recorded with the read,
+            # so the replay decodes that frame as live did (without it, the frame live recorded had no bytes).
+            data = self.pipeline.decoder.held() + data
         # Driven by reads, not frames: bytes that make no frame (all corrupt) are counted too. The counters of
         # every read before this one.
         if t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
