@@ -3,7 +3,8 @@
 One ``Pipeline`` serves everyone — the live service, replay, ``record``,
 the bench and the tests — and owns the order of work: decode, interpret,
 reconstruct, keep history and rates, publish. Byte listeners (the
-recorder's raw channel) see every chunk as received, before decoding;
+recorder's raw channel) see every chunk as received, before decoding it,
+under the pipeline's lock;
 frame listeners (the fan-out hub, the recorder) see each batch of
 ForceFrames.
 """
@@ -265,9 +266,11 @@ class Pipeline:
     def _decode(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
         readings = []
         for data, t_host in chunks:
-            for listener in self.byte_listeners:
-                listener(data, t_host)
+            # The byte listeners under the lock with the read's decoding: a recorder stopping (recorder.py)
+            # takes the lock, so it never has a read whose counts are not in the decoder's counters yet.
             with self._lock:
+                for listener in self.byte_listeners:
+                    listener(data, t_host)
                 self.reads += 1
                 self.bytes_fed += len(data)
                 # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.

@@ -196,6 +196,11 @@ class Decoder:
         self._buffer += data
         return self._parse(final=False)
 
+    def held(self) -> bytes:
+        """The bytes kept for a frame not complete yet: where a recording
+        begun now has to start for its replay to decode that frame too."""
+        return bytes(self._buffer)
+
     def finish(self) -> list[Frame]:
         """End of stream: resolve what is left, recovering frames trapped
         behind a corrupt length, and count the remainder as discarded."""

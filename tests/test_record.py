@@ -348,3 +348,50 @@ def test_a_paced_recording_keeps_its_pauses_but_not_the_host_clocks_steps(tmp_pa
             served += port.read(1 << 16)
     assert served == b"".join(chunk for _, chunk in read_raw(path))
     assert sum(slept) == pytest.approx(30.002, abs=0.01) and max(slept) == pytest.approx(20.0, abs=0.01)
+
+
+def recorded_diagnostics(path):
+    return [orjson.loads(m.data) for t, m in iter_messages(path) if t == "/diagnostics"]
+
+
+def test_the_last_diagnostics_count_every_byte_recorded(tmp_path):
+    """Snapshots were taken when frames came, at most once a second, none
+    at the stop: the last one lagged the end by up to a second (22 CRC
+    errors recorded where the bytes hold 24). The last is now taken at the
+    stop: the counters of exactly the bytes recorded."""
+    from firmware_sim.faults import inject
+
+    damaged = inject(capture(BoardConfig(scene="press", seed=4), 2.5)[0], rate=0.05, seed=5).data
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for i, pos in enumerate(range(0, len(damaged), 700)):  # ~0.7 ms of stream a read, 2 ms apart
+        pipeline.feed(damaged[pos : pos + 700], 1000.0 + 0.002 * i)
+    recorder.stop()
+    docs = recorded_diagnostics(tmp_path / "run.mcap")
+    decoder = Decoder()
+    decoder.feed(b"".join(chunk for _, chunk in read_raw(tmp_path / "run.mcap")))
+    truth = decoder.counters.as_dict()
+    assert truth["bytes_in"] == len(damaged) and truth["crc_errors"] > 20
+    assert docs[-1]["counters"] == truth
+    assert docs[0]["counters"]["bytes_in"] == 0 and len(docs) == 4  # at the first read, at 1 s and 2 s, at the stop
+
+
+def test_a_board_whose_every_frame_is_corrupt_has_its_diagnostics_recorded(tmp_path):
+    """No frame, so no snapshot was ever taken: the recording held /raw only.
+    Snapshots are driven by reads."""
+    from service.protocol import FrameType, encode_frame
+
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for seq in range(3000):  # a read a scan, at 1 kHz
+        frame = bytearray(encode_frame(FrameType.QUAD, 0, seq, 1000 * seq, bytes(16)))
+        frame[-1] ^= 0xFF  # its CRC
+        pipeline.feed(bytes(frame), 1000.0 + 0.001 * seq)
+    recorder.stop()
+    docs = recorded_diagnostics(tmp_path / "run.mcap")
+    assert len(docs) == 1 + 2 + 1  # at the first read, at 1 s and 2 s, at the stop
+    last = docs[-1]["counters"]
+    assert (last["bytes_in"], last["frames"], last["crc_errors"]) == (3000 * len(frame), 0, 3000)
+    assert [doc["counters"]["crc_errors"] for doc in docs[:3]] == [0, 1000, 2000]  # the reads before each

@@ -140,6 +140,65 @@ def test_a_calibration_changed_while_recording_is_said_by_the_replay(tmp_path, p
     assert f"sensor {pipeline.interpreter.name}/1 changed calibration while recording (builtin-fits34-35 → " in caplog.text
 
 
+def test_a_board_restarted_with_another_shape_is_no_calibration_change_the_replay_misses(tmp_path, caplog):
+    """A restart's INFO makes sensor 0 a 16x16 grid, from 4x4: its built-in
+    calibration is another (built-in ids name the shape), live and in the
+    replay alike, whose frames all equal the recorded ones; it was warned
+    that the replay's forces after the change differ."""
+    import logging
+
+    from service.protocol import FrameType, encode_frame
+    from service.record.calibrations import recorded_calibrations
+
+    rng = np.random.default_rng(4)
+    pipeline = Pipeline(Reconstructor(level="table"))
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    t = 1000.0
+    for rows in (4, 16):  # the board, then the board restarted
+        info = {"board": "hand", "serial": "H-7", "sensors": [{"id": 0, "kind": "grid", "rows": rows, "cols": rows}]}
+        pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(info)), t)
+        for seq in range(300):
+            counts = (10_660_000 + rng.normal(0, 800, rows * rows)).astype("<u4").tobytes()
+            t += 0.001
+            pipeline.feed(encode_frame(FrameType.GRID, 0, seq, 1000 * (seq + 1), counts), t)
+    recorder.stop()
+    live = recorded_forces(tmp_path / "run.mcap")
+    assert [d["calibration"] for d in live[::300]] == ["builtin-mean-4x4", "builtin-mean-16x16"]
+    with caplog.at_level(logging.WARNING, logger="service.record.calibrations"):
+        recorded_calibrations(tmp_path / "run.mcap")
+    assert caplog.text == ""
+    out = io.BytesIO()
+    replay(tmp_path / "run.mcap", out, level="table")
+    assert len(live) == 600 and [orjson.loads(line) for line in out.getvalue().splitlines()] == live
+
+
+@pytest.mark.parametrize("later, warned", [("builtin-mean-16x16", False), ("builtin-mean-4x4", True),
+                                           ("builtin-fits34-35", False), ("0123456789ab", True)])
+def test_only_a_calibration_change_the_replay_does_not_make_is_warned_of(tmp_path, caplog, later, warned):
+    """A sensor that began on its own 4x4 calibration: the replay keeps it
+    wherever it fits, the built-in one of the sensor's shape where not (a
+    16x16 grid or a quad after a restart, as live); another calibration it
+    never has."""
+    import logging
+
+    from service.readings import SensorInfo
+    from service.record.calibrations import recorded_calibrations
+    from service.record.mcap_writer import McapLog
+
+    sensor = SensorInfo(0, "grid", 4, 4, board="hand")
+    with open(tmp_path / "run.mcap", "wb") as stream:
+        log = McapLog(stream)
+        log.calibration(sensor, "fedcba987654", {"id": "fedcba987654", "kind": "grid", "rows": 4, "cols": 4}, None, 1.0)
+        log.calibration(sensor, later, None, None, 2.0)
+        log.close()
+    with caplog.at_level(logging.WARNING, logger="service.record.calibrations"):
+        recorded_calibrations(tmp_path / "run.mcap")
+    assert caplog.text.count(f"sensor hand/0 changed calibration while recording (fedcba987654 → {later}); "
+                             f"the replay reconstructs with the first throughout") == warned
+    assert f"so its forces with {later} differ from the recorded ones" in caplog.text or not warned
+
+
 def test_a_forced_tare_recorded_before_a_sensors_first_frame_is_judged_as_it_was(pressed):
     """A recording begun while the board streamed can hold a forced tare
     (the load is the zero) before a sensor's first recorded frame: the
@@ -252,9 +311,8 @@ def test_a_recording_begun_on_a_running_service_replays_from_the_zeros_it_began_
     out = io.BytesIO()
     replay(tmp_path / "run.mcap", out, level=level)
     again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
-    # The first recorded read may begin inside a frame whose start only the live decoder had.
-    assert again.keys() <= live.keys() and len(live) - len(again) <= len(zeros) and len(again) > 2000
-    live = {key: live[key] for key in again}
+    # Every recorded frame replayed, that of the first read too (it began before it: the recording holds its start).
+    assert again.keys() == live.keys() and len(again) > 2000
     assert not any("taring" in d["flags"] for d in again.values())
 
     def values(doc):
@@ -522,3 +580,31 @@ def test_the_replay_command_says_when_it_is_told_another_level_than_recorded(tmp
     assert "recorded at" not in capsys.readouterr().err
     assert cli.main(["replay", str(path), "--export", str(tmp_path / "b.jsonl"), "--level", "table"]) == 0
     assert f"{path} was recorded at level level0; replaying at table" in capsys.readouterr().err
+
+
+def test_a_recording_begun_inside_a_frame_holds_its_start_and_replays_it(tmp_path, pressed):
+    """Begun while the decoder held the start of a frame (the recording's
+    first read completes it): the recorder recorded that frame's forces, but
+    its bytes began at the read, so the replay could not make it (1916 frames
+    of 1917). The first /raw message now begins with the bytes the decoder
+    held: the raw bytes are the stream's from that frame's sync on, and the
+    replay gives every recorded frame, bit for bit."""
+    from firmware_sim.faults import split_frames
+
+    starts = set(np.cumsum([0] + [len(frame) for frame in split_frames(pressed)]).tolist())
+    pipeline = Pipeline(Reconstructor(level="table"))
+    recorder, position = None, 0
+    for i, chunk in reads(pressed):
+        if recorder is None and i >= 400 and position not in starts:  # a read that begins inside a frame
+            began = max(start for start in starts if start < position)
+            recorder = Recorder(tmp_path / "run.mcap", tmp_path / "run.bin")
+            recorder.attach(pipeline)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+        position += len(chunk)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    out = io.BytesIO()
+    replay(tmp_path / "run.mcap", out, level="table")
+    again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+    assert len(again) == len(live) > 2000 and again == live
+    assert (tmp_path / "run.bin").read_bytes() == pressed[began:]

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import orjson
 
+from ..physics.paper_data import BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS, TABLE1_ROWS
 from .mcap_reader import iter_messages
 
 log = logging.getLogger(__name__)
@@ -34,8 +36,29 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
         if doc.get("cycles_at_start") is not None:
             cycles.setdefault(sensor, (doc["id"], doc["cycles_at_start"]))
     for sensor, ids in used.items():
-        if len(set(ids)) > 1:  # a replay would give the first one's forces throughout: say so
+        differ = [cid for cid in ids[1:] if cid != ids[0] and not _builtin_in_replay(cid, found.get(sensor))]
+        if differ:  # the replay does not make these changes: say so
             log.warning("%s: sensor %s changed calibration while recording (%s); the replay reconstructs with the "
-                        "first throughout, so its forces after the change differ from the recorded ones",
-                        path, sensor, " → ".join(ids))
+                        "first throughout (a built-in one where the first does not fit the sensor's shape), so its "
+                        "forces with %s differ from the recorded ones", path, sensor, " → ".join(ids), ", ".join(differ))
     return found, cycles
+
+
+def _builtin_in_replay(calibration_id: str, first: dict | None) -> bool:
+    """Whether the replay reconstructs with the built-in ``calibration_id``
+    too: where the sensor's first calibration has no document (``first``)
+    or one that does not fit the shape this built-in is for (a board
+    restarted with another, a 4×4 grid now 16×16), the replay's sensor
+    takes the built-in calibration of its shape, as live did."""
+    if calibration_id == BUILTIN_QUAD_ID:
+        shape = ("quad",)
+    elif calibration_id == BUILTIN_GRID_ID:
+        shape = ("grid", TABLE1_ROWS, TABLE1_COLS)
+    else:
+        named = re.fullmatch(r"builtin-mean-(\d+)x(\d+)", calibration_id)  # sensor_calibration.builtin's ids
+        if named is None:
+            return False  # not a built-in: the replay never has it
+        shape = ("grid", int(named[1]), int(named[2]))
+    if first is None:
+        return True
+    return (first.get("kind"), first.get("rows"), first.get("cols"))[: len(shape)] != shape

@@ -3,7 +3,8 @@
 Channels (a recording of several boards has each board's under ``/{board}``,
 ``/{board}/raw``, ``/{board}/sensor/{id}/forces``, …; one board's are as
 below and name the board in their messages): ``/raw`` (tactile.RawBytes,
-every read of the port), per sensor
+every read of the port; the first one begins with the part of a frame the
+decoder held when the recording began), per sensor
 ``/sensor/{id}/raw`` (tactile.RawFrame), ``/sensor/{id}/forces``
 (tactile.Forces), ``/sensor/{id}/grid`` (foxglove.Grid, grids only), and
 ``/diagnostics``, ``/calibrations`` (tactile.Calibration: each sensor's

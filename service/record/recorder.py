@@ -2,14 +2,16 @@
 
 ``attach(pipeline)`` makes it listen to the pipeline's bytes and frames,
 ``detach()`` stops that. The pipeline's thread only puts references on a
-queue (bytes, frame batches, a diagnostics snapshot per second); a writer
-thread serialises and writes them. Nothing is dropped: the queue is unbounded and its depth is
-reported. A write error (disk full, permission, a vanished directory) stops
-the recording, is kept in ``error`` and logged, never swallowed.
+queue (bytes, frame batches, a diagnostics snapshot per second of reads
+and one at the stop); a writer thread serialises and writes them. Nothing
+is dropped: the queue is unbounded and its depth is reported. A write
+error (disk full, permission, a vanished directory) stops the recording,
+is kept in ``error`` and logged, never swallowed.
 """
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
@@ -66,8 +68,10 @@ class Recorder:
 
     def attach(self, pipeline) -> None:
         """Listen to ``pipeline``'s bytes and frames, with its diagnostics
-        (``pipeline.diagnostics()``) once per second of frames; a service
-        with several boards attaches each board's pipeline."""
+        (``pipeline.diagnostics()``) as the first read arrives, then once
+        per second of reads (frames or not: a board whose every frame is
+        corrupt has its counters recorded too), and at ``detach``; a
+        service with several boards attaches each board's pipeline."""
         listeners = _Listeners(self, pipeline)
         self._pipelines.append(listeners)
         self._several = self._several or len(self._pipelines) > 1
@@ -77,12 +81,20 @@ class Recorder:
         pipeline.tare_listeners = [*pipeline.tare_listeners, listeners.on_tare]
 
     def detach(self) -> None:
+        """Stop listening, each pipeline's diagnostics written as they stand
+        then: the counts of every byte recorded (the periodic snapshots lag
+        the last reads by up to a second)."""
         attached, self._pipelines = self._pipelines, []
         for listeners in attached:
             pipeline = listeners.pipeline
-            pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != listeners.on_bytes]
-            pipeline.listeners = [f for f in pipeline.listeners if f != listeners.on_frames]
-            pipeline.tare_listeners = [f for f in pipeline.tare_listeners if f != listeners.on_tare]
+            # Between two reads (byte listeners are called under the lock, with the read's decoding): the
+            # last read recorded is counted, and no later one is recorded.
+            with pipeline._lock:
+                pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != listeners.on_bytes]
+                pipeline.listeners = [f for f in pipeline.listeners if f != listeners.on_frames]
+                pipeline.tare_listeners = [f for f in pipeline.tare_listeners if f != listeners.on_tare]
+                if self.active:
+                    self._queue.put(("diag", (pipeline, pipeline.diagnostics()), time.time()))
 
     @property
     def active(self) -> bool:
@@ -197,23 +209,33 @@ class _Listeners:
     def __init__(self, recorder: Recorder, pipeline) -> None:
         self.recorder = recorder
         self.pipeline = pipeline
-        self._last_diag = 0.0
+        self._last_diag = -math.inf  # the first read's snapshot: the counters the recording began with
         self._calibrations_written: set[tuple[int, str]] = set()
         self._first_read: int | None = None  # the pipeline's number of the first read recorded
 
     def on_bytes(self, data: bytes, t_host: float) -> None:
-        if self.recorder.active:
-            if self._first_read is None:  # on the feeding thread, before this read is decoded: its number
-                self._first_read = self.pipeline.reads
-                reconstructor = self.pipeline.reconstructor
-                self.recorder._queue.put(("settings", (self.pipeline, (reconstructor.level, reconstructor.mounting)),
-                                          t_host))
-                with self.pipeline._lock:  # a tare from the API's thread may be resetting one
-                    zeros = self.pipeline.reconstructor.baselines()
-                    info = self.pipeline.interpreter.info_document()
-                if zeros or info:  # a recording begun on a running service: the INFO and zeros its replay starts from
-                    self.recorder._queue.put(("baselines", (self.pipeline, (zeros, info)), t_host))
-            self.recorder._queue.put(("raw", (self.pipeline, data), t_host))
+        """On the feeding thread, under the pipeline's lock (a tare from the
+        API's thread cannot reset a zero meanwhile), before the read is decoded."""
+        if not self.recorder.active:
+            return
+        put = self.recorder._queue.put
+        if self._first_read is None:  # this read's number
+            self._first_read = self.pipeline.reads
+            reconstructor = self.pipeline.reconstructor
+            put(("settings", (self.pipeline, (reconstructor.level, reconstructor.mounting)), t_host))
+            zeros = self.pipeline.reconstructor.baselines()
+            info = self.pipeline.interpreter.info_document()
+            if zeros or info:  # a recording begun on a running service: the INFO and zeros its replay starts from
+                put(("baselines", (self.pipeline, (zeros, info)), t_host))
+            # The start of a frame this read completes, which the decoder already holds: recorded with the read,
+            # so the replay decodes that frame as live did (without it, the frame live recorded had no bytes).
+            data = self.pipeline.decoder.held() + data
+        # Driven by reads, not frames: bytes that make no frame (all corrupt) are counted too. The counters of
+        # every read before this one.
+        if t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
+            self._last_diag = t_host
+            put(("diag", (self.pipeline, self.pipeline.diagnostics()), t_host))
+        put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:
         """A tare: {sensor id: the pipeline's number of the first read it
@@ -231,10 +253,6 @@ class _Listeners:
         if calibrations:
             recorder._queue.put(("calibrations", (self.pipeline, calibrations), frames[0].t_host))
         recorder._queue.put(("frames", (self.pipeline, frames), None))
-        t_host = frames[-1].t_host
-        if t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
-            self._last_diag = t_host
-            recorder._queue.put(("diag", (self.pipeline, self.pipeline.diagnostics()), t_host))
 
     def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple]:
         """(sensor, id, document, load cycles it started with) of calibrations

@@ -119,7 +119,7 @@ FORCES = {
 
 DIAGNOSTICS = {
     "title": "tactile.Diagnostics",
-    "description": "Link and decoder counters, once per second",
+    "description": "Link and decoder counters: at the first read, once per second of reads, and at the stop",
     "type": "object",
     "properties": {"counters": {"type": "object"}, "rejected": {"type": "object"}},
 }
