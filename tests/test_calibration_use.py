@@ -138,7 +138,8 @@ def test_a_recording_replays_with_its_own_calibration_after_the_registry_changed
     recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
     documents, cycles = recorded_calibrations(tmp_path / "run.mcap")
     address = f"{pipeline.interpreter.name}/0"  # the recording names each sensor by its board and id
-    assert documents[address]["id"] == cid and cycles[address] == (cid, [0] * 64)
+    assert [(e["id"], e["document"]["id"]) for e in documents[address]] == [(cid, cid)]
+    assert cycles[address] == {cid: [0] * 64}
     with reg.Registry(registry_path) as registry:  # another calibration becomes the active one
         other = registry.get(cid)
         other["taxels"]["gain"] = [g * 1.05 for g in other["taxels"]["gain"]]
@@ -320,3 +321,57 @@ def test_the_common_drift_leaves_large_grips_and_partial_calibrations_judged():
     assert np.flatnonzero(loaded).tolist() == [9, 10] and not mismatch.any() and np.array_equal(zero, c0)
     loaded, _, _ = judge(c0[:4], np.ones(4, bool), c0[:4] * [1.03, 1.03, 1.0, 1.0], std[:4], 100)  # a 2x2 grid
     assert loaded.tolist() == [True, True, False, False]
+
+
+def test_a_recording_made_on_the_built_in_calibration_replays_on_it_after_one_was_stored(calibrated, validation,
+                                                                                         tmp_path):
+    """The recording names no document for a sensor on the built-in calibration; its replay looked the
+    registry up instead and took the calibration stored since: other forces than recorded, without a word."""
+    from service.record.mcap_reader import iter_messages
+    from service.record.recorder import Recorder
+
+    _, registry_path, cid = calibrated
+    pipeline = Pipeline(Reconstructor(), calibrations=CalibrationBook(tmp_path / "empty.sqlite3"))
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for k in range(0, len(validation.raw), 4096):
+        pipeline.feed(validation.raw[k:k + 4096], 1000.0 + k * 1e-6)
+    assert recorder.stop()["error"] is None
+    recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
+    assert {line["calibration"] for line in recorded if line["kind"] == "grid"} == {"builtin-table1"}
+    replayed = exported((tmp_path / "run.mcap").read_bytes(), tmp_path,
+                        book_from_options(str(registry_path), None, recording=tmp_path / "run.mcap"), "run.mcap")
+    assert [line["calibration"] for line in replayed] == [line["calibration"] for line in recorded]
+    assert [line["taxels_N"] for line in replayed if line["kind"] == "grid"] == \
+           [line["taxels_N"] for line in recorded if line["kind"] == "grid"]
+
+
+def test_a_board_that_named_itself_late_replays_on_the_calibrations_it_ran_on_whatever_the_registry_holds(
+        calibrated, validation, tmp_path):
+    """A board already streaming when the service connected: its sensor ran on the built-in calibration until
+    the INFO named it, then on its own. The replay took the first throughout (or whatever today's registry
+    held at the INFO): an empty registry gave the built-in forces after the INFO too."""
+    from firmware_sim.faults import split_frames
+    from service.record.mcap_reader import iter_messages
+    from service.record.recorder import Recorder
+
+    _, registry_path, cid = calibrated
+    frames = split_frames(validation.raw)
+    assert frames[0][3] == 0x01  # the power-up INFO, moved to where the service first asks for it
+    late = b"".join(frames[1:3001]) + frames[0] + b"".join(frames[3001:])
+    # Named by the user (--source hand=URL): its sensors' addresses stay, their identity comes with the INFO.
+    pipeline = Pipeline(Reconstructor(), calibrations=CalibrationBook(registry_path), board_name="hand")
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for k in range(0, len(late), 4096):
+        pipeline.feed(late[k:k + 4096], 1000.0 + k * 1e-6)
+    assert recorder.stop()["error"] is None
+    recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
+    used = [line["calibration"] for line in recorded if line["kind"] == "grid"]
+    assert used[0] == "builtin-table1" and used[-1] == cid
+    elsewhere = tmp_path / "elsewhere.sqlite3"  # replayed on another machine: its registry knows no calibration
+    reg.Registry(elsewhere).close()
+    replayed = exported((tmp_path / "run.mcap").read_bytes(), tmp_path,
+                        book_from_options(str(elsewhere), None, recording=tmp_path / "run.mcap"), "run.mcap")
+    assert [line["calibration"] for line in replayed] == [line["calibration"] for line in recorded]
+    assert [line["taxels_N"] for line in replayed] == [line["taxels_N"] for line in recorded]

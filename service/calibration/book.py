@@ -2,9 +2,11 @@
 
 In this order, the first that has one for the sensor:
 
-1. ``recorded``: the calibrations a recording was made with (a replay of an
-   .mcap gives its recorded forces bit for bit, whatever the registry holds
-   now), by sensor id;
+1. ``recorded``: the calibrations a recording was made with, a built-in one
+   included (a replay of an .mcap gives its recorded forces bit for bit,
+   whatever the registry holds now), by sensor address: the first chosen
+   under the sensor's identity at the time (a board whose INFO came after its
+   first frames is named then, and its sensors' own calibrations with it);
 2. ``pinned``: ``--calibration ID|FILE`` documents, matched to the sensor
    whose identity (registry.sensor_identity) they were made for, else to the
    sensor of the same id and shape (a calibration made through one board,
@@ -17,8 +19,9 @@ In this order, the first that has one for the sensor:
    every frame then names.
 
 Load-cycle counts (reconstruct/fatigue.py) come the same way: a
-recording's counts at its start, else the registry's for the sensor and the
-calibration in use; a live service saves them back (``save_cycles``).
+recording's counts at its start (never the registry's, in a replay), else the
+registry's for the sensor and the calibration in use; a live service saves
+them back (``save_cycles``).
 
 A registry that cannot be read is reported (``problems``) and skipped: a
 sensor's data never stops for its calibration. Lookups open the registry
@@ -35,6 +38,7 @@ from pathlib import Path
 from ..physics.paper_data import BUILTIN_GRID_ID, BUILTIN_QUAD_ID
 from ..readings import SensorInfo
 from ..reconstruct.sensor_calibration import SensorCalibration, from_document
+from ..record.calibrations import first_for_identity, recorded_calibrations
 from .registry import Registry, UnknownCalibration, sensor_identity
 
 log = logging.getLogger(__name__)
@@ -74,13 +78,12 @@ def book_from_options(registry: str | None, calibration: list[str] | None, mount
                       recording: str | Path | None = None) -> CalibrationBook:
     """The book of ``--registry``, ``--calibration`` (repeatable) and, for a
     replay of an .mcap ``recording``, the calibrations it was made with."""
-    from ..record.calibrations import recorded_calibrations
-
     recorded, cycles = {}, {}
-    if recording is not None and Path(recording).suffix == ".mcap":
+    replaying = recording is not None and Path(recording).suffix == ".mcap"
+    if replaying:
         recorded, cycles = recorded_calibrations(recording)
     return CalibrationBook(registry, load_pinned(calibration or [], registry), recorded, mounting=mounting,
-                           recorded_cycles=cycles)
+                           recorded_cycles=cycles, replaying=replaying)
 
 
 class CalibrationBook:
@@ -88,12 +91,16 @@ class CalibrationBook:
     for the built-in one (module docstring for the order)."""
 
     def __init__(self, registry_path: str | Path | None = None, pinned: list[dict] | None = None,
-                 recorded: dict[int, dict] | None = None, use_registry: bool = True, mounting: str = "flat",
-                 recorded_cycles: dict[int, tuple[str, list[int]]] | None = None) -> None:
+                 recorded: dict[int | str, list[dict]] | None = None, use_registry: bool = True,
+                 mounting: str = "flat", recorded_cycles: dict[int | str, dict[str, list[int]]] | None = None,
+                 replaying: bool = False) -> None:
+        """``recorded``, ``recorded_cycles``: a recording's (record/calibrations.py),
+        ``replaying`` one: its sensors' load cycles are its own, never the registry's."""
         self.registry_path = registry_path
         self.pinned = list(pinned or [])
         self.recorded = dict(recorded or {})
         self.recorded_cycles = dict(recorded_cycles or {})
+        self.replaying = replaying or bool(self.recorded)
         self.use_registry = use_registry
         self.mounting = mounting
         self.problems: list[str] = []
@@ -104,7 +111,7 @@ class CalibrationBook:
         pinned first: one board's own choice (robot.toml); ValueError naming
         a value that is neither."""
         book = CalibrationBook(self.registry_path, load_pinned(values, self.registry_path) + self.pinned,
-                               self.recorded, self.use_registry, self.mounting, self.recorded_cycles)
+                               self.recorded, self.use_registry, self.mounting, self.recorded_cycles, self.replaying)
         book.problems = self.problems  # one list of problems for /health
         return book
 
@@ -113,9 +120,13 @@ class CalibrationBook:
         when the calibration found does not fit the sensor. ``mounting``: the
         board's (default: the book's)."""
         key = sensor_identity(board, info)["key"]
-        document = self._recorded(self.recorded, info) or self._pinned_for(key, info)
-        if document is None and self.use_registry:
-            document = self._active(key)
+        entries = self._recorded(self.recorded, info)
+        if entries:  # as recorded, a built-in one included: not what the registry holds since
+            document = first_for_identity(entries, key)["document"]
+        else:
+            document = self._pinned_for(key, info)
+            if document is None and self.use_registry:
+                document = self._active(key)
         if document is None or str(document.get("id", "")).startswith("builtin"):
             return None
         return from_document(document, info, mounting or self.mounting)
@@ -164,16 +175,16 @@ class CalibrationBook:
         """Load cycles kept for the sensor under this calibration: a
         recording's own at its start, else the registry's (None: none)."""
         recorded = self._recorded(self.recorded_cycles, info)
-        if recorded is not None and recorded[0] == calibration_id:
-            return recorded[1]
-        if not self.use_registry or self.recorded:
+        if recorded is not None and calibration_id in recorded:
+            return recorded[calibration_id]
+        if not self.use_registry or self.replaying:
             return None  # a replay of a recording counts from what it recorded, never from today's registry
         with Registry(self.registry_path) as registry:
             return registry.cycles(sensor_identity(board, info)["key"], calibration_id)
 
     def save_cycles(self, board: dict, counts: dict) -> None:
         """``counts``: Reconstructor.cycle_counts(); kept in the registry (a live service's, not a replay's)."""
-        if not self.use_registry or self.recorded or not counts:
+        if not self.use_registry or self.replaying or not counts:
             return
         entries = [(sensor_identity(board, info)["key"], cid, values) for info, cid, values in counts.values()]
         with Registry(self.registry_path) as registry:

@@ -14,34 +14,57 @@ log = logging.getLogger(__name__)
 
 
 def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
-    """({sensor: document}, {sensor: (calibration id, load cycles)}) of
-    the first calibration each sensor used in the recording (the recorder
-    writes one before the first frame that uses it) and the load-cycle
-    counts the sensor started with, each sensor by its address (board/id),
-    or by its id in a recording made before boards were named; built-in calibrations (no document) are
-    left out of the first, as a replay without a document uses the built-in
-    one anyway."""
-    found: dict[int, dict] = {}
-    cycles: dict[int, tuple[str, list[int]]] = {}
-    used: dict[int | str, list[str]] = {}
+    """({sensor: [entry, …]}, {sensor: {calibration id: load cycles}}):
+    each calibration a sensor used in the recording, in the order it first
+    did (the recorder writes one before the first frame that uses it), as
+    {"id", "key": the sensor identity it was chosen under (None in a
+    recording made before it was recorded), "document": None for a built-in
+    one}, and the load-cycle counts the sensor had under each when it
+    began using it; each sensor by its address (board/id), or by its id in a
+    recording made before boards were named. The replay reconstructs with
+    the first entry of the sensor's identity at the time (calibration/book.py):
+    a board whose INFO came after its first frames names its sensors' own
+    calibration then, as live; a calibration changed for the same identity
+    (an upload) is not replayed, and a warning says so."""
+    found: dict[int | str, list[dict]] = {}
+    cycles: dict[int | str, dict[str, list[int]]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
         sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
-        if doc["id"]:  # frames made while the sensor had no state name none
-            used.setdefault(sensor, []).append(doc["id"])
-        # The first calibration's document only: a sensor that began on a built-in one (no document) and
-        # had one uploaded later replays on the built-in throughout, as the warning below says.
-        if doc.get("document") is not None and used.get(sensor, [None])[0] == doc["id"]:
-            found.setdefault(sensor, doc["document"])
+        if not doc["id"]:  # frames made while the sensor had no state name none
+            continue
+        entries = found.setdefault(sensor, [])
+        if not any((e["id"], e["key"]) == (doc["id"], doc.get("key")) for e in entries):
+            entries.append({"id": doc["id"], "key": doc.get("key"), "document": doc.get("document")})
         if doc.get("cycles_at_start") is not None:
-            cycles.setdefault(sensor, (doc["id"], doc["cycles_at_start"]))
-    for sensor, ids in used.items():
-        differ = [cid for cid in ids[1:] if cid != ids[0] and not _builtin_in_replay(cid, found.get(sensor))]
+            cycles.setdefault(sensor, {}).setdefault(doc["id"], doc["cycles_at_start"])
+    for sensor, entries in found.items():
+        differ = [e["id"] for e in _not_replayed(entries)]
         if differ:  # the replay does not make these changes: say so
             log.warning("%s: sensor %s changed calibration while recording (%s); the replay reconstructs with the "
                         "first throughout (a built-in one where the first does not fit the sensor's shape), so its "
-                        "forces with %s differ from the recorded ones", path, sensor, " → ".join(ids), ", ".join(differ))
+                        "forces with %s differ from the recorded ones", path, sensor,
+                        " → ".join(e["id"] for e in entries), ", ".join(differ))
     return found, cycles
+
+
+def first_for_identity(entries: list[dict], key: str) -> dict:
+    """The entry a replay reconstructs a sensor of identity ``key`` with:
+    the first chosen under that identity, else (a recording made before
+    identities were recorded, or a sensor now known otherwise) the first."""
+    return next((e for e in entries if e["key"] == key), entries[0])
+
+
+def _not_replayed(entries: list[dict]) -> list[dict]:
+    """Later entries the replay does not take: chosen under an identity an
+    earlier entry has (a calibration uploaded while recording), unless a
+    built-in one the replay's sensor takes anyway."""
+    missed = []
+    for k, entry in enumerate(entries[1:], 1):
+        first = next(e for e in entries[:k + 1] if e["key"] == entry["key"])
+        if first is not entry and not _builtin_in_replay(entry["id"], first["document"]):
+            missed.append(entry)
+    return missed
 
 
 def _builtin_in_replay(calibration_id: str, first: dict | None) -> bool:

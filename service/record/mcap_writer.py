@@ -28,6 +28,7 @@ import numpy as np
 import orjson
 from mcap.writer import CompressionType, Writer
 
+from ..calibration.registry import sensor_identity
 from ..fanout.encoding import to_export_dict
 from ..reconstruct import ForceFrame
 from . import schemas
@@ -89,9 +90,10 @@ class McapLog:
 
     def calibration(self, sensor, calibration_id: str, document: dict | None, cycles: list | None,
                     t_host: float) -> None:
-        """``sensor``: the SensorInfo (its board and id name it)."""
+        """``sensor``: the SensorInfo (its board and id name it; the INFO it was described under, its identity)."""
+        key = sensor_identity(sensor.board_info or {}, sensor)["key"]
         self._add("/calibrations", "calibration", t_host, {"board": sensor.board, "sensor": sensor.id,
-                                                           "id": calibration_id, "document": document,
+                                                           "id": calibration_id, "key": key, "document": document,
                                                            "cycles_at_start": cycles})
 
     def tare(self, board: str, after_reads: dict[int, int], judge: bool, t_host: float, prefix: str = "") -> None:

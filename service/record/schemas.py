@@ -39,6 +39,8 @@ CALIBRATION = {
         "board": {"type": "string", "description": "the board's name (recordings before boards were named: absent)"},
         "sensor": {"type": "integer"},
         "id": {"type": "string"},
+        "key": {"type": "string", "description": "the sensor's identity (registry key) it was chosen under: a "
+                                                 "board's INFO may name the board later, and the calibration then"},
         "document": {"type": ["object", "null"]},
         "cycles_at_start": {"type": ["array", "null"], "items": {"type": "integer"},
                             "description": "load cycles counted under this calibration when the recording began"},
