@@ -932,3 +932,30 @@ def test_a_quad_with_two_electrodes_off_while_it_tared_sets_none_aside():
     for _ in range(10):
         one_off.update(nominal * np.array([0.41, 1.0, 1.0, 1.0]))
     assert np.isnan(one_off.value[0]) and np.isfinite(one_off.value[1:]).all()
+
+
+def test_level0_holds_a_grid_force_past_the_models_top_saturated_without_sigma():
+    """Linear and unbounded, level0 read a true 56 N as 124 N ± 9 N without a flag; the table level holds such
+    a reading at its top, saturated."""
+    from service.physics.paper_data import grid_calibration
+    from service.physics.taxel_response import table_top
+
+    info = SensorInfo(0, "grid", 8, 8)
+    c0 = grid_calibration(8, 8).c0_pF
+    s = grid_calibration(8, 8).sensitivity_per_N
+    results = {}
+    for level in ("level0", "table"):
+        rec = Reconstructor(tare_frames=3, level=level)
+        for seq in range(3):
+            rec.process(reading(info, c0, seq))
+        relative = np.full(64, 0.05)
+        relative[27] = 1.5 * table_top()  # past the top, still plausible
+        (frame,) = rec.process(reading(info, c0 * (1 + relative), 3))
+        results[level] = frame
+    frame = results["level0"]
+    assert frame.forces_N[27] == pytest.approx(table_top() / s[27])
+    assert frame.taxel_flag_lists()["saturated"] == [27] and np.isnan(frame.sigma_N[27])
+    assert results["table"].taxel_flag_lists()["saturated"] == [27]
+    others = np.arange(64) != 27
+    np.testing.assert_allclose(frame.forces_N[others], 0.05 / s[others])
+    assert np.isfinite(frame.sigma_N[others]).all()

@@ -212,11 +212,16 @@ class GridProcessor:
                 np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=implausible)
             if stale is not None:
                 relative = np.where(stale, np.nan, relative)
+            # Past the model's top (the gap half closed) a line says nothing: held there, saturated, as the
+            # table level does (a true 56 N read 124 N ± 9 N unflagged).
+            over = relative > self.top_relative
+            if np.count_nonzero(over):
+                relative = np.where(over, self.top_relative, relative)
             forces = relative / self.calibration.sensitivity_per_N
             noise = self.noise(baseline, baseline_std)
             sigma = level0_sigma(self, forces, noise)
-            if clipped is not None:
-                held = clipped & (forces == forces)
+            held = over if clipped is None else over | (clipped & (forces == forces))
+            if np.count_nonzero(held):
                 np.bitwise_or(flags, SATURATED, out=flags, where=held)
                 sigma[held] = np.nan
             return GridResult(forces, flags, sigma)
