@@ -395,3 +395,27 @@ def test_a_board_whose_every_frame_is_corrupt_has_its_diagnostics_recorded(tmp_p
     last = docs[-1]["counters"]
     assert (last["bytes_in"], last["frames"], last["crc_errors"]) == (3000 * len(frame), 0, 3000)
     assert [doc["counters"]["crc_errors"] for doc in docs[:3]] == [0, 1000, 2000]  # the reads before each
+
+
+@pytest.mark.parametrize("silent_s", [600.0, 2400.0, 9000.0])
+def test_a_silence_past_half_the_board_clocks_range_stays_a_pause_in_a_paced_replay(tmp_path, silent_s):
+    """The board clock wraps every 71.6 min: silent 40 min, its frames alone read a step back, and the replay
+    took the receive times' 40 min for a host clock step (NTP), replaying the pause in no time."""
+    from firmware_sim.board import Board
+    from service.record.mcap_writer import McapLog
+
+    board = Board(BoardConfig(rate_hz=100, seed=2, clock_offset_us=2**32 - 3_000_000))
+    path = tmp_path / "silent.mcap"
+    with open(path, "wb") as stream:
+        log = McapLog(stream)
+        log.raw(board.power_up(), 1e9)
+        for now, streaming in [(k / 100, True) for k in range(1, 201)] + [(2.0 + silent_s, False)] + \
+                [(2.0 + silent_s + k / 100, True) for k in range(1, 201)]:
+            board.streaming = streaming
+            data = board.advance(now)
+            if data:
+                log.raw(data, 1e9 + now + 0.002)
+        log.close()
+    pacer, slept = virtual_pacer()
+    replay(path, io.BytesIO(), pacer=pacer)
+    assert sum(slept) == pytest.approx(silent_s + 4.0, abs=0.05) and max(slept) == pytest.approx(silent_s, abs=0.05)

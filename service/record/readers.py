@@ -22,6 +22,7 @@ from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096
 BULK_BYTES = 1 << 20  # untimed reads: as fast as possible, few calls per stage
+WRAP_S = T_US_MODULUS * 1e-6  # the board clock's range: 71.6 min
 STEP_S = 1.0  # receive times apart from the board clock by more than this between two reads: the host clock stepped
 
 log = logging.getLogger(__name__)
@@ -55,6 +56,19 @@ class BoardClock:
             self.t = max(self.t, self._offset + (self._wraps * T_US_MODULUS + frame.t_us) * 1e-6)
         return self.t
 
+    @property
+    def last_us(self) -> int | None:
+        """The newest data frame's t_us as sent."""
+        return self._last_us
+
+    def resync(self, t: float) -> float:
+        """Take ``t`` for the newest frame's time: after a silence whose
+        length the frames alone cannot tell (more than half the clock's
+        range, 36 min), measured by other means; the newest time."""
+        self._offset, self._wraps = t - self._last_us * 1e-6, 0
+        self.t = t
+        return t
+
 
 class _Board:
     """What HostTime keeps of one board: its bytes decoded, its clock, the
@@ -63,7 +77,7 @@ class _Board:
 
     def __init__(self) -> None:
         self.decoder, self.clock = Decoder(), BoardClock()
-        self.timed: tuple[float, float] | None = None
+        self.timed: tuple[float, float, int] | None = None  # (pacing time, board time, its t_us as sent)
         self.last: float | None = None
 
 
@@ -97,14 +111,21 @@ class HostTime:
         if frames:
             t_board = state.clock.feed(frames)
             if state.timed is not None and not any(frame.board_restart for frame in frames):
-                step = (t - state.timed[0]) - (t_board - state.timed[1])
+                gap = t - state.timed[0]
+                step = gap - (t_board - state.timed[1])
+                # The board clock's own count since, modulo its range: a silence past half of it (36 min) reads
+                # as a step back or no time at all to the frames alone; the receive times tell how many wraps.
+                counted = ((state.clock.last_us - state.timed[2]) % T_US_MODULUS) * 1e-6
+                wraps = max(0, round((gap - counted) / WRAP_S))
+                if abs(step) > STEP_S and abs(gap - counted - wraps * WRAP_S) <= STEP_S:
+                    t_board, step = state.clock.resync(state.timed[1] + counted + wraps * WRAP_S), 0.0
                 if abs(step) > STEP_S:
                     log.warning("%s: receive times step %+.3f s against the board clock at %s: taken for a step "
                                 "of the host clock (NTP), paced by the board clock across it", board or "recording",
                                 step, datetime.fromtimestamp(t_host, timezone.utc).isoformat(timespec="milliseconds"))
                     self._step += step
                     t -= step
-            state.timed = (t, t_board)
+            state.timed = (t, t_board, state.clock.last_us)
         elif state.last is not None:
             t = min(t, state.last + STEP_S)
         state.last = t
