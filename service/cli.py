@@ -13,7 +13,7 @@ import sys
 
 from . import cli_commands as commands
 from .calibration.cli import add_parsers as add_calibration_parsers
-from .calibration.cli import existing_registry, new_or_existing_registry
+from .calibration.cli import check_registry_env, existing_registry, new_or_existing_registry
 from .cli_recordings import cmd_record, cmd_replay
 from .cli_serve import cmd_gateway, cmd_serve
 from .cli_signals import interrupted, watchdog_for
@@ -94,6 +94,7 @@ def _scene(text: str) -> str:
 
 def _add_reconstruction_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
     """``stores``: the command stores into the registry (serve: uploads, load cycles), so it may make one."""
+    parser.set_defaults(registry_reads=not stores)
     parser.add_argument("--level", default=DEFAULT_LEVEL, choices=LEVELS,
                         help="fidelity level; auto takes the cheapest meeting the scene's error budget and says which "
                              "(default: %(default)s)")
@@ -292,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     name = " ".join(filter(None, (args.command, getattr(args, "action", None))))  # e.g. "model check"
     watchdog = watchdog_for(args, name)
     try:
+        check_registry_env(args)
         return args.func(args)
     except KeyboardInterrupt:
         print(interrupted(name), file=sys.stderr, flush=True)

@@ -92,22 +92,21 @@ def export_format(export: str) -> str:
     return found
 
 
-def replay_settings(args, path: str) -> None:
-    """``args.level`` and ``args.mounting`` a replay of ``path`` serves
-    with: what the recording says, unless given (then said where they
-    differ from it: the forces will differ from the recorded ones). An
-    export leaves None as it is: each board takes its own (replay_boards)."""
+def replay_settings(args, path: str) -> dict:
+    """{board: {"level", "mounting"}} ``path`` was recorded with (record's
+    /settings; {} for a raw capture or an older recording), saying where
+    ``args.level`` or ``args.mounting`` differ from them: the forces will
+    differ from the recorded ones. None (not given) leaves each board its own."""
     from .record.mcap_reader import read_settings
 
     recorded = read_settings(path) if Path(path).suffix == ".mcap" and Path(path).is_file() else {}
     for name in ("level", "mounting"):
         given = getattr(args, name)
         made = sorted({board[name] for board in recorded.values()})
-        if given is not None and made and made != [given]:
+        if given not in (None, "auto") and made and made != [given]:  # auto says what it chose, after
             print(f"tactile replay: {path} was recorded at {name} {' and '.join(made)}; replaying at {given}, so its "
                   "forces differ from the recorded ones", file=sys.stderr)
-        if given is None and args.serve:  # one setting for the served boards: the recording's if it has one
-            setattr(args, name, made[0] if len(made) == 1 else DEFAULTS[name])
+    return recorded
 
 
 def _unlink(path: Path) -> bool:
@@ -190,16 +189,23 @@ def cmd_replay(args) -> int:
     path = args.file or args.raw
     if path is None:
         raise ValueError("name a recording: tactile replay FILE (or --raw FILE)")
-    replay_settings(args, path)
+    recorded = replay_settings(args, path)
     if args.serve:
         import math
         import urllib.parse
 
+        from .board import BoardSpec
+
         speed = 1.0 if args.speed is None else args.speed
         url = f"replay://{urllib.parse.quote(str(path))}?speed={'max' if math.isinf(speed) else speed}"
         boards = boards_in(path) if Path(path).suffix == ".mcap" and Path(path).is_file() else [None]
-        # A recording of several boards: a replay:// source per board, named as they were.
-        args.source = [url if b is None else f"{b}={url}&board={urllib.parse.quote(b)}" for b in boards]
+        # A recording of several boards: a replay:// source per board, named as they were, each at its own
+        # level and mounting unless told.
+        args.board_specs = [
+            BoardSpec(url if b is None else f"{url}&board={urllib.parse.quote(b)}", b,
+                      *(getattr(args, name) or recorded.get(b, DEFAULTS)[name] for name in ("level", "mounting")))
+            for b in boards]
+        args.level, args.mounting = args.level or DEFAULTS["level"], args.mounting or DEFAULTS["mounting"]
         args.recording = path
         return cmd_serve(args)
     if not Path(path).is_file():

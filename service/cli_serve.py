@@ -251,6 +251,8 @@ def board_specs(args) -> list:
     from .robot_config import load_robot, specs_from_sources
     from .sources import DEFAULT_SOURCE
 
+    if getattr(args, "board_specs", None):  # made by the command itself (replay --serve: one per recorded board)
+        return args.board_specs
     if getattr(args, "config", None):
         specs = load_robot(args.config, args.level, args.mounting)
     else:

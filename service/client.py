@@ -107,7 +107,8 @@ class TactileClient:
         try:
             while True:
                 try:
-                    with urllib.request.urlopen(request, timeout=self.timeout) as response:
+                    left = max(deadline - time.monotonic(), 0.001)  # a retry has what is left of the timeout
+                    with urllib.request.urlopen(request, timeout=left) as response:
                         payload = response.read()
                     break
                 except urllib.error.HTTPError as exc:

@@ -53,4 +53,8 @@ def pytest_configure(config):
     import os
     import tempfile
 
-    os.environ["TACTILE_REGISTRY"] = os.path.join(tempfile.mkdtemp(prefix="tactile-registry-"), "registry.sqlite3")
+    from service.calibration.registry import Registry
+
+    path = os.path.join(tempfile.mkdtemp(prefix="tactile-registry-"), "registry.sqlite3")
+    Registry(path).close()  # made, as a user's is by their first calibration: commands that read it need it
+    os.environ["TACTILE_REGISTRY"] = path

@@ -325,9 +325,8 @@ def test_a_simulated_board_on_tcp_stops_after_its_seconds():
 
 def test_output_into_a_pipe_its_reader_closed_ends_quietly(tmp_path):
     """`tactile calibrations show ID | head` ended with 'error: [Errno 32] Broken pipe'."""
-    env = {**os.environ, "TACTILE_REGISTRY": str(tmp_path / "r.sqlite3")}
     process = subprocess.Popen([TACTILE, "calibrations", "show", "builtin-table1"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, env=env)
+                               stderr=subprocess.PIPE)
     process.stdout.close()  # before it writes: its first write meets a pipe without a reader
     with process.stderr:
         err = process.stderr.read().decode()
@@ -339,3 +338,11 @@ def test_bench_refuses_seconds_that_hold_no_loaded_frame(capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["bench", "--seconds", "1"])
     assert exit_.value.code == 2 and "1 s holds no loaded frame" in capsys.readouterr().err
+
+
+def test_a_registry_named_by_the_environment_for_reading_must_exist_too(tmp_path, monkeypatch, capsys):
+    """A typo in $TACTILE_REGISTRY made an empty registry as silently as one in --registry did."""
+    typo = tmp_path / "typo.sqlite3"
+    monkeypatch.setenv("TACTILE_REGISTRY", str(typo))
+    assert cli.main(["calibrations", "list"]) == 2
+    assert f"no registry at $TACTILE_REGISTRY={typo}" in capsys.readouterr().err and not typo.exists()

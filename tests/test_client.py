@@ -232,3 +232,37 @@ def test_history_reads_beyond_the_admitted_rate_wait_their_turn_within_the_timeo
     with pytest.raises(TactileError, match="429 history reads are admitted at 4 per second"):
         for _ in range(10):
             hurried.history(0, seconds=0.05, max_points=5)
+
+
+def test_a_retry_after_a_429_gets_what_is_left_of_the_timeout_not_a_new_one():
+    """Told to wait 1.5 s, then answered slowly: a client with a 2 s timeout returned after 3.5 s."""
+    import http.server
+
+    asked = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            asked.append(time.monotonic())
+            if len(asked) == 1:
+                self.send_response(429)
+                self.send_header("Retry-After", "1.5")
+                self.send_header("Content-Length", "2")
+                self.end_headers()
+                self.wfile.write(b"{}")
+            else:
+                time.sleep(5)  # an answer slower than what is left
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        client = TactileClient(f"http://127.0.0.1:{server.server_address[1]}", timeout=2.0)
+        started = time.monotonic()
+        with pytest.raises(TactileError, match="no answer within"):
+            client.history(0)
+        assert len(asked) == 2 and time.monotonic() - started < 2.4
+    finally:
+        server.shutdown()
+        server.server_close()

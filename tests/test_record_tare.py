@@ -608,3 +608,28 @@ def test_a_recording_begun_inside_a_frame_holds_its_start_and_replays_it(tmp_pat
     again = by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
     assert len(again) == len(live) > 2000 and again == live
     assert (tmp_path / "run.bin").read_bytes() == pressed[began:]
+
+
+def test_a_recording_of_boards_at_their_own_levels_is_served_at_each_ones(tmp_path, pressed, monkeypatch):
+    """robot.toml gives each board its level and mounting: replay --serve served them all at the defaults."""
+    from service import cli, cli_recordings
+    from service.cli_serve import board_specs
+
+    path = tmp_path / "two.mcap"
+    left = Pipeline(Reconstructor(level="level0", mounting="curved"), board_name="left")
+    right = Pipeline(Reconstructor(level="table"), board_name="right")
+    recorder = Recorder(path)
+    recorder.attach(left)
+    recorder.attach(right)
+    for i, chunk in reads(pressed[:100_000]):
+        left.feed(chunk, 1000.0 + 0.002 * i)
+        right.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    served = []
+    monkeypatch.setattr(cli_recordings, "cmd_serve", lambda args: served.append(board_specs(args)) or 0)
+    assert cli.main(["replay", str(path), "--serve"]) == 0
+    assert sorted((s.name, s.level, s.mounting) for s in served[0]) == [("left", "level0", "curved"),
+                                                                      ("right", "table", "flat")]
+    assert cli.main(["replay", str(path), "--serve", "--level", "full"]) == 0  # told: every board so
+    assert sorted((s.name, s.level, s.mounting) for s in served[1]) == [("left", "full", "curved"),
+                                                                      ("right", "full", "flat")]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -27,6 +28,16 @@ def existing_registry(text: str) -> str:
     return text
 
 
+def check_registry_env(args) -> None:
+    """A command that only reads the registry, given none, with
+    $TACTILE_REGISTRY naming a file that does not exist: ValueError (a
+    typo there made an empty registry as silently as one in --registry)."""
+    named = os.environ.get("TACTILE_REGISTRY")
+    if getattr(args, "registry_reads", False) and args.registry is None and named and not Path(named).is_file():
+        raise ValueError(f"no registry at $TACTILE_REGISTRY={named} (one is made by `tactile calibrate` or "
+                         "`tactile calibrations import`; unset it for the default one)")
+
+
 def new_or_existing_registry(text: str) -> str:
     """A ``--registry`` a command stores into: made if missing, in a directory that exists."""
     if not Path(text).is_file() and not Path(text).parent.is_dir():
@@ -35,6 +46,7 @@ def new_or_existing_registry(text: str) -> str:
 
 
 def _registry_option(parser: argparse.ArgumentParser, stores: bool = False) -> None:
+    parser.set_defaults(registry_reads=not stores)  # cli.main checks $TACTILE_REGISTRY alike (check_registry_env)
     parser.add_argument("--registry", metavar="PATH", type=new_or_existing_registry if stores else existing_registry,
                         help="calibration registry (default: $TACTILE_REGISTRY, else "
                              "$XDG_DATA_HOME/tactile/registry.sqlite3)" + (
