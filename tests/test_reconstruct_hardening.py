@@ -959,3 +959,25 @@ def test_level0_holds_a_grid_force_past_the_models_top_saturated_without_sigma()
     others = np.arange(64) != 27
     np.testing.assert_allclose(frame.forces_N[others], 0.05 / s[others])
     assert np.isfinite(frame.sigma_N[others]).all()
+
+
+def test_the_table_level_does_not_flag_a_healthy_neighbour_of_a_press_out_of_range():
+    """The table level does not unmix the paper's −0.28 % coupling: a 30 % ΔC/C0 press put its neighbours
+    0.08 % below zero, past −5σ of a quiet converter, and flagged them out_of_range; a taxel below its zero
+    with no press beside it is still flagged."""
+    from service.physics.paper_data import grid_calibration
+
+    info = SensorInfo(0, "grid", 8, 8)
+    c0 = grid_calibration(8, 8).c0_pF
+    rng = np.random.default_rng(3)
+    rec = Reconstructor(tare_frames=100, level="table")
+    for seq in range(100):
+        rec.process(reading(info, c0 + rng.normal(0, 5e-4, 64), seq))  # 0.5 fF of noise
+    relative = np.zeros(64)
+    relative[27] = 0.30
+    neighbours = [18, 19, 20, 26, 28, 34, 35, 36]
+    relative[neighbours] = -0.0028 * 0.30
+    relative[0] = -0.003  # nothing pressed beside it: below its zero
+    (frame,) = rec.process(reading(info, c0 * (1 + relative), 100))
+    assert frame.taxel_flag_lists().get("out_of_range") == [0]
+    assert (frame.forces_N[neighbours] == 0).all() and frame.forces_N[27] > 10

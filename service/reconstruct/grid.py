@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..physics.crosstalk_model import PAPER_MECHANICAL_COUPLING, neighbour_matrix
 from ..physics.paper_data import GridCalibration
 from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS, TaxelResponse, table_top
 from . import level0
@@ -100,6 +101,7 @@ class GridProcessor:
     _sampled: list = field(default_factory=list)  # (ΔC/C0 rows, noise, baseline) awaiting the estimator
     tare_window: tuple[np.ndarray, np.ndarray] | None = None  # (n,) low, high pF a tare accepts (level0.py)
     _zero_missing_for: tuple | None = None
+    _neighbours: np.ndarray | None = None  # (n, n) eight-neighbourhood, for the table level's crosstalk margin
 
     def __post_init__(self) -> None:
         if self.level not in GRID_LEVELS:
@@ -236,6 +238,8 @@ class GridProcessor:
         # range) — unless the tare was absurdly noisy — so a frame with
         # neither needs no test: the usual frame costs two counts.
         if np.count_nonzero(saturated) or np.count_nonzero(out_of_range) or not self._low_flagged(noise):
+            if self.crosstalk is None and np.count_nonzero(out_of_range):
+                out_of_range &= ~self._crosstalk_explains(relative, noise)
             np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
             np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
             implausible = level0.implausible(relative, *self._bounds)
@@ -247,6 +251,16 @@ class GridProcessor:
         sigma = table_sigma(self.response, relative, forces, noise, self.response.gain, self.gain_relative_se,
                             self.model_sigma_N, saturated)
         return GridResult(forces, flags, sigma)
+
+    def _crosstalk_explains(self, relative: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """(N, n): readings below −5σ by no more than the paper's mechanical
+        coupling takes from a taxel beside pressed ones (the table level does
+        not unmix it: a 30 N press left its healthy neighbours flagged
+        out_of_range). Their force is 0 either way."""
+        if self._neighbours is None:
+            self._neighbours = neighbour_matrix(self.calibration.rows, self.calibration.cols)
+        pressed = np.nan_to_num(np.clip(relative, 0.0, None))
+        return relative >= -(OUT_OF_RANGE_SIGMAS * noise + abs(PAPER_MECHANICAL_COUPLING) * (pressed @ self._neighbours))
 
     def _low_flagged(self, noise: np.ndarray) -> bool:
         """Whether every implausibly low ΔC/C0 is also below −5σ (flagged out
