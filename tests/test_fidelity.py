@@ -58,7 +58,10 @@ def test_mux_leakage_is_detected_estimated_and_compensated():
 
 
 def test_drift_is_followed_without_eating_a_slow_press():
-    drift = Drift(amplitude=0.002, period_s=40.0)
+    """A drift of 0.5 %/min at its fastest (this ran 1.9 %/min, faster than
+    drift.py's bound for PDMS, 1 %/min) is followed; a press creeping on one
+    taxel is not."""
+    drift = Drift(amplitude=0.005, period_s=360.0)
     _, grid, forces, expected = run("slow_press", 10.0, drift=drift)
     unloaded = np.ones(64, bool)
     unloaded[PRESSED] = False
@@ -67,7 +70,7 @@ def test_drift_is_followed_without_eating_a_slow_press():
     held = expected[:, PRESSED] > 2.5
     assert np.abs(forces[held, PRESSED] - expected[held, PRESSED]).mean() < 2 * NOISE_FLOOR
     _, _, level0_forces, _ = run("slow_press", 10.0, level="level0", drift=drift)
-    assert rms(level0_forces[:, unloaded]) > 5 * NOISE_FLOOR  # what an untracked drift costs
+    assert level0_forces[-1000:, unloaded].mean() > 5 * NOISE_FLOOR  # what an untracked drift costs by 10 s
 
 
 def test_contact_summary_counts_and_locates_contacts():

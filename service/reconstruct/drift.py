@@ -2,15 +2,41 @@
 
 Temperature and the fatigue creep of paper 001 §5.2 move every taxel's
 capacitance together; a press moves the few taxels under the contact. So
-the drift is the median relative change of the taxels that read within
-``band`` noise of the frame's median (the unloaded ones), smoothed by an
-exponential average with time constant ``tau_s`` (short: the median of many
-taxels is already quiet, and a long average would lag a moving drift).
-The median ignores a press on a minority of taxels however slow it is; the
-estimate is frozen while fewer than half the valid taxels are unloaded (a
-plate over the whole array — a uniform press and a drift cannot be told
-apart), and frames are flagged ``drift_suspect`` once that has lasted
-``suspect_after_s``, or while the drift exceeds ``max_drift``.
+the drift is seen in the median relative change of the taxels that read
+within ``band`` noise of the frame's median (the unloaded ones): it ignores
+a press on a minority of taxels however slow it is. The estimate is frozen
+while fewer than half the valid taxels are unloaded.
+
+A flat object over the whole array, or most of it, leaves the loaded taxels
+"quiet" at the load's level: the median alone cannot tell it from drift (a
+0.6 N/taxel plate over an 8×8 was taken for drift within 0.2 s and read
+0 N; over 6×6, the unloaded rest read below zero). What tells them apart
+is speed. Drift is slow: PDMS's thermal expansion (~3×10⁻⁴/K) and its
+permittivity move C0 by the order of 0.1–0.3 %/K, a skin's temperature
+changes by a few kelvin a minute at most, and creep without a load is
+slower still; a load moves the level within a touch. So:
+
+* the level may have moved since the estimate last agreed with the quiet
+  median (the anchor) by at most the reach, MAX_RATE_PER_S times the time
+  since: 1 % ΔC/C0 a minute, a 3 K/min ramp at 0.3 %/K, twice the
+  0.5 %/min we track, under which genuine drift stays. The estimate is the
+  median's exponential average (``tau_s``: the median of many taxels is
+  already quiet, a long average would lag) kept within the reach of the
+  anchor, so it follows nothing faster than drift moves;
+* a median whose average stands further from the anchor than the reach
+  plus a band of noise (what noise and a minority press's rank shift move
+  it by) is a load, and so is one further than a taxel's noise from its
+  average (a press or a release under way: drift moves it by rate × tau_s,
+  ~0): the estimate freezes and absorbs none of it.
+
+Once the load is lifted and the median has settled, it is within reach
+again, a drift meanwhile included, and the estimate takes it (anchored
+again once within a taxel's noise of the median). A drift under a held
+plate is unseen and reads on its force; a plate held until the reach
+covers it is taken for drift then, as it could be: 0.6 N/taxel (ΔC/C0 ≈
+0.7 %) after ~40 s, 5 N after ~6 min. Frames are flagged
+``drift_suspect`` once the estimate has been frozen ``suspect_after_s``,
+or while the drift exceeds ``max_drift``.
 
 A frame needs MIN_REFERENCE_TAXELS valid taxels to be a reference at all:
 one pressed taxel is left out only where the frame's median lies on an
@@ -32,6 +58,7 @@ wrap, as long as the board had run before a restart).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +66,7 @@ import numpy as np
 T_WRAP_S = 2**32 * 1e-6
 MAX_WRAP_STEP_S = 1.0  # a step back this close to the wrap is the wrap (scans come at least once a second)
 MIN_REFERENCE_TAXELS = 3  # valid taxels a frame needs for its median to ignore a one-taxel press (docstring)
+MAX_RATE_PER_S = 0.01 / 60  # the fastest a common-mode drift moves ΔC/C0 (docstring)
 
 
 def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,24 +114,34 @@ class DriftTracker:
     band: float = 4.0
     max_drift: float = 0.01
     suspect_after_s: float = 10.0
+    max_rate_per_s: float = MAX_RATE_PER_S
+    noise: float = math.inf  # σ of a taxel's ΔC/C0, set by the grid processor per tare (inf: nothing is a load)
     drift: float = 0.0
+    _average: float = 0.0  # the quiet median's exponential average
+    _anchor: float = 0.0  # the estimate when it last agreed with the median
+    _anchor_t: float | None = None  # then, unwrapped; None: from the next frame on
     _last_t: float | None = None  # the last frame's board time as sent (s)
     _frozen_since: float | None = None  # unwrapped (board time + _offset)
     _offset: float = 0.0  # unwrapped − sent: 0 until the clock wraps or the board restarts
 
     def reset(self) -> None:
-        self.drift, self._last_t, self._frozen_since, self._offset = 0.0, None, None, 0.0
+        self.drift, self._average, self._anchor, self._anchor_t = 0.0, 0.0, 0.0, None
+        self._last_t, self._frozen_since, self._offset = None, None, 0.0
 
     def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
         """Advance through frames at times ``t_s`` given their quiet medians
         and whether those were enough (``quiet_medians``, as lists: the
         recurrence is scalar, and a live read holds a frame or two per
         sensor); return each frame's drift and whether it is drift-suspect.
-        The exponential average is advanced to each board time ``t`` by
-        dt = t − last (clipped to [0, tau_s]); one loop with locals, as an
-        offline replay steps every frame of a log through it."""
-        tau, suspect_after, max_drift = self.tau_s, self.suspect_after_s, self.max_drift
-        drift, last, frozen_since, offset = self.drift, self._last_t, self._frozen_since, self._offset
+        The median's exponential average is advanced to each board time
+        ``t`` by dt = t − last (clipped to [0, tau_s]); a settled median
+        within reach is followed, any other frame freezes the estimate
+        (module docstring). One loop with locals, as an offline replay steps
+        every frame of a log through it."""
+        tau, suspect_after, max_drift, rate = self.tau_s, self.suspect_after_s, self.max_drift, self.max_rate_per_s
+        noise, tolerance = self.noise, self.band * self.noise
+        drift, average, anchor, anchor_t = self.drift, self._average, self._anchor, self._anchor_t
+        last, frozen_since, offset = self._last_t, self._frozen_since, self._offset
         out = []
         for t, ok, median in zip(t_s, enough, medians):
             if last is not None and t < last:  # the clock wrapped, or the board restarted (module docstring)
@@ -111,12 +149,20 @@ class DriftTracker:
             dt = 0.0 if last is None else min(max(t - last, 0.0), tau)
             last = t
             now = t + offset
+            if anchor_t is None:  # the first frame since the tare, whose zero is the level
+                anchor_t = now
+            reach = rate * (now - anchor_t)
             if ok:
-                drift += (median - drift) * (dt / tau)
+                average += (median - average) * (dt / tau)
+            if ok and abs(median - average) <= noise and abs(average - anchor) <= tolerance + reach:
+                drift = min(max(average, anchor - reach), anchor + reach)  # no faster than drift moves
+                if abs(median - drift) <= noise:  # caught up (the average may be settling still)
+                    anchor, anchor_t = drift, now
                 frozen_since = None
-            elif frozen_since is None:
+            elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
             out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after)
                         or abs(drift) > max_drift))
-        self.drift, self._last_t, self._frozen_since, self._offset = drift, last, frozen_since, offset
+        self.drift, self._average, self._anchor, self._anchor_t = drift, average, anchor, anchor_t
+        self._last_t, self._frozen_since, self._offset = last, frozen_since, offset
         return out

@@ -134,7 +134,8 @@ class GridProcessor:
         written in place, so this costs a few attribute reads."""
         drift, estimator, crosstalk = self.drift, self.estimator, self.crosstalk
         state = (self._last_raw, self._same_count, self._frames_seen, self._sampled, len(self._sampled),
-                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since, drift._offset)
+                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since, drift._offset,
+                 drift._average, drift._anchor, drift._anchor_t)
         if estimator is None:
             return state
         m, e = estimator.mechanical, estimator.electrical
@@ -144,11 +145,12 @@ class GridProcessor:
     def rollback(self, checkpoint: tuple) -> None:
         """Back to a ``checkpoint`` taken before a batch."""
         (self._last_raw, self._same_count, self._frames_seen, sampled, length, self.adopted_events,
-         self.drift.drift, self.drift._last_t, self.drift._frozen_since, self.drift._offset) = checkpoint[:10]
+         self.drift.drift, self.drift._last_t, self.drift._frozen_since, self.drift._offset, self.drift._average,
+         self.drift._anchor, self.drift._anchor_t) = checkpoint[:13]
         del sampled[length:]
         self._sampled = sampled
-        if len(checkpoint) > 10:
-            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[10:]
+        if len(checkpoint) > 13:
+            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[13:]
             for slope, xy, xx, events, yy in slopes:
                 slope.xy, slope.xx, slope.events, slope.yy = xy, xx, events, yy
             self.estimator.mechanical, self.estimator.electrical = (slope for slope, *_ in slopes)
@@ -345,6 +347,7 @@ class GridProcessor:
         cached = self._parameters_for
         if cached is None or cached[0] is not baseline or cached[1] is not baseline_std or cached[2] != self.crosstalk.electrical:
             noise = self.noise(baseline, baseline_std)
+            self.drift.noise = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 0.0  # what a load departs from (drift.py)
             values = (baseline, noise, self._reference(baseline), self.drift.band * noise, self.response.gain,
                       self.gain_relative_se, self.model_sigma_N)
             cached = self._parameters_for = (baseline, baseline_std, self.crosstalk.electrical, values)
