@@ -263,3 +263,51 @@ def test_a_force_past_an_empirical_curves_end_is_flagged_saturated_without_sigma
     assert result.forces_N[:, 2] == pytest.approx([4.0, 4.0 + 0.049 / 0.05 * 3.9, 7.9], abs=2e-3)  # (full: unmixed)
     assert (result.taxel_flags[:, 2] & SATURATED).tolist() == [0, 0, SATURATED]
     assert np.isfinite(result.sigma_N[:2, 2]).all() and np.isnan(result.sigma_N[2, 2])
+
+
+def test_a_reference_flat_at_its_top_is_said_to_have_saturated():
+    """A tester's instrument clipped at 8.00 N: 46 taxels calibrated to 8 N without a word (presses past it read
+    as it). Flat in several stretches at exactly its largest value is an instrument at its limit; a held press's
+    noise, or one press's quantized top, is not."""
+    from service.calibration.reference import flat_top
+
+    rng = np.random.default_rng(1)
+    t = np.arange(0, 60, 0.01)
+    pressed = 12.0 * np.clip(np.sin(2 * np.pi * t / 6), 0, None) + rng.normal(0, 0.01, len(t))
+    assert flat_top(np.minimum(pressed, 8.0)) == (8.0, 10)  # ten presses past 8 N
+    assert flat_top(pressed) is None
+    quantized = np.round(pressed, 2)
+    assert flat_top(quantized) is None  # its largest value once, however coarse the steps
+    one_hold = np.r_[np.zeros(100), np.full(200, 5.0), np.zeros(100)]
+    assert flat_top(one_hold) is None
+
+
+def test_calibrate_says_its_reference_saturated(tmp_path):
+    presses = probe_schedule(range(6), seed=1)
+    raw, ref = files(tmp_path, presses)
+    lines = ref.read_text().splitlines()
+    forces = [float(line.split(",")[1]) for line in lines[1:] if line and line[0].isdigit()]
+    top = round(0.8 * max(forces), 3)
+    ref.write_text("\n".join([lines[0]] + [f"{line.split(',')[0]},{min(float(line.split(',')[1]), top)}"
+                                           if line and line[0].isdigit() else line for line in lines[1:]]) + "\n")
+    from service.calibration.calibrate import document, summary_lines
+
+    result = calibrate(raw, ref, allow_partial=True)
+    said = [line for line in summary_lines(result) if "WARNING" in line]
+    assert said and f"holds its largest force, {top:.3f} N, flat in" in said[0]
+    assert document(result, {})["statistics"]["reference_flat_top_warning"] == said[0]
+
+
+def test_presses_far_past_the_full_scale_are_named_where_the_alignment_fails(tmp_path, monkeypatch):
+    """Three taxels pressed to 25 N made a session 'not the same session' (correlation 0.877): the note says
+    what the reference's force may do to the match."""
+    import service.calibration.calibrate as calibrate_module
+
+    def refused(*args, **kwargs):
+        raise ValueError("the reference does not match the board's response: correlation 0.877")
+
+    monkeypatch.setattr(calibrate_module, "align", refused)
+    presses = probe_schedule(range(6), seed=1)
+    with pytest.raises(ValueError, match=r"correlation 0\.877; note: the reference reaches \d+\.\d N, past 1\.5× the "
+                                         r"full scale \(5 N\)"):
+        calibrate(*files(tmp_path, presses), full_scale_N=5.0)

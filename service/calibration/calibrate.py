@@ -18,7 +18,7 @@ from . import registry
 from .alignment import Alignment, align, board_response
 from .crosstalk_session import session_crosstalk, unleaked
 from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
-from .reference import Reference, read_reference
+from .reference import Reference, flat_top_said, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
 from .session import BoardSession, file_sha256, load_session
@@ -50,6 +50,9 @@ class Calibration:
         return [p for p in self.presses if p.problem is not None]
 
 
+OVER_FULL_SCALE = 1.5  # presses this far past the full scale can spoil the clock alignment (its note)
+
+
 def calibrate(session_path, reference_path, sensor_id: int | None = None, full_scale_N: float = FULL_SCALE_N,
               mounting: str = "flat", allow_partial: bool = False, board: str | None = None,
               zero_reference: bool = False) -> Calibration:
@@ -79,10 +82,17 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         try:
             alignment = align(session.t_s, board_response(session.t_s, capacitance), reference.t_s, reference.force_N)
         except ValueError as exc:
-            if not dead:
+            notes = []
+            if dead:  # the reference shows their presses and the board does not: it may be why they match badly
+                notes.append(f"presses on dead taxels show on no channel ({'; '.join(dead.values())})")
+            top = float(np.max(reference.force_N))
+            if top > OVER_FULL_SCALE * full_scale_N:  # the response flattens there: no longer like the reference's
+                notes.append(f"the reference reaches {top:.1f} N, past {OVER_FULL_SCALE:g}× the full scale "
+                             f"({full_scale_N:g} N), where a taxel's response is far from proportional: press within "
+                             "it, or give --full-scale")
+            if not notes:
                 raise
-            # the reference shows their presses and the board does not: it may be why they match badly
-            raise ValueError(f"{exc}; note: presses on dead taxels show on no channel ({'; '.join(dead.values())})") from None
+            raise ValueError(f"{exc}; note: {'; '.join(notes)}") from None
         lap("align")
         t_ref_board = alignment.to_board(reference.t_s)
         presses = segment(session.t_s, session.capacitance_pF, t_ref_board, reference.force_N)
@@ -155,6 +165,7 @@ def document(result: Calibration, previous: dict | None = None, created: str | N
                        "reference_noise_N": result.reference_noise_N, "reference_rest_N": None if result.reference.zero_N is None else result.reference.zero_N[-1],
                        "reference_rest_subtracted": result.reference.zero_subtracted,
                        "reference_rest_warning": result.reference.zero_warning,
+                       "reference_flat_top_warning": flat_top_said(result.reference),
                        "reference_skipped_lines": result.reference.skipped,
                        "taxels_fitted": sorted(result.fits), "taxels_failed": {str(t): m for t, m in result.problems.items()},
                        "taxels_not_pressed": not_pressed(result),
@@ -182,6 +193,7 @@ def summary_lines(result: Calibration) -> list[str]:
              "crosstalk: " + ("too few isolated presses to measure" if result.crosstalk is None else
                               f"mechanical {result.crosstalk['mechanical']:+.4f}, multiplexer leakage "
                               f"{result.crosstalk['electrical']:.4f} ({result.crosstalk['events']} isolated frames)"),
+             *filter(None, [flat_top_said(result.reference)]),
              "taxel     C0 pF   sens %/N (LS) (origin)   gain ± se          RMS N   presses  max N  model"]
     for t in sorted(result.fits):
         name, c0, sens, origin, gain, rms, presses, max_n, model = table_cells(t, cols, result.fits[t])

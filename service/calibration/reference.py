@@ -77,6 +77,31 @@ def parse_reference(text: str, path: str = "<reference>") -> Reference:
     return Reference(path, table[:, 0], table[:, -1], len(skipped), tuple(skipped[:MAX_LISTED_SKIPS]), fxyz)
 
 
+FLAT_TOP_SAMPLES = 5  # consecutive samples at exactly the log's largest value: one stretch
+FLAT_TOP_STRETCHES = 3  # stretches in which an instrument at its limit shows (a held press's noise rarely repeats)
+
+
+def flat_top(force_N: np.ndarray) -> tuple[float, int] | None:
+    """(the largest force, the stretches it is held flat in) where it is so
+    in FLAT_TOP_STRETCHES or more: an instrument that saturated there (a
+    tester's, clipped at 8.00 N, calibrated 46 taxels to 8 N without a
+    word; presses past it read as it); None otherwise."""
+    top = float(np.max(force_N))
+    at_top = np.concatenate([[False], force_N == top, [False]])
+    edges = np.flatnonzero(np.diff(at_top.astype(np.int8)))
+    stretches = int(np.count_nonzero(edges[1::2] - edges[::2] >= FLAT_TOP_SAMPLES))
+    return (top, stretches) if stretches >= FLAT_TOP_STRETCHES else None
+
+
+def flat_top_said(reference: Reference) -> str | None:
+    """The summary's warning for a reference flat at its top (``flat_top``), or None."""
+    found = flat_top(reference.force_N)
+    if found is None:
+        return None
+    return (f"WARNING: the reference holds its largest force, {found[0]:.3f} N, flat in {found[1]} stretches: "
+            f"saturated there? Forces above {found[0]:.3f} N are not calibrated (a press past it read as it)")
+
+
 def read_reference(path: str | Path) -> Reference:
     """Read a reference CSV (UTF-8, with or without the byte-order mark a
     spreadsheet saving "CSV UTF-8" puts first); OSError if it cannot be read."""
