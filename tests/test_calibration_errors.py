@@ -311,3 +311,26 @@ def test_presses_far_past_the_full_scale_are_named_where_the_alignment_fails(tmp
     with pytest.raises(ValueError, match=r"correlation 0\.877; note: the reference reaches \d+\.\d N, past 1\.5× the "
                                          r"full scale \(5 N\)"):
         calibrate(*files(tmp_path, presses), full_scale_N=5.0)
+
+
+def lbf(ref):
+    """The reference rewritten as an instrument logging lbf under a force_N header would."""
+    lines = ref.read_text().splitlines()
+    ref.write_text("\n".join([lines[0]] + [f"{line.split(',')[0]},{float(line.split(',')[1]) / 4.448222}"
+                                           if line and line[0].isdigit() else line for line in lines[1:]]) + "\n")
+
+
+def test_a_reference_in_lbf_is_named_as_a_possible_unit_mistake(tmp_path, capsys):
+    """lbf under a force_N header was refused as 'force range under half of full scale', without a word of units;
+    with --full-scale 2.2 it was stored, 4.4× the paper's sensitivities, without a word."""
+    from service.cli import main
+
+    raw, ref = files(tmp_path, probe_schedule(range(6), seed=1))
+    lbf(ref)
+    with pytest.raises(ValueError, match=r"never exceeds \d\.\d\d N: if it logs another unit than N \(lbf"):
+        calibrate(raw, ref)
+    registry = tmp_path / "r.sqlite3"
+    assert main(["calibrate", str(raw), "--reference", str(ref), "--full-scale", "2.2", "--partial",
+                 "--registry", str(registry)]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING: the fitted slopes" in err and "above the paper's 1.24 %/N: is the reference's force in lbf" in err

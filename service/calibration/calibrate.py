@@ -17,7 +17,7 @@ import numpy as np
 from . import registry
 from .alignment import Alignment, align, board_response
 from .crosstalk_session import session_crosstalk, unleaked
-from .fit import TaxelError, TaxelFit, fit_taxel, table_cells
+from .fit import MIN_RANGE_FRACTION, TaxelError, TaxelFit, fit_taxel, table_cells
 from .reference import Reference, flat_top_said, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
@@ -109,7 +109,11 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
                 problems[taxel] = str(exc)
         lap("fit")
         if problems and not allow_partial:
-            raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)))
+            reach = float(np.max(reference.force_N))
+            units = (f"; note: the reference never exceeds {reach:.2f} N: if it logs another unit than N (lbf: 4.45 N "
+                     "each, kgf: 9.81), convert it, or press to the full scale (--full-scale)"
+                     if reach < MIN_RANGE_FRACTION * full_scale_N else "")
+            raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)) + units)
         if not fits:
             raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
         return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -170,28 +171,35 @@ def _calibrate_quad(args, started: float) -> int:
     return 0
 
 
+UNIT_WARN_RATIO = 3.0  # fitted slopes this far off the paper's are said (a sensor's spread is tens of per cent)
+
+
 def check_usable(doc: dict, info, mounting: str, slope_field: str, paper_slope: float, unit: str) -> None:
     """ValueError, nothing stored, when the service would refuse to load the
     calibration (the same checks: ``serve`` fell back to the built-in one
     with a log line); a slope orders of magnitude off the paper's names the
-    likely cause, a reference in other units than N."""
+    likely cause, a reference in other units than N, and a usable one
+    UNIT_WARN_RATIO off is warned of on stderr."""
     from ..reconstruct.sensor_calibration import calibration_id, from_document
 
+    if slope_field == "normal_fit":
+        slopes = [doc["normal_fit"][1]]  # [c2, c1(, c0)]: the small-force slope
+    else:
+        taxels = doc["taxels"]
+        slopes = [v for v, source in zip(taxels[slope_field], taxels["source"]) if source == "this session" and v]
+    if not slopes:  # nothing of this session's to judge
+        slopes = [paper_slope]
+    ratio = float(np.median(slopes)) / paper_slope
+    hint = (f"the fitted slopes ({min(slopes):.3g}–{max(slopes):.3g} {unit}) are {1 / ratio if ratio < 1 else ratio:.1f}× "
+            f"{'below' if ratio < 1 else 'above'} the paper's {paper_slope:g} {unit}: is the reference's force in "
+            f"{'grams or mN' if ratio < 1 else 'lbf, kgf or kN'} rather than N?")
     try:
         from_document({**doc, "id": calibration_id(doc)}, info, mounting)
     except ValueError as exc:
-        if slope_field == "normal_fit":
-            slopes = [doc["normal_fit"][1]]  # [c2, c1(, c0)]: the small-force slope
-        else:
-            taxels = doc["taxels"]
-            slopes = [v for v, source in zip(taxels[slope_field], taxels["source"]) if source == "this session" and v]
-        hint = ""
-        ratio = float(np.median(slopes)) / paper_slope if slopes else 1.0
-        if ratio < 0.05 or ratio > 20:
-            hint = (f"; the fitted slopes ({min(slopes):.3g}–{max(slopes):.3g} {unit}) are {1 / ratio if ratio < 1 else ratio:.0f}× "
-                    f"{'below' if ratio < 1 else 'above'} the paper's {paper_slope:g} {unit}: is the reference's force "
-                    f"in {'grams or mN' if ratio < 1 else 'kN or kgf'} rather than N?")
-        raise ValueError(f"calibration not stored: the service could not use it ({exc}){hint}") from None
+        far = ratio < 0.05 or ratio > 20
+        raise ValueError(f"calibration not stored: the service could not use it ({exc}){'; ' + hint if far else ''}") from None
+    if ratio < 1 / UNIT_WARN_RATIO or ratio > UNIT_WARN_RATIO:  # usable, yet more unlike any sensor of the papers' than a unit
+        print(f"WARNING: {hint}", file=sys.stderr)
 
 
 def registry_key(result) -> str:
