@@ -65,12 +65,14 @@ def quad_document(result: QuadCalibration, created: str | None = None, fatigue: 
         "normal_fit": list(fit.normal), "normal_fit_se": list(fit.normal_se),
         "shear_fit": list(fit.shear), "shear_fit_se": list(fit.shear_se),
         "coupling": fit.coupling, "coupling_se": fit.coupling_se, "coupling_shown_by_data": fit.coupling_kept,
+        "normal_usable_N": fit.usable_N[0], "shear_usable_N": fit.usable_N[1],
         "c0_pF": fit.c0_pF.tolist(),
         "fatigue": {"drop": PAPER_001.drop if fatigue == "paper" else 0.0, "tau_cycles": PAPER_001.tau_cycles},
         "sources": [{"role": "session", "name": str(result.session.path), "sha256": result.session.sha256},
                     {"role": "reference", "name": result.reference.path, "sha256": file_sha256(result.reference.path)}],
         "alignment": result.alignment.as_dict(),
         "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
+                       "flat_above_N": {"normal": fit.flat_N[0], "shear": fit.flat_N[1]},
                        "reference_skipped_lines": result.reference.skipped,
                        "reference_rest_N": dict(zip("xyz", result.reference.zero_N or (None,) * 3)),
                        "reference_rest_subtracted": result.reference.zero_subtracted,
@@ -90,4 +92,9 @@ def quad_summary(result: QuadCalibration) -> list[str]:
             "coupling: " + (f"c = {fit.coupling:.3f} ± {fit.coupling_se:.3f} (normal load reduces the shear response)"
                             if fit.coupling_kept else f"not shown by the data (c within {3 * fit.coupling_se:.3f} of 0)"),
             f"residual RMS through the model: Fx {fit.rms_N[0]:.4f}, Fy {fit.rms_N[1]:.4f}, Fz {fit.rms_N[2]:.4f} N "
-            f"over {fit.frames} loaded frames; loads {fit.loads}"]
+            f"over {fit.frames} loaded frames; loads {fit.loads}"] + [
+            f"{axis} response flat above {flat:.1f} N (the session pressed on without it rising): fitted where it "
+            f"rises, usable to {usable:.1f} N; past that the force is held there and flagged {flag} (σ null)"
+            for axis, flat, usable, flag in (("Fz", fit.flat_N[0], fit.usable_N[0], "normal_out_of_range"),
+                                             ("shear", fit.flat_N[1], fit.usable_N[1], "shear_out_of_range"))
+            if flat is not None]

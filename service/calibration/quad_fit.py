@@ -18,6 +18,23 @@ fitted model's inverse. The reference (interpolated to the board's frame
 times through the alignment) is smooth at the loads' pace, so interpolation
 adds nothing the noise does not.
 
+A sensor's response can stop rising before the fits' turns (a dielectric
+compressed solid, an overlap that cannot grow further): pressed past it,
+the flat part pulled the quadratic off the rising part (a tester's quad,
+flat above 14.6 N and pressed to 18 N, was fitted to 0.66 N RMS and read
+22 and 30 N as 13.1 N, unflagged). So each axis's response is binned
+against its force first (``flat_from``): where it comes within FLAT_SIGMAS
+noise σ of its highest level and the session pressed FLAT_MIN_N further,
+it is flat there; the curve is fitted below that only (reported: where the
+fitted curve reaches the flat level, 14.6 N on that quad), and the axis is
+usable (``normal_usable_N``/``shear_usable_N``) up to where the fitted
+curve is FLAT_SIGMAS noise σ below the flat level, so a reading on the flat
+part is held and flagged rather than read as a force below it. The
+residual RMS (the fit's share of σ in the reconstruction) is taken over the
+usable range only. The grid refuses a non-monotone taxel instead (fit.py):
+its table's shape is fixed, a quad's curves are the sensor's own, and
+pressing less would not make the sensor's range any longer.
+
 Refused, naming the reason: no unloaded stretch to take C0 from, saturated
 frames, a normal range under half of NORMAL_FULL_SCALE_N or a shear range
 under MIN_SHEAR_N, fewer than two loads on an axis.
@@ -29,6 +46,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..physics.quad_model import COMBINATIONS, QuadModel
+from ..physics.shear import shear_force
+from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS
 from .segmentation import find_runs
 
 UNLOADED_N = 0.05
@@ -36,6 +55,10 @@ LOADED_N = 0.1
 NORMAL_FULL_SCALE_N = 20.0  # fit (34)'s range
 MIN_SHEAR_N = 1.0
 COUPLING_SIGMAS = 3.0
+FLAT_BIN_N = 0.25
+FLAT_SIGMAS = OUT_OF_RANGE_SIGMAS  # a reading at the flat level is flagged as a grid's out-of-range one is
+FLAT_MIN_N = 1.0  # pressed at least this far on without the response rising: a session that ends near a
+# turn (its curve within noise of its top over the last few tenths of a newton) is not flat
 
 
 @dataclass
@@ -48,7 +71,9 @@ class QuadFit:
     coupling: float
     coupling_se: float
     coupling_kept: bool
-    rms_N: tuple[float, float, float]  # Fx, Fy, Fz through the fitted model's inverse
+    rms_N: tuple[float, float, float]  # Fx, Fy, Fz through the fitted model's inverse, within the usable ranges
+    usable_N: tuple[float, float]  # normal, shear: the model's usable ends
+    flat_N: tuple[float | None, float | None]  # normal, shear: where the fitted curve reaches the flat level (None: none)
     frames: int
     loads: dict  # axis → number of loads seen
 
@@ -96,29 +121,73 @@ def _shear(fxy, normal, xy, with_coupling: bool, widen: float):
     return result.x, np.sqrt(np.diag(cov))
 
 
+def flat_from(force: np.ndarray, response: np.ndarray, noise: float) -> tuple[float, float] | None:
+    """(force, level) where a response (k,) against its force (k,) ≥ 0
+    stops rising: the lowest FLAT_BIN_N bin whose mean is within
+    FLAT_SIGMAS·``noise`` (one frame's σ) of the highest bin's, the level
+    that highest mean; None unless the force went FLAT_MIN_N past it."""
+    which = (force / FLAT_BIN_N).astype(int)
+    counts = np.bincount(which)
+    used = np.flatnonzero(counts >= 3)  # a bin of one or two frames is a ramp passing through, noisy
+    means = np.bincount(which, weights=response)[used] / counts[used]
+    level = float(means.max())
+    start = float(used[np.argmax(means >= level - FLAT_SIGMAS * noise)] * FLAT_BIN_N)
+    return (start, level) if force.max() - start >= FLAT_MIN_N else None
+
+
+def _flat_ends(flat: tuple[float, float] | None, slope: float, bend: float, noise: float) -> tuple:
+    """(where the fitted curve slope·F − bend·F² (both axes' form) reaches the
+    flat level, where it is FLAT_SIGMAS noise σ under it); Nones without one."""
+    if flat is None:
+        return None, None
+    ends, _ = shear_force(np.array([flat[1], flat[1] - FLAT_SIGMAS * noise]), slope, bend)
+    return float(ends[0]), float(ends[1])
+
+
+def _fit_shear(fxy, normal, xy, widen):
+    """(a, b, c), their standard errors and whether c was kept (module docstring)."""
+    params, se = _shear(fxy, normal, xy, True, widen)
+    kept = abs(params[2]) > COUPLING_SIGMAS * se[2]
+    if not kept:
+        params, se = _shear(fxy, normal, xy, False, widen)
+        params, se = np.r_[params, 0.0], np.r_[se, 0.0]
+    return params, se, bool(kept)
+
+
 def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray, per_frame: float) -> QuadFit:
     """Fit frames (N, 4) pF against the reference forces at their times (N, 3)."""
     unloaded = np.linalg.norm(fxyz, axis=1) < UNLOADED_N
     loads = check(fxyz, saturated, unloaded)
     c0 = np.nanmean(capacitance_pF[unloaded], axis=0)
     axes = (capacitance_pF / c0 - 1.0) @ COMBINATIONS
+    noise = np.nanstd(axes[unloaded], axis=0)  # one frame's σ of X, Y, Z
     loaded = (np.linalg.norm(fxyz, axis=1) > LOADED_N) & np.isfinite(axes).all(axis=1)
-    fz, z = fxyz[loaded, 2], axes[loaded, 2]
+    fxyz, axes = fxyz[loaded], axes[loaded]
+    # Z is the normal curve alone (shear cancels in it): its flat part is found before any fit.
+    normal_flat = flat_from(np.maximum(fxyz[:, 2], 0.0), axes[:, 2], noise[2])
+    kept = fxyz[:, 2] <= normal_flat[0] if normal_flat else np.ones(len(fxyz), bool)
+    fz, z = fxyz[kept, 2], axes[kept, 2]
     design = np.stack([fz * fz, fz], axis=1)
     (c2, c1), *_ = np.linalg.lstsq(design, z, rcond=None)
     residual = z - design @ np.array([c2, c1])
     widen = max(per_frame, 1.0)
     cov = np.linalg.inv(design.T @ design) * float(residual @ residual) / max(z.size - 2, 1) * widen
-    normal = (c2 * fz + c1) * fz
-    fxy, xy = fxyz[loaded, :2], axes[loaded, :2]
-    params, se = _shear(fxy, normal, xy, True, widen)
-    kept = abs(params[2]) > COUPLING_SIGMAS * se[2]
-    if not kept:
-        params, se = _shear(fxy, normal, xy, False, widen)
-        params, se = np.r_[params, 0.0], np.r_[se, 0.0]
-    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], max(params[2], 0.0))
-    forces, _ = model.inverse(capacitance_pF[loaded] / c0 - 1.0)
-    rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[loaded, k]) ** 2))) for k in range(3))
+    normal = (c2 * fxyz[:, 2] + c1) * fxyz[:, 2]
+    params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen)
+    # The shear curve t shows only through the coupling: X, Y divided by 1 − c·n, both axes pooled by sign.
+    t = axes[kept, :2] / (1.0 - params[2] * normal[kept])[:, None]
+    shear_noise = float(np.hypot(*noise[:2]) / np.sqrt(2))
+    shear_flat = flat_from(np.abs(fxyz[kept, :2]).ravel(), (np.sign(fxyz[kept, :2]) * t).ravel(), shear_noise)
+    if shear_flat:
+        kept &= (np.abs(fxyz[:, :2]) <= shear_flat[0]).all(axis=1)
+        params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen)
+    normal_ends = _flat_ends(normal_flat, c1, -c2, noise[2])
+    shear_ends = _flat_ends(shear_flat, params[0], params[1], shear_noise)
+    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], max(params[2], 0.0), normal_ends[1], shear_ends[1])
+    usable = (fxyz[:, 2] <= model.normal_usable_N) & (np.abs(fxyz[:, :2]) <= model.shear_usable_N).all(axis=1)
+    forces, _ = model.inverse(capacitance_pF[loaded][usable] / c0 - 1.0)
+    rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[usable, k]) ** 2))) for k in range(3))
     return QuadFit(c0, (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
                    (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(max(params[2], 0.0)),
-                   float(se[2]), bool(kept), rms, int(loaded.sum()), loads)
+                   float(se[2]), coupled, rms, (model.normal_usable_N, model.shear_usable_N),
+                   (normal_ends[0], shear_ends[0]), int(kept.sum()), loads)

@@ -35,6 +35,9 @@ ValueError naming the field and the reason:
 * ``shear_fit`` [a, b] (ΔC/C0 = a F − b F²): both finite; a in (0.001, 1)
   per N (fit 35: 0.0077); b ≥ 0 with 0.9·a/(2b) ≥ 1 N, i.e. b ≤ 0.45·a;
   b = 0 accepted; capped at 50 N likewise.
+* optional ``normal_usable_N``, ``shear_usable_N`` (a calibration session's
+  own: where the sensor's response stopped rising): at least MIN_USABLE_N;
+  they narrow the curves' usable ranges, never widen them.
 * and then the model itself: ``forward`` evaluated on a dense grid over
   [0, usable] (normal) and [−usable, usable] (shear) must be finite and
   strictly increasing, and ``inverse`` must give the forces back (within
@@ -78,11 +81,15 @@ class QuadModel:
     coupling: float = 0.0
 
     @classmethod
-    def from_fits(cls, normal_fit, shear_fit, coupling: float = 0.0) -> QuadModel:
+    def from_fits(cls, normal_fit, shear_fit, coupling: float = 0.0,
+                  normal_usable_N: float | None = None, shear_usable_N: float | None = None) -> QuadModel:
         """A model from an uploaded calibration, checked (module docstring);
         ValueError names the field and the reason. ``coupling`` c ≥ 0 (the
         shear response scaled by 1 − c·n(Fz)) must leave at least a tenth
-        of it at the normal curve's usable end."""
+        of it at the normal curve's usable end. ``normal_usable_N``,
+        ``shear_usable_N``: where the calibration session's response stopped
+        rising (quad_fit.py), which can come before the curve's own usable end;
+        they only narrow it."""
         c2, c1 = _pair("normal_fit", normal_fit, ("c2", "c1"))
         a, b = _pair("shear_fit", shear_fit, ("a", "b"))
         low, high = SLOPE_RANGE_PER_N
@@ -94,8 +101,8 @@ class QuadModel:
             raise ValueError(f"shear_fit: a = {a} per N is outside the plausible range ({low}, {high})")
         if b < 0:
             raise ValueError(f"shear_fit: b = {b} must be ≥ 0 (ΔC/C0 = a F − b F²)")
-        normal_usable = _usable("normal_fit", "c2", c1, -c2)
-        shear_usable = _usable("shear_fit", "b", a, b)
+        normal_usable = _narrowed("normal_usable_N", _usable("normal_fit", "c2", c1, -c2), normal_usable_N)
+        shear_usable = _narrowed("shear_usable_N", _usable("shear_fit", "b", a, b), shear_usable_N)
         coupling = float(coupling)
         top = (c2 * normal_usable + c1) * normal_usable
         if not (math.isfinite(coupling) and 0.0 <= coupling and coupling * top <= 0.9):
@@ -200,3 +207,13 @@ def _usable(field_name: str, name: str, slope: float, bend: float) -> float:
                          f"(usable to {usable:.3g} N); it must be usable to at least {MIN_USABLE_N:g} N, "
                          f"i.e. |{name}| ≤ {(1 - USABLE_SLOPE_FRACTION) * slope / (2 * MIN_USABLE_N):.3g}")
     return min(usable, MAX_USABLE_N)
+
+
+def _narrowed(field_name: str, usable: float, top) -> float:
+    """The curve's usable force, narrowed to a measured ``top`` (None: not
+    measured); ValueError unless it is a number of at least MIN_USABLE_N."""
+    if top is None:
+        return usable
+    if isinstance(top, bool) or not isinstance(top, (int, float)) or not top >= MIN_USABLE_N:
+        raise ValueError(f"{field_name}: {top!r} must be a force of at least {MIN_USABLE_N:g} N")
+    return min(usable, float(top))

@@ -11,7 +11,9 @@ grid  ``taxels``: ``gain`` (n,) compliance gains of the model curve (κ in
       the model for those taxels, ``residual_rms_N`` (n,); optional
       ``crosstalk`` {mechanical, electrical} measured in the session.
 quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
-      optional ``normal_fit_se``/``shear_fit_se`` of c1 and a.
+      optional ``normal_fit_se``/``shear_fit_se`` of c1 and a, and
+      ``normal_usable_N``/``shear_usable_N``: where the session's response
+      stopped rising (past them a force is held and flagged).
 
 ``builtin`` is what a sensor without a calibration of its own uses: table 1
 (8x8; the table's mean for other shapes) or fits 34/35. Its gain error is
@@ -278,7 +280,8 @@ def _quad_residual(document: dict) -> tuple[float, float, float]:
 
 
 def _quad(document: dict, cid: str) -> SensorCalibration:
-    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"), document.get("coupling") or 0.0)
+    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"), document.get("coupling") or 0.0,
+                                document.get("normal_usable_N"), document.get("shear_usable_N"))
     se = []
     for name, slope in (("normal_fit_se", model.normal_fit[1]), ("shear_fit_se", model.shear_a)):
         value = document.get(name)
