@@ -11,7 +11,7 @@ from ..reconstruct.fatigue import PAPER_001
 from . import registry
 from .alignment import Alignment, align, board_response
 from .quad_fit import QuadFit, fit_quad
-from .reference import Reference, read_reference
+from .reference import Reference, flat_top_said, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
 
@@ -76,7 +76,8 @@ def quad_document(result: QuadCalibration, created: str | None = None, fatigue: 
                        "reference_skipped_lines": result.reference.skipped,
                        "reference_rest_N": dict(zip("xyz", result.reference.zero_N or (None,) * 3)),
                        "reference_rest_subtracted": result.reference.zero_subtracted,
-                       "reference_rest_warning": result.reference.zero_warning},
+                       "reference_rest_warning": result.reference.zero_warning,
+                       "reference_flat_top_warning": flat_top_said(result.reference)},
     }
 
 
@@ -86,6 +87,7 @@ def quad_summary(result: QuadCalibration) -> list[str]:
     return [f"session {result.session.path}: {len(result.session.t_s)} frames of quad {result.session.info.id}; "
             f"reference {result.reference.path}: {len(result.reference.t_s)} samples, {result.reference.skipped} lines skipped; "
             f"{zero_said(result.reference)}",
+            *filter(None, [flat_top_said(result.reference)]),
             f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f}",
             f"normal: ΔC/C0 = {c2:.6f}·F² + {c1:.5f}·F  (± {fit.normal_se[0]:.1e}, {fit.normal_se[1]:.1e})",
             f"shear:  ΔC/C0 = {fit.shear[0]:.5f}·F − {fit.shear[1]:.6f}·F²  (± {fit.shear_se[0]:.1e}, {fit.shear_se[1]:.1e})",
