@@ -27,9 +27,25 @@ slower still; a load moves the level within a touch. So:
   plus a band of noise (what noise and a minority press's rank shift move
   it by) is a load, and so is one further than a taxel's noise from its
   average (a press or a release under way: drift moves it by rate × tau_s,
-  ~0): the estimate freezes and absorbs none of it.
+  ~0), and one moving faster than the bound: its average further from its
+  slower average (``tau_slow_s``) than drift at the bound sets them apart,
+  plus a quarter of a taxel's noise (what is left of the median's noise
+  there). The lag alone let a ramp under noise/tau_s by, 6 %/min at 2 fF
+  in 10 pF; this sees one over the bound plus noise/4 in 0.3 s, 2 %/min.
+  The estimate freezes and absorbs none of it.
 
-Once the load is lifted and the median has settled, it is within reach
+The averages stop on a frame with too few quiet taxels and restart at the
+next one's median (or at a median a band of noise off: they would lag a
+jump for seconds), trusted after twice ``tau_slow_s``. Stale, they held the
+level a plate had when a ±40 % spread of sensitivities left too few taxels
+quiet on its way up (0.5 N/taxel brought on over 5 s); on the way down the
+median met them, looked settled, and stood within the reach grown over
+the freeze: 0.17 % ΔC/C0 of the plate taken for drift, its last 6.6 N read
+0, out of range, and the next press 5 % low until the reach took it back.
+A ramp is seen a few tenths of a second after it starts; until then the
+estimate may follow it at the bound (~1 % of a 0.5 N plate).
+
+Once the load is lifted and the median has settled (~1 s), it is within reach
 again, a drift meanwhile included, and the estimate takes it (anchored
 again once within a taxel's noise of the median). A drift under a held
 plate is unseen and reads on its force; a plate held until the reach
@@ -111,6 +127,7 @@ def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, bool]:
 @dataclass
 class DriftTracker:
     tau_s: float = 0.2
+    tau_slow_s: float = 0.5
     band: float = 4.0
     max_drift: float = 0.01
     suspect_after_s: float = 10.0
@@ -118,6 +135,8 @@ class DriftTracker:
     noise: float = math.inf  # σ of a taxel's ΔC/C0, set by the grid processor per tare (inf: nothing is a load)
     drift: float = 0.0
     _average: float = 0.0  # the quiet median's exponential average
+    _slow: float = 0.0  # its average over tau_slow_s: the two part by the median's speed
+    _since: float | None = -math.inf  # when the averages last started (unwrapped); None: at the next quiet frame
     _anchor: float = 0.0  # the estimate when it last agreed with the median
     _anchor_t: float | None = None  # then, unwrapped; None: from the next frame on
     _last_t: float | None = None  # the last frame's board time as sent (s)
@@ -125,22 +144,35 @@ class DriftTracker:
     _offset: float = 0.0  # unwrapped − sent: 0 until the clock wraps or the board restarts
 
     def reset(self) -> None:
-        self.drift, self._average, self._anchor, self._anchor_t = 0.0, 0.0, 0.0, None
+        self.drift, self._average, self._slow, self._since = 0.0, 0.0, 0.0, -math.inf
+        self._anchor, self._anchor_t = 0.0, None
         self._last_t, self._frozen_since, self._offset = None, None, 0.0
+
+    def state(self) -> tuple:
+        """What ``follow`` advances, for ``restore``."""
+        return (self.drift, self._average, self._slow, self._since, self._anchor, self._anchor_t,
+                self._last_t, self._frozen_since, self._offset)
+
+    def restore(self, state: tuple) -> None:
+        (self.drift, self._average, self._slow, self._since, self._anchor, self._anchor_t,
+         self._last_t, self._frozen_since, self._offset) = state
 
     def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
         """Advance through frames at times ``t_s`` given their quiet medians
         and whether those were enough (``quiet_medians``, as lists: the
         recurrence is scalar, and a live read holds a frame or two per
         sensor); return each frame's drift and whether it is drift-suspect.
-        The median's exponential average is advanced to each board time
+        The median's exponential averages are advanced to each board time
         ``t`` by dt = t − last (clipped to [0, tau_s]); a settled median
         within reach is followed, any other frame freezes the estimate
         (module docstring). One loop with locals, as an offline replay steps
         every frame of a log through it."""
-        tau, suspect_after, max_drift, rate = self.tau_s, self.suspect_after_s, self.max_drift, self.max_rate_per_s
+        tau, slow_tau, suspect_after, max_drift, rate = (self.tau_s, self.tau_slow_s, self.suspect_after_s,
+                                                         self.max_drift, self.max_rate_per_s)
         noise, tolerance = self.noise, self.band * self.noise
-        drift, average, anchor, anchor_t = self.drift, self._average, self._anchor, self._anchor_t
+        steady = rate * (slow_tau - tau) + noise / 4  # the averages' gap under drift at the bound, with noise's
+        drift, average, slow, since = self.drift, self._average, self._slow, self._since
+        anchor, anchor_t = self._anchor, self._anchor_t
         last, frozen_since, offset = self._last_t, self._frozen_since, self._offset
         out = []
         for t, ok, median in zip(t_s, enough, medians):
@@ -152,9 +184,16 @@ class DriftTracker:
             if anchor_t is None:  # the first frame since the tare, whose zero is the level
                 anchor_t = now
             reach = rate * (now - anchor_t)
-            if ok:
+            if not ok:  # the averages would go stale: restarted at the next quiet frame
+                since = None
+            elif since is None or abs(median - average) > tolerance:  # or the level jumped: they would lag long
+                average = slow = median
+                since = now
+            else:
                 average += (median - average) * (dt / tau)
-            if ok and abs(median - average) <= noise and abs(average - anchor) <= tolerance + reach:
+                slow += (median - slow) * (dt / slow_tau)
+            if (ok and now - since >= 2 * slow_tau and abs(median - average) <= noise and abs(average - slow) <= steady
+                    and abs(average - anchor) <= tolerance + reach):
                 drift = min(max(average, anchor - reach), anchor + reach)  # no faster than drift moves
                 if abs(median - drift) <= noise:  # caught up (the average may be settling still)
                     anchor, anchor_t = drift, now
@@ -163,6 +202,7 @@ class DriftTracker:
                 frozen_since = now
             out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after)
                         or abs(drift) > max_drift))
-        self.drift, self._average, self._anchor, self._anchor_t = drift, average, anchor, anchor_t
+        self.drift, self._average, self._slow, self._since = drift, average, slow, since
+        self._anchor, self._anchor_t = anchor, anchor_t
         self._last_t, self._frozen_since, self._offset = last, frozen_since, offset
         return out

@@ -132,10 +132,9 @@ class GridProcessor:
         ``rollback`` after a failed call of several sensors. References and
         scalars only: every array here is replaced when it changes, never
         written in place, so this costs a few attribute reads."""
-        drift, estimator, crosstalk = self.drift, self.estimator, self.crosstalk
+        estimator, crosstalk = self.estimator, self.crosstalk
         state = (self._last_raw, self._same_count, self._frames_seen, self._sampled, len(self._sampled),
-                 self.adopted_events, drift.drift, drift._last_t, drift._frozen_since, drift._offset,
-                 drift._average, drift._anchor, drift._anchor_t)
+                 self.adopted_events, self.drift.state())
         if estimator is None:
             return state
         m, e = estimator.mechanical, estimator.electrical
@@ -145,12 +144,12 @@ class GridProcessor:
     def rollback(self, checkpoint: tuple) -> None:
         """Back to a ``checkpoint`` taken before a batch."""
         (self._last_raw, self._same_count, self._frames_seen, sampled, length, self.adopted_events,
-         self.drift.drift, self.drift._last_t, self.drift._frozen_since, self.drift._offset, self.drift._average,
-         self.drift._anchor, self.drift._anchor_t) = checkpoint[:13]
+         drift) = checkpoint[:7]
+        self.drift.restore(drift)
         del sampled[length:]
         self._sampled = sampled
-        if len(checkpoint) > 13:
-            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[13:]
+        if len(checkpoint) > 7:
+            slopes, self.crosstalk.electrical, self.crosstalk.mechanical, self.crosstalk._unmix = checkpoint[7:]
             for slope, xy, xx, events, yy in slopes:
                 slope.xy, slope.xx, slope.events, slope.yy = xy, xx, events, yy
             self.estimator.mechanical, self.estimator.electrical = (slope for slope, *_ in slopes)
