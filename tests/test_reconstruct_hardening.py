@@ -981,3 +981,26 @@ def test_the_table_level_does_not_flag_a_healthy_neighbour_of_a_press_out_of_ran
     (frame,) = rec.process(reading(info, c0 * (1 + relative), 100))
     assert frame.taxel_flag_lists().get("out_of_range") == [0]
     assert (frame.forces_N[neighbours] == 0).all() and frame.forces_N[27] > 10
+
+
+def test_level0_sigma_covers_what_its_line_misses_of_the_gap_nonlinearity():
+    """A line read a true 41 N as 65.6 ± 4.6 N: the gap model (the table level's curve) is the truth here, and
+    level0's σ now holds its error from 1 N to past 35 N, without growing much where the line is good."""
+    from service.physics.paper_data import grid_calibration
+    from service.physics.taxel_response import taxel_response
+
+    info = SensorInfo(0, "grid", 8, 8)
+    calibration = grid_calibration(8, 8)
+    c0, response = calibration.c0_pF, taxel_response(calibration)
+    true = np.array([1.0, 3.0, 5.0, 10.0, 20.0, 30.0, 35.0])
+    rec = Reconstructor(tare_frames=3, level="level0")
+    for seq in range(3):
+        rec.process(reading(info, c0, seq))
+    z = []
+    for k, force in enumerate(true):
+        forces = np.zeros(64)
+        forces[27] = force
+        (frame,) = rec.process(reading(info, c0 * (1 + response.forward(forces)), 3 + k))
+        z.append(abs(frame.forces_N[27] - force) / frame.sigma_N[27])
+    assert max(z) < 2.0, z
+    assert frame.sigma_N[27] < 0.6 * frame.forces_N[27]  # wide where the line is far off, not without bound

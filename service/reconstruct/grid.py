@@ -222,7 +222,7 @@ class GridProcessor:
                 relative = np.where(over, self.top_relative, relative)
             forces = relative / self.calibration.sensitivity_per_N
             noise = self.noise(baseline, baseline_std)
-            sigma = level0_sigma(self, forces, noise)
+            sigma = level0_sigma(self, forces, noise, relative)
             held = over if clipped is None else over | (clipped & (forces == forces))
             if np.count_nonzero(held):
                 np.bitwise_or(flags, SATURATED, out=flags, where=held)
