@@ -32,3 +32,9 @@ def test_modules_and_paths_a_doc_names_exist(doc):
     assert [m for m in BARE.findall(text) if m not in names] == []
     inside = [(doc.parent / p).resolve() for p in OUTSIDE.findall(text)]
     assert [p for p in inside if not (p.is_relative_to(ROOT) and p.exists())] == []
+
+
+def test_the_tests_the_code_names_exist():
+    """A docstring sent readers to tests/test_sigma.py, which never existed."""
+    named = {m for path in (ROOT / "service").rglob("*.py") for m in re.findall(r"tests/test_\w+\.py", path.read_text())}
+    assert named and [m for m in sorted(named) if not (ROOT / m).exists()] == []

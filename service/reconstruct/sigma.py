@@ -13,10 +13,11 @@ variance is the sum of three independent parts:
 * what the calibration's curve leaves unexplained: an empirical curve's
   residual RMS (0 where the model curve fits within the noise).
 
-level0 (F = r/s): σ_r/s and F·σ_κ/κ. A saturated force (held at the
-table's top) or a missing one has no σ (NaN, serialised null): the true
-force is only bounded from below. Coverage on captures the calibration did
-not see is measured in tests/test_sigma.py and docs/calibration.md.
+level0 (F = r/s): σ_r/s, F·σ_κ/κ and what its line misses of the gap's
+nonlinearity (``level0_sigma``). A saturated force (held at the table's
+top) or a missing one has no σ (NaN, serialised null): the true force is
+only bounded from below. Coverage on captures the calibration did not see
+is measured in tests/test_calibration_use.py and docs/calibration.md.
 """
 from __future__ import annotations
 
