@@ -1004,3 +1004,40 @@ def test_level0_sigma_covers_what_its_line_misses_of_the_gap_nonlinearity():
         z.append(abs(frame.forces_N[27] - force) / frame.sigma_N[27])
     assert max(z) < 2.0, z
     assert frame.sigma_N[27] < 0.6 * frame.forces_N[27]  # wide where the line is far off, not without bound
+
+
+@pytest.mark.parametrize("level", ["table", "full"])
+def test_a_force_past_what_the_calibration_pressed_carries_the_curves_shape_in_its_sigma(level):
+    """Sessions pressed to 10 N, validation at 20–30 N: forces within 0.05–0.15 N of the truth but σ 0.004–0.008 N
+    (|z| up to 20). Past a taxel's max_force_N the built-in gain's σ covers the force beyond it; below, σ is
+    as before, bit for bit."""
+    from service.calibration.registry import builtin_document
+    from service.physics.paper_data import grid_calibration
+    from service.reconstruct.sensor_calibration import BUILTIN_RELATIVE_SE, from_document
+
+    info = SensorInfo(0, "grid", 8, 8)
+    c0 = grid_calibration(8, 8).c0_pF
+    documents = {}
+    for name, reach in (("pressed to 10 N", [10.0] * 64), ("unknown reach", [None] * 64)):
+        document = builtin_document()
+        document["taxels"]["gain_se"] = [0.002 * g for g in document["taxels"]["gain"]]
+        document["taxels"]["max_force_N"] = reach
+        documents[name] = from_document(document, info)
+    sigmas = {}
+    for name, calibration in documents.items():
+        rec = Reconstructor(tare_frames=3, level=level)
+        rec.resolve = lambda _, calibration=calibration: calibration
+        rng = np.random.default_rng(5)
+        for seq in range(3):
+            rec.process(reading(info, c0 + rng.normal(0, 5e-4, 64), seq))
+        sigma = []
+        for k, force in enumerate((5.0, 25.0)):
+            forces = np.zeros(64)
+            forces[27] = force
+            (frame,) = rec.process(reading(info, c0 * (1 + calibration.response.forward(forces)), 3 + k))
+            assert frame.calibration == calibration.id and frame.forces_N[27] == pytest.approx(force, rel=0.01)
+            sigma.append(frame.sigma_N[27])
+        sigmas[name] = sigma
+    pressed, unknown = sigmas["pressed to 10 N"], sigmas["unknown reach"]
+    assert pressed[0] == unknown[0]  # within what was pressed: as before
+    assert unknown[1] < 0.1 and pressed[1] == pytest.approx(np.hypot(unknown[1], 15.0 * BUILTIN_RELATIVE_SE), rel=0.02)

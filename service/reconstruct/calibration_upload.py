@@ -36,7 +36,8 @@ def processor_for(info: SensorInfo, level: str, mounting: str,
         crosstalk = Crosstalk(info.rows, info.cols, *calibration.crosstalk)
     return GridProcessor(level, calibration.grid, None if level == "level0" else calibration.response,
                          table_top(mounting), crosstalk, gain_relative_se=calibration.gain_relative_se,
-                         model_sigma_N=calibration.model_sigma_N, curves=calibration.curves,
+                         model_sigma_N=calibration.model_sigma_N, calibrated_to_N=calibration.calibrated_to_N,
+                         curves=calibration.curves,
                          tare_window=tare_window(info, mounting, calibration))
 
 

@@ -87,6 +87,7 @@ class GridProcessor:
     estimator: CrosstalkEstimator | None = None
     gain_relative_se: np.ndarray | None = None  # (n,) σ(κ)/κ of the calibration; None: 0
     model_sigma_N: np.ndarray | None = None  # (n,) what the calibration's curve leaves unexplained; None: 0
+    calibrated_to_N: np.ndarray | None = None  # (n,) the largest force the calibration pressed; None: inf (unknown)
     curves: dict = field(default_factory=dict)  # taxel → (relative, force): empirical inverses (sensor_calibration.py)
     _last_raw: np.ndarray | None = None
     _same_count: np.ndarray | None = None
@@ -118,6 +119,7 @@ class GridProcessor:
             self.drift.suspect_after_s = math.inf  # a drift_suspect on every frame that would say nothing
         self.gain_relative_se = np.zeros(n) if self.gain_relative_se is None else self.gain_relative_se
         self.model_sigma_N = np.zeros(n) if self.model_sigma_N is None else self.model_sigma_N
+        self.calibrated_to_N = np.full(n, np.inf) if self.calibrated_to_N is None else self.calibrated_to_N
         if self.level == "full":
             self.crosstalk = self.crosstalk or Crosstalk(self.calibration.rows, self.calibration.cols)
             self.estimator = self.estimator or CrosstalkEstimator(self.calibration.rows, self.calibration.cols)
@@ -250,7 +252,7 @@ class GridProcessor:
         if stale is not None:
             forces[stale] = np.nan
         sigma = table_sigma(self.response, relative, forces, noise, self.response.gain, self.gain_relative_se,
-                            self.model_sigma_N, saturated)
+                            self.model_sigma_N, self.calibrated_to_N, saturated)
         return GridResult(forces, flags, sigma)
 
     def _crosstalk_explains(self, relative: np.ndarray, noise: np.ndarray) -> np.ndarray:
@@ -340,7 +342,7 @@ class GridProcessor:
 
     def _row_parameters(self, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple:
         """(baseline, noise, un-leaked reference, drift band, gain, gain's
-        relative error, model σ), each (n,):
+        relative error, model σ, largest force calibrated), each (n,):
         what the full level needs per row; the same tuple until a tare or a
         new leakage fraction, so stacks of it can be kept."""
         cached = self._parameters_for
@@ -348,7 +350,7 @@ class GridProcessor:
             noise = self.noise(baseline, baseline_std)
             self.drift.noise = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 0.0  # what a load departs from (drift.py)
             values = (baseline, noise, self._reference(baseline), self.drift.band * noise, self.response.gain,
-                      self.gain_relative_se, self.model_sigma_N)
+                      self.gain_relative_se, self.model_sigma_N, self.calibrated_to_N)
             cached = self._parameters_for = (baseline, baseline_std, self.crosstalk.electrical, values)
         return cached[3]
 

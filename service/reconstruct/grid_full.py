@@ -87,7 +87,8 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
         rows.append(slice(row, row + end - start))
         row += end - start
         params.append(p._row_parameters(job.baseline, job.baseline_std))
-    capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma) = _stacked_rows(pieces, counts, params)
+    capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma, calibrated_to) = \
+        _stacked_rows(pieces, counts, params)
     clipped = _clipped(pieces, capacitance.shape)
     flags, stale = _reading_flags(pieces, rows, capacitance, clipped)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags, stale)
@@ -110,7 +111,8 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
             empirical_forces(p.curves, compensated[r], forces[r], saturated[r])
     if clipped is not None:  # a lower bound: held as read, no σ
         saturated |= clipped & (forces == forces)
-    sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma), saturated, shared)
+    sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma, calibrated_to), saturated,
+                   shared)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
     return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]

@@ -104,6 +104,7 @@ class SensorCalibration:
     quad_model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz residual RMS of a quad's fit
     fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
     tare_c0_pF: np.ndarray | None = None  # grid (n,): C0 as the multiplexer reads it (leakage applied), what a tare sees
+    calibrated_to_N: np.ndarray | None = None  # grid (n,): the largest force its session pressed; None: unknown
     document: dict | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -205,6 +206,7 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     response = TaxelResponse(table.force_N, table.relative_change, gain, table.dense)
     response.check()
     curves, model_sigma = _curves(taxels.get("curves") or {}, n, residual)
+    reach = _numbers(taxels, "max_force_N", n, missing_ok=True) if "max_force_N" in taxels else np.full(n, np.nan)
     sensitivity = _numbers(taxels, "sensitivity_pct_per_N", n, missing_ok=True) / 100.0
     sensitivity = np.where(np.isnan(sensitivity), _ls_sensitivity(response), sensitivity)
     coupling = _coupling(document.get("crosstalk"))
@@ -217,7 +219,7 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     return SensorCalibration(cid, "grid", document.get("created"), measured,
                              GridCalibration(info.rows, info.cols, c0, sensitivity), response, relative_se, model_sigma,
                              curves, coupling, fatigue=FatigueModel.from_document(document.get("fatigue"), None),
-                             tare_c0_pF=tare_c0, document=document)
+                             tare_c0_pF=tare_c0, document=document, calibrated_to_N=np.where(reach > 0, reach, np.inf))
 
 
 def _coupling(crosstalk: dict | None) -> tuple[float, float] | None:

@@ -11,7 +11,11 @@ variance is the sum of three independent parts:
   built-in table 1 the spread of sensors that are not the paper's,
   sensor_calibration.py);
 * what the calibration's curve leaves unexplained: an empirical curve's
-  residual RMS (0 where the model curve fits within the noise).
+  residual RMS (0 where the model curve fits within the noise);
+* past the largest force the calibration session pressed a taxel to, the
+  model curve's shape alone: the built-in gain's σ on the force beyond it,
+  (F − F_max)·σ_builtin (sessions to 10 N read 20–30 N within 0.05–0.15 N
+  but with σ 0.004–0.008 N: |z| up to 20).
 
 level0 (F = r/s): σ_r/s, F·σ_κ/κ and what its line misses of the gap's
 nonlinearity (``level0_sigma``). A saturated force (held at the table's
@@ -26,17 +30,21 @@ import math
 import numpy as np
 
 from .baseline import DEFAULT_TARE_FRAMES
+from .sensor_calibration import BUILTIN_RELATIVE_SE
 
 TARE_FACTOR = math.sqrt(1.0 + 1.0 / DEFAULT_TARE_FRAMES)
 
 
 def table_sigma(response, relative: np.ndarray, forces: np.ndarray, noise: np.ndarray, gain: np.ndarray,
-                relative_se: np.ndarray, model_sigma: np.ndarray, saturated: np.ndarray) -> np.ndarray:
+                relative_se: np.ndarray, model_sigma: np.ndarray, calibrated_to: np.ndarray,
+                saturated: np.ndarray) -> np.ndarray:
     """σ (N, n) of forces (N, n) inverted from ``relative`` (N, n) with the
-    response's curve; noise, gain, relative_se, model_sigma (n,) or (N, n)."""
+    response's curve; noise, gain, relative_se, model_sigma, calibrated_to
+    (the largest force calibrated, inf: none known) (n,) or (N, n)."""
     slope = response.inverse_slope(relative, gain)
     reading = (TARE_FACTOR * noise) * slope
-    sigma = np.sqrt(reading * reading + (forces * relative_se) ** 2 + model_sigma * model_sigma)
+    beyond = np.maximum(forces - calibrated_to, 0.0) * BUILTIN_RELATIVE_SE
+    sigma = np.sqrt(reading * reading + (forces * relative_se) ** 2 + model_sigma * model_sigma + beyond * beyond)
     if np.count_nonzero(saturated):
         sigma[saturated] = np.nan
     return sigma
