@@ -142,3 +142,13 @@ def test_a_refused_alignment_names_the_dead_taxels_the_board_does_not_show(tmp_p
     with pytest.raises(ValueError, match=r"does not match the board's response.*; note: presses on dead taxels show on "
                                          r"no channel \(taxel row 1, col 3 \(index 2\): lost channel.*\(index 4\)"):
         calibrate(tmp_path / "s.bin", tmp_path / "r.csv")
+
+
+def test_a_dead_taxel_leaves_the_sessions_crosstalk_measured_from_presses_not_beside_it(dead):
+    """Every frame holds the dead channels' NaN, and the estimator set each aside: 'too few isolated presses'
+    (a tester: 25 460 isolated frames without the dead channel). Presses with no dead neighbour and no dead
+    channel scanned next to them still measure the coupling (the simulator's: the paper's −0.0028)."""
+    _, _, _, result = dead
+    assert result.crosstalk is not None and result.crosstalk["events"] >= 1000
+    assert result.crosstalk["mechanical"] == pytest.approx(-0.0028, rel=0.1)
+    assert result.crosstalk["electrical"] < 0.002  # the simulator's multiplexer does not leak

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..physics.crosstalk_model import neighbour_matrix
 from ..reconstruct.crosstalk import Crosstalk, CrosstalkEstimator
 
 MIN_EVENTS = 200  # isolated frames needed before a session's estimate is stored (a few presses)
@@ -48,6 +49,9 @@ def session_crosstalk(capacitance_pF: np.ndarray, rows: int, cols: int) -> dict 
     sample = relative[::MEDIAN_STRIDE]
     noise = np.fmax(MAD_TO_SIGMA * column_median(np.abs(sample - column_median(sample))), 1e-6)
     estimator = CrosstalkEstimator(rows, cols)
+    dead = np.isnan(c0)
+    if dead.any():  # the estimator sets aside every frame with a missing channel: one dead taxel left no event
+        relative = _beside_none(np.where(dead, 0.0, relative), noise, dead, rows, cols)
     for start in range(0, len(relative), 4096):  # bounded memory for long sessions
         estimator.observe(relative[start:start + 4096], noise, c0)
     report = estimator.report()
@@ -59,6 +63,18 @@ def session_crosstalk(capacitance_pF: np.ndarray, rows: int, cols: int) -> dict 
     alpha = report["electrical"]["estimate"]
     return {"mechanical": float(np.clip(report["mechanical"]["estimate"], -0.05, 0.0)),
             "electrical": float(np.clip(alpha / (1.0 + alpha), 0.0, 0.3)), "events": int(events)}
+
+
+def _beside_none(relative: np.ndarray, noise: np.ndarray, dead: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """The frames (N, n) whose strongest taxel has no dead neighbour nor a
+    dead channel scanned just before or after it (a dead channel's missing
+    share would bias the coupling); elsewhere a dead channel, read as 0,
+    changes nothing."""
+    spoiled = neighbour_matrix(rows, cols)[:, dead].any(axis=1)
+    spoiled[1:] |= dead[:-1]
+    spoiled[:-1] |= dead[1:]
+    peak = np.argmax(np.where(dead, -np.inf, relative / noise), axis=1)
+    return relative[~spoiled[peak]]
 
 
 def unleaked(capacitance_pF: np.ndarray, rows: int, cols: int, electrical: float) -> np.ndarray:
