@@ -191,15 +191,22 @@ def test_a_sensor_the_board_no_longer_lists_and_that_sends_nothing_is_retired_no
     assert any("sensor 1 sends data but the board's INFO does not list it" in p for p in report["problems"])
 
 
-def test_a_sensor_no_info_ever_listed_that_stops_is_stale_not_retired():
-    """Sensors an INFO never described (a board whose INFO cannot list them
-    all) are not retired when they stop: that is a failure, said as one."""
+def quads_0_and_1_with_an_info_of_0(ago_s: float):
+    """(service, the INFO listing quad 0 only, a quad payload, now): 150 scans of quads 0 and 1 fed ``ago_s``
+    before now."""
     service = TactileService("sim://")
     only0 = orjson.dumps({"board": "b", "sensors": [{"id": 0, "kind": "quad"}]})
     quad = np.full(4, 2_200_000, "<u4").tobytes()
     now = time.time()
     service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(
-        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - 2.0)
+        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - ago_s)
+    return service, only0, quad, now
+
+
+def test_a_sensor_no_info_ever_listed_that_stops_is_stale_not_retired():
+    """Sensors an INFO never described (a board whose INFO cannot list them
+    all) are not retired when they stop: that is a failure, said as one."""
+    service, only0, quad, now = quads_0_and_1_with_an_info_of_0(2.0)
     service.pipeline.feed(b"".join(encode_frame(FrameType.QUAD, 0, s, 1000 * (s + 1), quad) for s in range(150, 300)),
                           now)
     report = health_report(service)
@@ -212,12 +219,7 @@ def test_a_sensor_no_info_listed_that_stopped_before_the_board_restarted_without
     again does not list it: /health said "stale" and "sends data but the
     board's INFO does not list it" for good (43 s after its last frame). It
     is retired; "sends data" is said only of a sensor that does."""
-    service = TactileService("sim://")
-    only0 = orjson.dumps({"board": "b", "sensors": [{"id": 0, "kind": "quad"}]})
-    quad = np.full(4, 2_200_000, "<u4").tobytes()
-    now = time.time()
-    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, only0) + b"".join(
-        encode_frame(FrameType.QUAD, sid, s, 1000 * (s + 1), quad) for s in range(150) for sid in (0, 1)), now - 3.0)
+    service, only0, quad, now = quads_0_and_1_with_an_info_of_0(3.0)
     report = health_report(service)
     assert report["sensors"]["1"]["stale"] and not report["sensors"]["1"]["retired"]
     assert "sensor 1 stale" in report["problems"]
