@@ -102,6 +102,7 @@ class GridProcessor:
     _sampled: list = field(default_factory=list)  # (ΔC/C0 rows, noise, baseline) awaiting the estimator
     tare_window: tuple[np.ndarray, np.ndarray] | None = None  # (n,) low, high pF a tare accepts (level0.py)
     _zero_missing_for: tuple | None = None
+    _fill_for: tuple | None = None
     _neighbours: np.ndarray | None = None  # (n, n) eight-neighbourhood, for the table level's crosstalk margin
 
     def __post_init__(self) -> None:
@@ -368,8 +369,19 @@ class GridProcessor:
         electrical = self.crosstalk.electrical
         cached = self._reference_for
         if cached is None or cached[0] is not baseline or cached[1] != electrical:
-            cached = self._reference_for = (baseline, electrical, self.crosstalk.unleak(baseline, baseline))
+            cached = self._reference_for = (baseline, electrical, self.crosstalk.unleak(baseline, self.leak_fill(baseline)))
         return cached[2]
+
+    def leak_fill(self, baseline: np.ndarray) -> np.ndarray:
+        """What an unread channel is taken to leak into the one scanned after
+        it (Crosstalk.unleak): its baseline, or where the tare gave it none
+        the calibration's C0 (a NaN there ran through the inverse filter: with
+        a leakage in use the whole grid was null, its other taxels unflagged).
+        Once per tare."""
+        if self._fill_for is None or self._fill_for[0] is not baseline:
+            missing = np.isnan(baseline)
+            self._fill_for = (baseline, np.where(missing, self.calibration.c0_pF, baseline) if missing.any() else baseline)
+        return self._fill_for[1]
 
     def _observe_sampled(self) -> None:
         """Feed the estimator the frames sampled this period, one call per tare."""

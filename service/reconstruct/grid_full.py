@@ -197,9 +197,10 @@ def _plausible_ratio(pieces: list[Piece], rows: list[slice], counts: list[int], 
             ratio = np.where(missing, np.nan, ratio)
     if leaky:
         if missing is None:
-            unleaked = [p.crosstalk.unleak(job.capacitance[sl], job.baseline) for p, job, sl in pieces]
+            unleaked = [p.crosstalk.unleak(job.capacitance[sl], p.leak_fill(job.baseline)) for p, job, sl in pieces]
         else:
-            unleaked = [p.crosstalk.unleak(capacitance[r], job.baseline) for (p, job, _), r in zip(pieces, rows)]
+            unleaked = [p.crosstalk.unleak(capacitance[r], p.leak_fill(job.baseline))
+                        for (p, job, _), r in zip(pieces, rows)]
         ratio = (unleaked[0] if len(unleaked) == 1 else np.concatenate(unleaked)) / reference
     return capacitance, ratio
 
