@@ -14,7 +14,9 @@ its neighbours below a few % of it. The mechanical coefficient is the mean
 neighbour response relative to the loaded taxel; the electrical fraction is
 the asymmetry between the two same-row neighbours, the one scanned next
 minus the one scanned before (mechanically they are alike), scaled back to
-capacitance. Estimates are medians over events, with their count.
+capacitance. Estimates are least-squares slopes over events, with their count.
+An unread channel (NaN: dead or implausible) is an unknown load: it spoils
+the events whose read channels its load could move, and no others.
 """
 from __future__ import annotations
 
@@ -148,6 +150,15 @@ class CrosstalkEstimator:
         inner = np.flatnonzero(self._has_row_pair)
         after[inner, inner + 1] = True
         self._symmetric = self._near & ~after  # neighbours without the one scanned next
+        # What a peak's event reads: the peak and its eight neighbours (the
+        # channels scanned before and after it among them). A load on channel d
+        # moves d, its neighbours (coupling) and the channel scanned after it
+        # (leakage); an unread d may hide one, so it spoils the peaks whose
+        # read channels that load would reach, and no other.
+        read = self._near | np.eye(n, dtype=bool)
+        reach = read.copy()
+        reach[np.arange(n - 1), np.arange(1, n)] = True
+        self._spoiled_by = (read.astype(np.int16) @ reach.T.astype(np.int16)) > 0  # (peak, unread channel)
 
     def observe(self, relative: np.ndarray, noise: np.ndarray, baseline_pF: np.ndarray) -> None:
         """Feed frames of ΔC/C0 (N, n) (or one frame (n,)) with the noise (n,)
@@ -159,10 +170,17 @@ class CrosstalkEstimator:
         peak = np.argmax(np.nan_to_num(snr, nan=-np.inf), axis=1)
         rows = np.arange(len(relative))
         peak_r = relative[rows, peak]
-        candidate = (snr[rows, peak] >= self.min_snr) & ~np.isnan(relative).any(axis=1) & self._has_row_pair[peak]
+        candidate = (snr[rows, peak] >= self.min_snr) & self._has_row_pair[peak]
         if not candidate.any():
             return
         relative, snr, peak, peak_r = relative[candidate], snr[candidate], peak[candidate], peak_r[candidate]
+        unread = np.isnan(relative)
+        if np.count_nonzero(unread):  # a dead or implausible channel: out of reach it neither counts nor hides a load
+            usable = ~np.any(unread & self._spoiled_by[peak], axis=1)
+            if not usable.any():
+                return
+            relative, snr, peak, peak_r = relative[usable], snr[usable], peak[usable], peak_r[usable]
+            relative = np.where(np.isnan(relative), 0.0, relative)  # only channels the event does not read
         near = self._near[peak]
         far = ~near
         far[np.arange(len(peak)), peak] = False
