@@ -124,3 +124,47 @@ def test_an_uploaded_usable_top_only_narrows_the_curves_own():
     for bad in (0.5, float("nan"), "12", True):
         with pytest.raises(ValueError, match="normal_usable_N"):
             QuadModel.from_fits(normal, shear, 0.0, bad)
+
+
+def turning_loads(peaks: list[float]) -> list[Load]:
+    """Shear along +X to each peak under a 5 N preload (grip), one after another."""
+    loads, t = [], QUIET_S
+    for peak in peaks:
+        loads.append(Load(t, (peak, 0.0, 0.0), 1.2, 5.0))
+        t = loads[-1].end_s + 0.6
+    return loads
+
+
+@pytest.mark.parametrize("session_peak_N", [4.0, 12.0])
+def test_shear_past_the_calibrated_range_or_its_turn_is_held_and_flagged_not_folded_back(tmp_path, session_peak_N):
+    """A sensor whose shear response is eq (28)'s quadratic to the end, turning at a/2b = 9.6 N: past it a
+    larger shear gives a smaller ΔC/C0. Calibrated to 4.2 N, the stored usable end (8.8 N) was the curve's
+    extrapolation and a true 12 N read 7.2 N, 14 N 5.3 N, unflagged; calibrated to 12.6 N (past the turn,
+    found as flat at 9.3 N, usable to 8.0 N) 12 N read 7.3 N unflagged. Now the axis is usable to the
+    session's reach at most, and to under the level the response fell back to: every force from there to
+    the mirror of that end about the turn (the forces the curve maps onto the same readings) is held at the
+    end, flagged, σ null."""
+    model = replace(user_quad_model(1), shear_usable_N=50.0)  # the simulator's quad without its flat top
+    a, b = model.shear_a, model.shear_b
+    turn = a / (2 * b)
+    assert 9.0 < turn < 10.0 and a * 12.0 - b * 144.0 < a * 8.0 - b * 64.0  # the generator's response turns
+    sim, result = calibrated(tmp_path, model, shear_peak_N=session_peak_N)
+    fit = result.fit
+    reach = np.abs(sim.truth_N[:, :2]).max()
+    assert fit.shear_reach_N == pytest.approx(reach, abs=0.05)
+    end = fit.usable_N[1]
+    assert end <= fit.shear_reach_N
+    if reach > turn:  # held under where the response fell back to: the true curve's level at the reach
+        response = a * reach - b * reach * reach
+        assert end < (a - np.sqrt(a * a - 4 * b * response)) / (2 * b)
+    truth, forces, sigma, flags = replayed(tmp_path, sim, result, turning_loads([3.0, 6.0, 9.0, 12.0, 14.0]))
+    folded = (truth[:, 0] > end + 0.1) & (truth[:, 0] < 2 * turn - end - 0.3)
+    assert folded.sum() > 50
+    assert all("shear_out_of_range" in flags[i] for i in np.flatnonzero(folded))
+    assert np.allclose(forces[folded, 0], end) and np.isnan(sigma[folded, 0]).all()
+    within = (truth[:, 0] > 0.5) & (truth[:, 0] < 0.95 * end)
+    assert np.sqrt(np.mean((forces[within, 0] - truth[within, 0]) ** 2)) < 0.1
+    assert not any("shear_out_of_range" in flags[i] for i in np.flatnonzero(within))
+    if reach < turn:
+        assert any(f"shear usable to {end:.1f} N, the largest shear the session pressed" in line
+                   for line in quad_summary(result))

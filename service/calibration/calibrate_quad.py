@@ -73,6 +73,7 @@ def quad_document(result: QuadCalibration, created: str | None = None, fatigue: 
         "alignment": result.alignment.as_dict(),
         "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
                        "flat_above_N": {"normal": fit.flat_N[0], "shear": fit.flat_N[1]},
+                       "shear_reach_N": fit.shear_reach_N,
                        "reference_skipped_lines": result.reference.skipped,
                        "reference_rest_N": dict(zip("xyz", result.reference.zero_N or (None,) * 3)),
                        "reference_rest_subtracted": result.reference.zero_subtracted,
@@ -99,4 +100,7 @@ def quad_summary(result: QuadCalibration) -> list[str]:
             f"rises, usable to {usable:.1f} N; past that the force is held there and flagged {flag} (σ null)"
             for axis, flat, usable, flag in (("Fz", fit.flat_N[0], fit.usable_N[0], "normal_out_of_range"),
                                              ("shear", fit.flat_N[1], fit.usable_N[1], "shear_out_of_range"))
-            if flat is not None]
+            if flat is not None] + (
+            [f"shear usable to {fit.usable_N[1]:.1f} N, the largest shear the session pressed: past it the curve "
+             "is not measured and may turn (a larger force would read smaller), so the force is held there and "
+             "flagged shear_out_of_range (σ null)"] if fit.flat_N[1] is None and fit.usable_N[1] == fit.shear_reach_N else [])

@@ -31,7 +31,19 @@ usable (``normal_usable_N``/``shear_usable_N``) up to where the fitted
 curve is FLAT_SIGMAS noise σ below the flat level, so a reading on the flat
 part is held and flagged rather than read as a force below it. The
 residual RMS (the fit's share of σ in the reconstruction) is taken over the
-usable range only. The grid refuses a non-monotone taxel instead (fit.py):
+usable range only. A response that turns and falls past its top (a shear
+curve past a/2b) is worse than flat: a larger force reads back as a smaller
+one, which no single reading shows. So where the response came back down
+past its top by more than FLAT_SIGMAS noise σ, the axis is usable only up to
+where the fitted curve is FLAT_SIGMAS σ under the lowest level it fell to:
+the session's forces past the turn read above it, held and flagged. And the
+shear axis is usable no further than the largest shear the session pressed
+(``shear_reach_N``): past it the curve is an extrapolation that may turn
+anywhere (a sensor turning at 9.6 N, calibrated to 4.2 N, read a true 12 N
+as 7.2 N and 14 N as 5.3 N unflagged); now such forces, up to the mirror of
+the reach about the turn (15 N there), read at the reach, flagged
+``shear_out_of_range``, σ null. The normal axis is pressed to at least half
+its full scale and keeps its curve's own end. The grid refuses a non-monotone taxel instead (fit.py):
 its table's shape is fixed, a quad's curves are the sensor's own, and
 pressing less would not make the sensor's range any longer.
 
@@ -74,6 +86,7 @@ class QuadFit:
     rms_N: tuple[float, float, float]  # Fx, Fy, Fz through the fitted model's inverse, within the usable ranges
     usable_N: tuple[float, float]  # normal, shear: the model's usable ends
     flat_N: tuple[float | None, float | None]  # normal, shear: where the fitted curve reaches the flat level (None: none)
+    shear_reach_N: float  # the largest |Fx|, |Fy| the session pressed: the shear axis's usable end at most
     frames: int
     loads: dict  # axis → number of loads seen
 
@@ -121,26 +134,33 @@ def _shear(fxy, normal, xy, with_coupling: bool, widen: float):
     return result.x, np.sqrt(np.diag(cov))
 
 
-def flat_from(force: np.ndarray, response: np.ndarray, noise: float) -> tuple[float, float] | None:
-    """(force, level) where a response (k,) against its force (k,) ≥ 0
+def flat_from(force: np.ndarray, response: np.ndarray, noise: float) -> tuple[float, float, float] | None:
+    """(force, level, held) where a response (k,) against its force (k,) ≥ 0
     stops rising: the lowest FLAT_BIN_N bin whose mean is within
     FLAT_SIGMAS·``noise`` (one frame's σ) of the highest bin's, the level
-    that highest mean; None unless the force went FLAT_MIN_N past it."""
+    that highest mean; None unless the force went FLAT_MIN_N past it.
+    ``held``: the level the axis is held from, the flat level, or where
+    the response fell back to past its top by more than FLAT_SIGMAS·noise
+    (a turn: the lowest bin mean from there on)."""
     which = (force / FLAT_BIN_N).astype(int)
     counts = np.bincount(which)
     used = np.flatnonzero(counts >= 3)  # a bin of one or two frames is a ramp passing through, noisy
     means = np.bincount(which, weights=response)[used] / counts[used]
     level = float(means.max())
-    start = float(used[np.argmax(means >= level - FLAT_SIGMAS * noise)] * FLAT_BIN_N)
-    return (start, level) if force.max() - start >= FLAT_MIN_N else None
+    first = int(np.argmax(means >= level - FLAT_SIGMAS * noise))
+    start = float(used[first] * FLAT_BIN_N)
+    fell_to = float(means[first:].min())
+    held = fell_to if fell_to < level - FLAT_SIGMAS * noise else level
+    return (start, level, held) if force.max() - start >= FLAT_MIN_N else None
 
 
-def _flat_ends(flat: tuple[float, float] | None, slope: float, bend: float, noise: float) -> tuple:
+def _flat_ends(flat: tuple[float, float, float] | None, slope: float, bend: float, noise: float) -> tuple:
     """(where the fitted curve slope·F − bend·F² (both axes' form) reaches the
-    flat level, where it is FLAT_SIGMAS noise σ under it); Nones without one."""
+    flat level, where it is FLAT_SIGMAS noise σ under the level it is held
+    from); Nones without one."""
     if flat is None:
         return None, None
-    ends, _ = shear_force(np.array([flat[1], flat[1] - FLAT_SIGMAS * noise]), slope, bend)
+    ends, _ = shear_force(np.array([flat[1], flat[2] - FLAT_SIGMAS * noise]), slope, bend)
     return float(ends[0]), float(ends[1])
 
 
@@ -183,11 +203,13 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
         params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen)
     normal_ends = _flat_ends(normal_flat, c1, -c2, noise[2])
     shear_ends = _flat_ends(shear_flat, params[0], params[1], shear_noise)
-    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], max(params[2], 0.0), normal_ends[1], shear_ends[1])
+    reach = float(np.abs(fxyz[:, :2]).max())
+    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], max(params[2], 0.0), normal_ends[1],
+                                reach if shear_ends[1] is None else min(reach, shear_ends[1]))
     usable = (fxyz[:, 2] <= model.normal_usable_N) & (np.abs(fxyz[:, :2]) <= model.shear_usable_N).all(axis=1)
     forces, _ = model.inverse(capacitance_pF[loaded][usable] / c0 - 1.0)
     rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[usable, k]) ** 2))) for k in range(3))
     return QuadFit(c0, (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
                    (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(max(params[2], 0.0)),
                    float(se[2]), coupled, rms, (model.normal_usable_N, model.shear_usable_N),
-                   (normal_ends[0], shear_ends[0]), int(kept.sum()), loads)
+                   (normal_ends[0], shear_ends[0]), reach, int(kept.sum()), loads)

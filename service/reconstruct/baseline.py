@@ -27,6 +27,15 @@ class Baseline:
     a tare window's (null and flagged ``taring`` live) and the zero is made
     as any (glitches, steps, own level), not channel by channel. A sensor
     that never sends one keeps no zero, its channels named as such.
+    ``whole`` (a quad: each of its forces combines every channel): a channel
+    without a zero leaves the sensor without one, so instead of a late zero
+    of its own (made on another window than the others') the sensor's
+    tare begins again at its first reading whose channels are all
+    plausible and at one level (none off the others' level, ``off_level``):
+    its null frames are flagged ``taring`` then, as any tare's, and its four
+    zeros come from one window. Its zeros are judged each against the
+    level of the others, so two channels off (5× or 0.41× the other two)
+    are found as one is; the channels found off are named unzeroed.
     The sensor must be unloaded while it tares: a load present then becomes
     the new zero (the price of auto-tare; a later tare with the sensor free
     corrects it).
@@ -57,12 +66,14 @@ class Baseline:
 
     def __init__(self, channels: int, frames: int = DEFAULT_TARE_FRAMES,
                  window: tuple[np.ndarray, np.ndarray] | None = None,
-                 own_level: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None) -> None:
+                 own_level: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None,
+                 whole: bool = False) -> None:
         if frames < 1:
             raise ValueError(f"tare needs at least 1 frame, got frames={frames}")
         self.frames = frames
         self.window = self._window = window
         self.own_level = own_level
+        self.whole = whole
         self._sum = np.zeros(channels)
         self._sum_sq = np.zeros(channels)
         self._count = np.zeros(channels, dtype=np.int64)
@@ -109,7 +120,7 @@ class Baseline:
         self._late = np.isnan(self.value)
         self._narrow_late()
         self._any_late = bool(self._late.any())
-        self.zeroless = bool(self._late.all())  # as live: it tares from its first valid reading
+        self.zeroless = self._without_zero()  # as live: it tares from its first valid reading
 
     def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
         """Take ``values_pF`` (channels,) as the zero of ``channels`` (bool
@@ -123,19 +134,47 @@ class Baseline:
         sensor that has none — changing nothing."""
         if not self._any_late or not self.ready:
             return False
-        valid = self._valid(capacitance_pF, self._late)
         if self.zeroless:
-            return bool(valid.any())
+            return self._begins_again(capacitance_pF)
+        valid = self._valid(capacitance_pF, self._late)
         return bool(np.any(self._late & valid & (self._count + 1 >= self.frames)))
+
+    def _without_zero(self) -> bool:
+        """Whether the sensor has no zero to read with: none of its channels
+        has one (a whole sensor: one of them lacks one)."""
+        return bool(self._late.any() if self.whole else self._late.all())
+
+    def _begins_again(self, capacitance_pF: np.ndarray) -> bool:
+        """Whether this reading begins the window again of a sensor without a
+        zero: a channel of it valid (a whole sensor: all, and at one level)."""
+        if not self.whole:
+            return bool(self._valid(capacitance_pF, self._late).any())
+        every = np.ones(self._late.shape, dtype=bool)
+        return bool(self._valid(capacitance_pF, every).all()) and not self.off_level(capacitance_pF).any()
+
+    def off_level(self, values_pF: np.ndarray) -> np.ndarray:
+        """(n,) bool: the channels of ``values_pF`` outside the window of the
+        others' level (own_level on the rest; judged only with enough of
+        them); all False without an own_level."""
+        off = np.zeros(values_pF.shape, dtype=bool)
+        if self.own_level is None:
+            return off
+        for k in range(values_pF.size):
+            rest = values_pF.copy()
+            rest[k] = np.nan
+            window = self.own_level(rest)
+            if window is not None:
+                off[k] = not window[0][k] <= values_pF[k] <= window[1][k]
+        return off & (values_pF == values_pF)  # a NaN has no zero anyway: not off
 
     def update(self, capacitance_pF: np.ndarray) -> bool:
         """Feed one reading of shape (channels,); return whether the baseline
         is ready (the reading that completes it is already tared)."""
         if self.ready:
-            if self.zeroless and self._valid(capacitance_pF, self._late).any():
+            if self.zeroless and self._begins_again(capacitance_pF):
                 self._begin()  # the sensor's first valid reading (class docstring): not a restart for a step
                 return self.update(capacitance_pF)
-            if self._any_late:
+            if self._any_late and not self.zeroless:  # a sensor without a zero takes no late one
                 self._accumulate(capacitance_pF, self._late)
                 done = self._late & (self._count >= self.frames)
                 if done.any():
@@ -154,18 +193,23 @@ class Baseline:
             self._late = self._count == 0
             self._set_aside_off_level()
             self._any_late = bool(self._late.any())
-            self.zeroless = bool(self._late.all())  # never by a set-aside: at most a quarter of the zeros go
+            self.zeroless = self._without_zero()  # a grid's never by a set-aside: at most a quarter of the zeros go
         return self.ready
 
     def _set_aside_off_level(self) -> None:
         """Channels whose zero lies outside the sensor's own level's window
         lose it; they and those that had none wait for a late zero inside
-        the window of the zeros kept (what a replay starting from them finds)."""
-        window = self.own_level(self.value) if self.own_level is not None else None
-        if window is None:
-            return
-        off = (self.value < window[0]) | (self.value > window[1])  # NaN compares False
-        if np.count_nonzero(off) > np.count_nonzero(self.value == self.value) // 4:
+        the window of the zeros kept (what a replay starting from them finds).
+        A whole sensor's zeros are judged each against the others' level
+        (``off_level``), every one found off set aside: it tares again anyway."""
+        if self.whole:
+            off = self.off_level(self.value)
+        else:
+            window = self.own_level(self.value) if self.own_level is not None else None
+            if window is None:
+                return
+            off = (self.value < window[0]) | (self.value > window[1])  # NaN compares False
+        if not self.whole and np.count_nonzero(off) > np.count_nonzero(self.value == self.value) // 4:
             return  # no level most channels agree on (2 of a quad's 4 off): nothing to tell the faulty by
         if off.any():
             self.value = np.where(off, np.nan, self.value)

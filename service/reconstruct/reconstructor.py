@@ -90,7 +90,8 @@ class Reconstructor(SensorStates):
         tared) completing inside the batch splits it there: the sensor's
         earlier frames had no zero for it, however reads were joined; so
         does the first plausible reading of a sensor whose tare gave it no
-        zero at all (its window begins again there: baseline.py), and a
+        zero at all (a quad: none on one electrode; its window begins again
+        there: baseline.py), and a
         sensor's new description (an INFO, which may swap its calibration
         in: sensor_states.py)."""
         pending: list[tuple[SensorState | Exception, Reading]] = []

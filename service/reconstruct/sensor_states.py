@@ -177,7 +177,7 @@ class SensorStates:
             calibration = self._calibration_for(info)
             window = tare_window(info, self.mounting, calibration)
             state = SensorState(info, Baseline(info.channels, self.tare_frames, window,
-                                               own_level(info, self.mounting, calibration)),
+                                               own_level(info, self.mounting, calibration), info.kind == "quad"),
                                  processor_for(info, self.level, self.mounting, calibration), calibration)
             state.cycles = self._cycles(info, calibration)
             state.judge_tare = self._first_judge.pop(info.id, True)
