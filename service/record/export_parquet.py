@@ -92,8 +92,7 @@ def _flags(frames: list[ForceFrame]) -> pa.Array:
 
 def _taxel_flags(frames: list[ForceFrame], grid: np.ndarray) -> pa.Array:
     """{flag: [taxels]} of each grid frame (empty when none is set), null for quads."""
-    entries = [f.taxel_flag_lists() if g and f.taxel_flags is not None and f.taxel_flags.any() else {}
-               for f, g in zip(frames, grid.tolist())]
+    entries = [f.taxel_flag_lists() if g else {} for f, g in zip(frames, grid.tolist())]
     hits = [taxels for entry in entries for taxels in entry.values()]
     flat = np.fromiter((t for taxels in hits for t in taxels), np.int32)
     pairs = structs([strings([name for entry in entries for name in entry]),
