@@ -57,7 +57,10 @@ def encode_lines(frames: list[ForceFrame]) -> bytes:
     return b"\n".join(lines)
 
 
-LINES_PER_WRITE = 4096  # frames gathered and encoded together: a recorded read holds one or two per sensor
+# Frames gathered and encoded together: a recorded read holds one or two per sensor. Not more: glibc gives
+# a freed heap top back to the kernel past a few MB, and 4 096 8×8 lines (10 MB, and as much joined) were
+# faulted in again at every batch, 80 000 page faults for 60 000 frames (docs/performance.md).
+LINES_PER_WRITE = 512
 
 
 class JsonLines:
