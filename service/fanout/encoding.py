@@ -115,27 +115,16 @@ def _wrench(fxyz: np.ndarray) -> dict:
 
 
 def to_export_dict(frame: ForceFrame) -> dict:
-    """The replay export / recording shape (one JSON object per frame)."""
-    grid = frame.sensor.kind == "grid"
-    out = {
-        "board": frame.sensor.board,
-        "sensor": frame.sensor.id,
-        "seq": frame.seq,
-        "t_us": frame.t_us,
-        "kind": frame.sensor.kind,
-    }
-    if grid:  # the shape, which the flat taxel list does not say (a 4×4 and a 2×8 grid both have 16)
-        out["rows"], out["cols"] = frame.sensor.rows, frame.sensor.cols
-    out |= {
-        "taxels_N" if grid else "fxyz_N": frame.forces_N,
-        "sigma_N": frame.sigma_N,
-        "calibration": frame.calibration,
-        "flags": frame.flags,
-    }
-    if grid:
-        out["taxel_flags"] = frame.taxel_flag_lists()
-        out["contact"] = frame.contact
-    return out
+    """The replay export / recording shape (one JSON object per frame). Two
+    literals, not one dict grown per kind: an offline export builds one per frame."""
+    info = frame.sensor
+    if info.kind == "grid":  # the shape, which the flat taxel list does not say (a 4×4 and a 2×8 grid both have 16)
+        return {"board": info.board, "sensor": info.id, "seq": frame.seq, "t_us": frame.t_us, "kind": info.kind,
+                "rows": info.rows, "cols": info.cols, "taxels_N": frame.forces_N, "sigma_N": frame.sigma_N,
+                "calibration": frame.calibration, "flags": frame.flags,
+                "taxel_flags": taxel_flag_lists(frame.taxel_flags), "contact": frame.contact}
+    return {"board": info.board, "sensor": info.id, "seq": frame.seq, "t_us": frame.t_us, "kind": info.kind,
+            "fxyz_N": frame.forces_N, "sigma_N": frame.sigma_N, "calibration": frame.calibration, "flags": frame.flags}
 
 
 def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> bytes:

@@ -178,7 +178,10 @@ class DriftTracker:
         for t, ok, median in zip(t_s, enough, medians):
             if last is not None and t < last:  # the clock wrapped, or the board restarted (module docstring)
                 offset += T_WRAP_S if t + T_WRAP_S - last <= MAX_WRAP_STEP_S else last - t
-            dt = 0.0 if last is None else min(max(t - last, 0.0), tau)
+            # min/max spelled as comparisons (the same values, -0.0 and NaN alike): a call each cost per frame
+            dt = 0.0 if last is None else t - last
+            dt = 0.0 if 0.0 > dt else dt
+            dt = tau if tau < dt else dt
             last = t
             now = t + offset
             if anchor_t is None:  # the first frame since the tare, whose zero is the level
@@ -194,7 +197,9 @@ class DriftTracker:
                 slow += (median - slow) * (dt / slow_tau)
             if (ok and now - since >= 2 * slow_tau and abs(median - average) <= noise and abs(average - slow) <= steady
                     and abs(average - anchor) <= tolerance + reach):
-                drift = min(max(average, anchor - reach), anchor + reach)  # no faster than drift moves
+                low, high = anchor - reach, anchor + reach  # no faster than drift moves
+                drift = low if low > average else average
+                drift = high if high < drift else drift
                 if abs(median - drift) <= noise:  # caught up (the average may be settling still)
                     anchor, anchor_t = drift, now
                 frozen_since = None

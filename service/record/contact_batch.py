@@ -20,9 +20,8 @@ def summaries(forces_N: np.ndarray, rows: int, cols: int, threshold_N: float = D
     """Per frame of (N, rows*cols) forces: ForceFrame.contact's value (None
     for a frame without any force)."""
     found = columns(forces_N, rows, cols, threshold_N)
-    names = ("total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts")
-    return [None if none else dict(zip(names, values))
-            for none, *values in zip(*(column.tolist() for column in found))]
+    return [None if none else {"total_N": total, "cop_x_mm": x, "cop_y_mm": y, "area_mm2": area, "contacts": contacts}
+            for none, total, x, y, area, contacts in zip(*(column.tolist() for column in found))]
 
 
 def columns(forces_N: np.ndarray, rows: int, cols: int, threshold_N: float = DEFAULT_THRESHOLD_N) -> tuple:

@@ -18,6 +18,7 @@ import numpy as np
 import orjson
 
 from ..fanout.encoding import to_export_dict
+from ..readings import SensorInfo
 from ..reconstruct import ForceFrame
 from .contact_batch import summaries
 
@@ -31,12 +32,19 @@ def export_line(frame: ForceFrame) -> bytes:
 
 def keep_contacts(frames: list[ForceFrame]) -> None:
     """Each grid frame's contact summary, found per sensor for all its frames at once."""
-    by_sensor: dict[object, list[ForceFrame]] = {}
+    # Grouped by the SensorInfo's identity: its hash hashes all its fields, once per frame.
+    by_sensor: dict[int, tuple[SensorInfo, list[ForceFrame]]] = {}
     for frame in frames:
-        if frame.sensor.kind == "grid":
-            by_sensor.setdefault(frame.sensor, []).append(frame)
-    for info, grid_frames in by_sensor.items():
-        for frame, summary in zip(grid_frames, summaries(np.stack([f.forces_N for f in grid_frames]), info.rows, info.cols)):
+        info = frame.sensor
+        if info.kind == "grid":
+            group = by_sensor.get(id(info))
+            if group is None:
+                group = by_sensor[id(info)] = (info, [])
+            group[1].append(frame)
+    for info, grid_frames in by_sensor.values():
+        # One copy of the rows (np.stack costs 3× more for 64-value rows).
+        forces = np.concatenate([f.forces_N for f in grid_frames]).reshape(len(grid_frames), info.rows * info.cols)
+        for frame, summary in zip(grid_frames, summaries(forces, info.rows, info.cols)):
             frame.keep_contact(summary)
 
 
@@ -49,7 +57,10 @@ def encode_lines(frames: list[ForceFrame]) -> bytes:
     return b"\n".join(lines)
 
 
-LINES_PER_WRITE = 4096  # frames gathered and encoded together: a recorded read holds one or two per sensor
+# Frames gathered and encoded together: a recorded read holds one or two per sensor. Not more: glibc gives
+# a freed heap top back to the kernel past a few MB, and 4 096 8×8 lines (10 MB, and as much joined) were
+# faulted in again at every batch, 80 000 page faults for 60 000 frames (docs/performance.md).
+LINES_PER_WRITE = 512
 
 
 class JsonLines:

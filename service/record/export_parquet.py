@@ -36,7 +36,7 @@ from .arrow_columns import fixed_lists, floats, lists, numbers, strings, structs
 from .contact_batch import columns
 
 ROW_GROUP = 65_536
-GATHER = 4096  # frames made into columns together
+GATHER = 1024  # frames made into columns together; 4 096 a table faulted its temporaries in again (export.py)
 CONTACT = pa.struct([("total_N", pa.float64()), ("cop_x_mm", pa.float64()), ("cop_y_mm", pa.float64()),
                      ("area_mm2", pa.float64()), ("contacts", pa.int32())])
 TAXEL_FLAGS = pa.map_(pa.string(), pa.list_(pa.int32()))
@@ -92,8 +92,7 @@ def _flags(frames: list[ForceFrame]) -> pa.Array:
 
 def _taxel_flags(frames: list[ForceFrame], grid: np.ndarray) -> pa.Array:
     """{flag: [taxels]} of each grid frame (empty when none is set), null for quads."""
-    entries = [f.taxel_flag_lists() if g and f.taxel_flags is not None and f.taxel_flags.any() else {}
-               for f, g in zip(frames, grid.tolist())]
+    entries = [f.taxel_flag_lists() if g else {} for f, g in zip(frames, grid.tolist())]
     hits = [taxels for entry in entries for taxels in entry.values()]
     flat = np.fromiter((t for taxels in hits for t in taxels), np.int32)
     pairs = structs([strings([name for entry in entries for name in entry]),
@@ -153,12 +152,12 @@ class Parquet:
             self._flush()
 
     def _tabled(self) -> None:
-        """The waiting frames as one batch of columns (an MCAP replay writes
-        each recorded read: per read, the columns cost 0.4 ms)."""
-        if self._waiting:
-            self._pending.append(table(self._waiting))
-            self._rows += len(self._waiting)
-            self._waiting = []
+        """The waiting frames as batches of columns of GATHER frames or fewer
+        (an MCAP replay writes each recorded read: per read, the columns cost 0.4 ms)."""
+        waiting, self._waiting = self._waiting, []
+        for start in range(0, len(waiting), GATHER):
+            self._pending.append(table(waiting[start:start + GATHER]))
+        self._rows += len(waiting)
 
     def _flush(self) -> None:
         self._tabled()
