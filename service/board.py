@@ -127,6 +127,9 @@ class Board:
             log.warning("%s: its recorded tares cannot be read (%s); replayed without them", self.source, exc)
             return
         self.pipeline.schedule_retares(tares)
+        if "after_reads" in began:
+            log.warning("%s: its first reads are lost (a damaged chunk), and with them its INFO and zeros: served "
+                        "from read %d, where the recording holds those then in force", self.source, began["after_reads"])
         if began.get("info"):
             self.pipeline.interpreter.preset_info(began["info"])
         self.pipeline.reconstructor.preset_baselines(began.get("sensors", []))

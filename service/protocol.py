@@ -17,8 +17,12 @@ a data frame whose board clock does not advance is one of three things. After
 an INFO that the board sent before this scan (a power-up INFO; a reply to
 INFO? or PING comes after the scans it follows), it is the first scan of a
 board that restarted (``board_restarts``; however soon, even if its bytes
-equal an older scan's). Otherwise, when its bytes equal one of the sensor's
-last 256 frames, it is a repeat (dropped, counted in ``duplicates``). Else,
+equal an older scan's). Otherwise, when its bytes equal those of the last
+frame its sensor passed on (or counted late) with its sequence number, it is
+a repeat, however late within the 65 536 scans until that number comes round
+again (dropped, counted in ``duplicates``): a board's run sends one frame per
+(seq, t_us), so one fingerprint per sequence number (512 KiB a sensor) holds
+every frame a repeat can still copy. Else,
 if the clock went back, it is a restart whose INFO was lost (at the same board
 time it is sequenced like any scan). After an INFO stamped before the
 sensor's last scan (a power-up INFO; a reply to INFO? after a reconnect is
@@ -27,8 +31,9 @@ is a restart too (a board that ran for less time than it was off), and so
 is one, after an INFO, whose sequence jumped by twice the scans its clock's
 step holds at 5 000 scans/s (a power-up just after the clock wrapped: the
 clock looks a moment on). A frame whose sequence is the next one (other
-than 0 after 65 535) is in order whatever its clock did: a pause of more
-than half the clock's period (STOP … START) looks like a step back. None of
+than 0 after 65 535) and other bytes than the last with its number is in
+order whatever its clock did: a pause of more than half the clock's period
+(STOP … START) looks like a step back. None of
 these is a gap of 65 000 scans. A frame a link delivered late — one of the
 sensor's last 256 scans that was missing (counted in a gap when the next one
 came), its clock behind by no more than those scans take at 1 Hz, no INFO
@@ -50,6 +55,8 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import NamedTuple
 
+import numpy as np
+
 SYNC = b"\xa5\x5a"
 VERSION = 1
 HEADER_SIZE = 14
@@ -58,7 +65,7 @@ MAX_PAYLOAD = 1024
 BOARD_SENSOR_ID = 255
 SEQ_MODULUS = 1 << 16
 T_US_MODULUS = 1 << 32
-RECENT_SCANS = 256  # per sensor, fingerprints of its last frames, to recognise a repeat
+RECENT_SCANS = 256  # per sensor, how far back a missing scan may still come late, or a scan conflict
 RESTART_JUMP_US = 1_000_000  # a clock that jumps more than this after an INFO, back towards 0
 MAX_SCAN_PERIOD_US = 1_000_000  # RATE is at least 1 Hz
 MIN_SCAN_PERIOD_US = 200  # and at most 5 000 Hz
@@ -171,12 +178,14 @@ def _length_is_valid(frame_type: int, length: int) -> bool:
 
 class _SensorState:
     """Where a sensor's sequence stands: its last frame passed on, the INFO
-    count then, and fingerprints (hashes of the bytes) of its recent frames."""
+    count then, and per sequence number the fingerprint (hash of the bytes)
+    of the last frame with that number."""
 
-    __slots__ = ("seq", "t_us", "infos", "recent", "missing")
+    __slots__ = ("seq", "t_us", "infos", "seen", "missing")
 
     def __init__(self) -> None:
-        self.recent: deque[int] = deque(maxlen=RECENT_SCANS)
+        # calloc'd: pages are touched only as the sequence reaches them; a memoryview sets an item 2x faster than numpy.
+        self.seen = memoryview(np.zeros(SEQ_MODULUS, np.int64))
         self.missing: deque[int] = deque(maxlen=RECENT_SCANS)  # sequence numbers of recent gaps
 
 
@@ -288,19 +297,22 @@ class Decoder:
                 # The board clock only runs forward (wrapping every 71.6 min):
                 # only when it did not is the frame a repeat or a restart.
                 step = (t_us - state.t_us) % T_US_MODULUS
-                if step > _HALF_CLOCK and seq == state.seq + 1:  # (not 0 after 65 535: that may be a restart)
-                    pass  # the next scan after a pause longer than half the clock's period (STOP … START): in order
+                if step > _HALF_CLOCK and seq == state.seq + 1 and state.seen[seq] != fingerprint:
+                    # The next scan after a pause longer than half the clock's period (STOP … START): in order.
+                    # (Not 0 after 65 535: that may be a restart; nor the bytes 65 536 scans back: a repeat.)
+                    pass
                 elif step == 0 or step > _HALF_CLOCK:
                     info_step = (t_us - self._info_t_us) % T_US_MODULUS
                     restart = state.infos != self._infos and 0 < info_step < _HALF_CLOCK
                     if not restart:
-                        if fingerprint in state.recent:
+                        if state.seen[seq] == fingerprint:
                             sensor_counters.duplicates += 1
                             return None
                         behind = (state.seq - seq) % SEQ_MODULUS
                         if step and behind <= RECENT_SCANS and seq in state.missing and \
                                 T_US_MODULUS - step <= behind * MAX_SCAN_PERIOD_US:
                             state.missing.remove(seq)
+                            state.seen[seq] = fingerprint  # so that a repeat of it is one
                             sensor_counters.late_frames += 1  # a scan the gap before missed, delivered late
                             return None
                         restart = step != 0
@@ -335,7 +347,7 @@ class Decoder:
                         if gap <= RECENT_SCANS:  # one of them may still come, late
                             state.missing.extend((state.seq + k) % SEQ_MODULUS for k in range(1, gap + 1))
             state.seq, state.t_us, state.infos = seq, t_us, self._infos
-            state.recent.append(fingerprint)
+            state.seen[seq] = fingerprint
             sensor_counters.frames += 1
         elif frame_type == FrameType.INFO:
             self._infos += 1

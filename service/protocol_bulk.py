@@ -97,7 +97,7 @@ class BulkDecoder(Decoder):
                     if gap <= RECENT_SCANS:  # Decoder._accept's bookkeeping: one of them may still come, late
                         state.missing.extend((state.seq + k) % SEQ_MODULUS for k in range(1, gap + 1))
                 state.seq, state.t_us = seq, t_us
-                state.recent.append(hash(body))
+                state.seen[seq] = hash(body)
                 sensor_counter.frames += 1
                 counters.frames += 1
                 append(_new(Frame, (frame_type, sensor, flags, seq, t_us, body[_PAYLOAD_AT:], gap, False)))

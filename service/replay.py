@@ -16,9 +16,14 @@ bit as recorded. One begun on a running service starts from the zeros then
 in force (recorded as ``/baselines``), not from a tare on whatever load it
 begins with; the full level's tracked state (drift, crosstalk estimates)
 starts afresh, so its forces are close to the recorded ones, not equal.
+One whose first reads were lost (a damaged chunk: with them its INFO, its
+zeros) begins at the first point after them where it recorded the zeros
+and INFO then in force (``/resume``, once a second of reads), as it ran
+from there; the reads in between are skipped.
 """
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import BinaryIO, Protocol
@@ -27,12 +32,15 @@ from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
-from .record.mcap_reader import read_baselines, read_numbered, read_settings, read_tares
+from .record.mcap_reader import read_baselines, read_numbered, read_resumes, read_settings, read_tares
+from .record.resume import resume_point
 from .record.readers import HostTime, is_timed_by_host, timed_chunks
 
 JOIN_READS = 256  # recorded reads of a board joined into one call at full speed
 
 __all__ = ["Pacer", "Writer", "export_line", "replay", "replay_boards"]
+
+log = logging.getLogger(__name__)
 
 
 class Writer(Protocol):
@@ -73,7 +81,8 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
     def pipeline_of(board: str | None) -> Pipeline:
         pipeline = pipelines.get(board)
         if pipeline is None:
-            began = zeros.get(board, {})  # a recording begun mid-stream has no INFO: its name then, its zeros
+            # A recording begun mid-stream (or resumed after its lost start) has no INFO: its name then, its zeros.
+            began = resumed.get(board) or zeros.get(board, {})
             recorded = settings.get(board, {})
             reconstructor = Reconstructor(hold_until_tared=hold, level=level or recorded.get("level", DEFAULT_LEVEL),
                                           mounting=mounting or recorded.get("mounting", "flat"))
@@ -94,6 +103,27 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
     tares = {} if hold else {board: sorted(made, key=lambda tare: tare[0]) for board, made in read_tares(path).items()}
     zeros = {} if hold else read_baselines(path)  # a recording begun on a running service: the zeros it began with
     settings = {} if hold else read_settings(path)
+    resumes = {} if hold else read_resumes(path)
+    resumed: dict[str | None, dict] = {}
+    starts: dict[str | None, int] = {}  # each board's first read replayed
+
+    def start_of(board: str | None, first: int) -> int:
+        """The read a board's replay begins at, its reads before ``first`` lost."""
+        if first == 0:
+            return 0
+        point = resume_point(resumes.get(board, []), first)
+        if point is None:
+            log.warning("%s: board %s's reads before read %d are lost (a damaged chunk), and with them its INFO and "
+                        "zeros: replayed from there, its sensors described by their frames and tared afresh",
+                        path, board or "(the only one)", first)
+            return first
+        resumed[board] = point
+        tares[board] = [tare for tare in tares.get(board, []) if tare[0] >= point["after_reads"]]  # in its zeros
+        log.warning("%s: board %s's reads before read %d are lost (a damaged chunk), and with them its INFO and zeros: "
+                    "replayed from read %d, where the recording holds those then in force (%d reads skipped)",
+                    path, point["board"], first, point["after_reads"], point["after_reads"] - first)
+        return point["after_reads"]
+
     if hold:
         pipeline_of(None)  # a capture without a frame still has its (empty) pipeline
     # Paced, a recording waits by its receive times with the host clock's steps taken out (not what the
@@ -113,6 +143,11 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
 
     try:
         for board, number, t_recorded, chunk in chunks:
+            start = starts.get(board)
+            if start is None:
+                start = starts[board] = start_of(board, number)
+            if number < start:
+                continue
             pacer.wait(pacing_time(board, t_recorded, chunk))
             pending = tares.get(board)
             retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
@@ -132,3 +167,4 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
         if own:
             writer.close()
     return {pipeline.interpreter.name: pipeline for pipeline in pipelines.values()}
+

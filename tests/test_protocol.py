@@ -445,3 +445,57 @@ def test_a_scan_the_link_delivered_late_is_dropped_not_taken_for_a_restart(bulk,
     late = len(order) - len(expected)
     assert (counters.board_restarts, counters.late_frames, counters.duplicates) == (0, late, 0)
     assert counters.missed_frames == late and decoder.counters.as_dict()["sensors"]["1"]["late_frames"] == late
+
+
+def run_of(seqs, value=0):
+    """Scans of quad 1 at 1 kHz, each with its own counts (a repeat is then told by its bytes)."""
+    return [hand_frame(seq=s % 65536, t_us=1000 * (s + 1), payload=quad_payload(value + s % 65536, 2, 3, 4))
+            for s in seqs]
+
+
+@pytest.mark.parametrize("bulk", [False, True])
+@pytest.mark.parametrize("late_by", [1, 256, 257, 5_000, 65_535])
+def test_a_repeat_however_late_is_a_duplicate_not_a_restart(bulk, late_by):
+    """The link delivers scan 100 again ``late_by`` scans after it (past the
+    256 scans a repeat used to be looked for in, it was passed on again as a
+    restart, and the next scan then as a gap of ``late_by`` scans): dropped
+    and counted, the scans after it in order."""
+    scans = run_of(range(100, 100 + late_by + 1))
+    after = run_of(range(101 + late_by, 104 + late_by))
+    decoder = BulkDecoder() if bulk else Decoder()
+    frames = decoder.feed(b"".join(scans) + scans[0] + b"".join(after))
+    assert [f.seq for f in frames] == [s % 65536 for s in range(100, 104 + late_by)]
+    assert not any(f.board_restart or f.gap for f in frames)
+    counters = decoder.counters.sensor(1)
+    assert (counters.duplicates, counters.board_restarts, counters.seq_gaps, counters.missed_frames) == (1, 0, 0, 0)
+
+
+@pytest.mark.parametrize("bulk", [False, True])
+def test_a_late_scan_delivered_again_is_a_duplicate(bulk):
+    """Scan 250 comes late (after 251), then the link delivers it once more:
+    the second copy is a repeat of a scan already seen, not a restart."""
+    decoder = BulkDecoder() if bulk else Decoder()
+    scans = dict(zip(range(200, 253), run_of(range(200, 253))))
+    order = [*range(200, 250), 251, 250, 250, 252]
+    frames = decoder.feed(b"".join(scans[s] for s in order))
+    assert [f.seq for f in frames] == [*range(200, 250), 251, 252] and not any(f.board_restart for f in frames)
+    counters = decoder.counters.sensor(1)
+    assert (counters.late_frames, counters.duplicates, counters.board_restarts) == (1, 1, 0)
+
+
+@pytest.mark.parametrize("bulk", [False, True])
+@pytest.mark.parametrize("with_info", [False, True])
+def test_a_restart_long_after_its_first_run_began_is_a_restart_not_a_late_repeat(bulk, with_info):
+    """A board up for 1 000 scans powers up again: seq and clock from 0, the
+    same (seq, t_us) as its first run's first scans, 1 000 scans later. With
+    its INFO it is a restart even when the bytes are the first run's (a
+    deterministic board); with the INFO lost, new counts tell it."""
+    first = run_of(range(1000))
+    again = run_of(range(5), value=0 if with_info else 7)
+    decoder = BulkDecoder() if bulk else Decoder()
+    frames = [f for f in decoder.feed(b"".join(first) + (info(0) if with_info else b"") + b"".join(again))
+              if f.type == FrameType.QUAD]
+    assert [f.seq for f in frames] == [*range(1000), *range(5)]
+    assert [i for i, f in enumerate(frames) if f.board_restart] == [1000]
+    counters = decoder.counters.sensor(1)
+    assert (counters.board_restarts, counters.duplicates, counters.missed_frames) == (1, 0, 0)

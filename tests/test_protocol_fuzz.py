@@ -55,9 +55,10 @@ def passed_on(expected):
     is dropped. One whose board clock does not run forward from its sensor's
     last one is the first after a restart when an INFO the board sent before
     it came since that last frame; otherwise it is a repeat, dropped, when it
-    equals one of the sensor's last 256 frames, and a restart when the clock
-    went back — unless its sequence is the next one (not 0 after 65 535):
-    then it is in order. After an INFO, a clock that fell back by more than
+    equals the last frame of its sensor passed on (or dropped as late) with
+    its sequence number, however long ago, and a restart when the clock
+    went back — unless its sequence is the next one (not 0 after 65 535)
+    and it is no such repeat: then it is in order. After an INFO, a clock that fell back by more than
     RESTART_JUMP_US (yet "forward" modulo 2^32) is a restart too, and so,
     after an INFO stamped before the sensor's last scan, is a sequence that
     fell back (by half its period or more) while the clock ran on, and a
@@ -79,15 +80,16 @@ def passed_on(expected):
             if sensor in last:
                 last_seq, last_t_us, info_t_us = last[sensor]
                 step = (t_us - last_t_us) % 2**32
-                if step > 2**31 and seq == last_seq + 1:
+                if step > 2**31 and seq == last_seq + 1 and recent[sensor].get(seq) != spec:
                     pass  # the next scan, after a long pause or a clock step back: in order
                 elif step == 0 or step > 2**31:
                     restart = info_t_us is not None and 0 < (t_us - info_t_us) % 2**32 < 2**31
-                    if not restart and spec in recent[sensor][-256:]:
+                    if not restart and recent[sensor].get(seq) == spec:
                         continue
                     if not restart and step and (last_seq - seq) % 2**16 <= 256 and seq in missing[sensor] \
                             and 2**32 - step <= (last_seq - seq) % 2**16 * 1_000_000:
                         missing[sensor].remove(seq)
+                        recent[sensor][seq] = spec
                         continue
                     restart = restart or step != 0
                 elif info_t_us is not None and t_us < last_t_us and step > RESTART_JUMP_US:
@@ -108,7 +110,7 @@ def passed_on(expected):
                         missing[sensor] = (missing[sensor] + [(last_seq + k) % 2**16 for k in range(1, gap + 1)])[-256:]
             missing.setdefault(sensor, [])
             last[sensor] = (seq, t_us, None)
-            recent.setdefault(sensor, []).append(spec)
+            recent.setdefault(sensor, {})[seq] = spec
         elif ftype == FrameType.INFO:
             last = {sid: (s, t, t_us) for sid, (s, t, _) in last.items()}
         kept.append(spec + (gap, restart))

@@ -633,3 +633,68 @@ def test_a_recording_of_boards_at_their_own_levels_is_served_at_each_ones(tmp_pa
     assert cli.main(["replay", str(path), "--serve", "--level", "full"]) == 0  # told: every board so
     assert sorted((s.name, s.level, s.mounting) for s in served[1]) == [("left", "full", "curved"),
                                                                       ("right", "full", "flat")]
+
+
+@pytest.mark.parametrize("level", ["table", "full"])
+def test_a_recording_whose_first_chunk_is_damaged_replays_the_rest_described_and_zeroed_as_recorded(
+        tmp_path, pressed, level, caplog):
+    """The chunk holding a recording's first reads (its INFO, the tare on its
+    first frames) is damaged: the replay described the sensors by their
+    frames under the name "board" and tared them again on whatever load
+    came next (every frame differed). It begins at the first second of
+    reads after the damage, from the INFO and zeros recorded there
+    (/resume): its frames are those of the whole recording's replay, bit
+    for bit at a level without tracked state, within a few mN at the full
+    level (its drift and crosstalk estimates start afresh)."""
+    import logging
+
+    from mcap.reader import make_reader
+
+    from service.protocol import DATA_TYPES, Decoder
+
+    pipeline = Pipeline(Reconstructor(level=level))
+    recorder = Recorder(tmp_path / "run.mcap")
+    recorder.attach(pipeline)
+    for i, chunk in reads(pressed):
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    with open(tmp_path / "run.mcap", "rb") as stream:
+        first = min(make_reader(stream).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    damaged = bytearray((tmp_path / "run.mcap").read_bytes())
+    damaged[first.chunk_start_offset + first.chunk_length - 20] ^= 0xFF  # inside its compressed records
+    (tmp_path / "damaged.mcap").write_bytes(bytes(damaged))
+
+    def replayed(name):
+        out = io.BytesIO()
+        replay(tmp_path / name, out, level=level)
+        return by_frame([orjson.loads(line) for line in out.getvalue().splitlines()])
+
+    whole = replayed("run.mcap")
+    with caplog.at_level(logging.WARNING):
+        rest = replayed("damaged.mcap")
+    assert {d["board"] for d in rest.values()} == {pipeline.interpreter.name} != {"board"}
+    assert not any("taring" in d["flags"] for d in rest.values())
+
+    def values(doc):
+        return np.array([np.nan if v is None else v for v in doc.get("taxels_N", doc.get("fxyz_N"))])
+
+    if level == "table":
+        assert [key for key in rest if rest[key] != whole[key]] == []
+    else:
+        assert max(np.nanmax(np.abs(values(rest[key]) - values(whole[key])), initial=0.0) for key in rest) < 0.005
+    # The frames the reads from 500 on (1.0 s of reads, 2 ms apart) complete are replayed, every one.
+    tail = Decoder().feed(b"".join(chunk for i, chunk in reads(pressed) if i >= 500))
+    assert rest.keys() == {(f.sensor, f.seq, f.t_us) for f in tail if f.type in DATA_TYPES} and len(rest) > 3000
+    assert "replayed from read 500, where the recording holds those then in force" in caplog.text
+    from service.board import Board, BoardSpec  # served live (replay --serve): the same reads, name and zeros
+    from service.calibration.book import CalibrationBook
+    from service.history import Histories
+    from service.sources.protocol_replay import Serial
+
+    board = Board(BoardSpec(f"replay://{tmp_path / 'damaged.mcap'}?speed=max"), CalibrationBook(), Histories())
+    assert board.pipeline.interpreter.board_name == pipeline.interpreter.name
+    assert sorted(board.pipeline.reconstructor._preset) == sorted(pipeline.interpreter.sensors)
+    port, served = Serial(f"replay://{tmp_path / 'damaged.mcap'}?speed=max"), b""
+    while not (port.finished and not port.in_waiting):
+        served += port.read(1 << 16)
+    assert served == b"".join(chunk for i, chunk in reads(pressed) if i >= 500)

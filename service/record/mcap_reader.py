@@ -115,17 +115,30 @@ def read_baselines(path: str | Path) -> dict[str | None, dict]:
     return zeros
 
 
-def read_raw(path: str | Path, board: str | None = None) -> Iterator[tuple[float, bytes]]:
+def read_resumes(path: str | Path) -> dict[str | None, list[dict]]:
+    """Per board (as ``read_boards`` names them), the points a replay can
+    begin at (``/resume``, once a second of reads; none in a recording made
+    before they were recorded): {"after_reads", "board", "sensors" (zeros),
+    "described", "info" (if any)} in read order."""
+    resumes: dict[str | None, list[dict]] = {}
+    for topic, message in _topics_of(path, lambda topic: raw_board(topic, "resume") is not False):
+        resumes.setdefault(raw_board(topic, "resume"), []).append(orjson.loads(message.data))
+    return resumes
+
+
+def read_raw(path: str | Path, board: str | None = None, from_read: int = 0) -> Iterator[tuple[float, bytes]]:
     """(host receive time s, bytes) of every read of one board the recording
-    holds: ``board`` None, the only board's; ValueError naming the boards
-    when there are several and none was chosen, or the chosen one is not there."""
+    holds (from its read ``from_read`` on): ``board`` None, the only board's;
+    ValueError naming the boards when there are several and none was
+    chosen, or the chosen one is not there."""
     check_mcap(path)
     boards = boards_in(path)
     if board is None and len(boards) > 1:
         raise ValueError(f"{path} holds boards {', '.join(map(str, boards))}: choose one")
     if board is not None and board not in boards:
         raise ValueError(f"{path} holds no board {board!r}; it holds {', '.join(map(str, boards)) or 'none'}")
-    return ((t, chunk) for name, t, chunk in read_boards(path) if board is None or name == board)
+    return ((t, chunk) for name, number, t, chunk in read_numbered(path)
+            if (board is None or name == board) and number >= from_read)
 
 
 def read_boards(path: str | Path) -> Iterator[tuple[str | None, float, bytes]]:

@@ -11,7 +11,8 @@ decoder held when the recording began), per sensor
 calibration document, written before the first frame that uses it, so a
 replay reconstructs with it whatever the registry holds then), ``/tare``
 (tactile.Tare: a tare made while recording, with the read before which it
-took effect, so a replay makes it there), ``/settings`` (tactile.Settings: the level and mounting the
+took effect, so a replay makes it there), ``/resume`` (tactile.Resume: once a second of reads, the
+zeros and INFO in force before a read, where a replay whose start was lost to a damaged chunk begins), ``/settings`` (tactile.Settings: the level and mounting the
 board's forces were reconstructed with, which its replay takes). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
 
@@ -55,7 +56,8 @@ class McapLog:
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
                                  ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
                                  ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE),
-                                 ("baselines", schemas.BASELINES), ("settings", schemas.SETTINGS))
+                                 ("baselines", schemas.BASELINES), ("resume", schemas.RESUME),
+                                 ("settings", schemas.SETTINGS))
         }
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -107,6 +109,14 @@ class McapLog:
         began; ``info``: the board's INFO then in force (Interpreter.info_document), if any."""
         self._add(f"{prefix}/baselines", "baselines", t_host,
                   {"board": board, "sensors": sensors, **({"info": info} if info is not None else {})})
+
+    def resume(self, board: str, after_reads: int, sensors: list[dict], info: dict | None, described: list[int],
+               t_host: float, prefix: str = "") -> None:
+        """The zeros (``sensors``, as ``baselines``) and INFO in force before the board's read ``after_reads``
+        of the recording, and the sensors then described (``described``, tared or not)."""
+        self._add(f"{prefix}/resume", "resume", t_host, {"board": board, "after_reads": after_reads, "sensors": sensors,
+                                                         "described": described,
+                                                         **({"info": info} if info is not None else {})})
 
     def settings(self, board: str, level: str, mounting: str, t_host: float, prefix: str = "") -> None:
         """How the board's forces are reconstructed, before its first read."""

@@ -152,8 +152,10 @@ def bulk_chunks(path: str | Path, size: int = BULK_BYTES) -> Iterator[tuple[floa
 READERS = {".mcap": read_raw}  # by suffix; any other file is a raw capture
 
 
-def timed_chunks(path: str | Path, paced: bool = True, board: str | None = None) -> Iterator[tuple[float, bytes]]:
-    """(time s, bytes) of a recording; FileNotFoundError or ValueError (not
+def timed_chunks(path: str | Path, paced: bool = True, board: str | None = None,
+                 from_read: int = 0) -> Iterator[tuple[float, bytes]]:
+    """(time s, bytes) of a recording (an MCAP one from the board's read
+    ``from_read`` on); FileNotFoundError or ValueError (not
     the format its suffix says) at once, before the first chunk is asked for.
     A recording is timed by ``HostTime``; ``paced=False`` (nothing waits
     for the times): by its receive times as recorded, and a raw capture
@@ -165,7 +167,7 @@ def timed_chunks(path: str | Path, paced: bool = True, board: str | None = None)
     if not path.is_file():
         raise FileNotFoundError(f"no such recording: {path}")
     if path.suffix in READERS:
-        chunks = READERS[path.suffix](path, board)
+        chunks = READERS[path.suffix](path, board, from_read)
         if not paced:
             return chunks
         host_time = HostTime()

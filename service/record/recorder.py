@@ -181,6 +181,9 @@ class Recorder:
         elif kind == "settings":
             self._log.settings(pipeline.interpreter.name, *payload, t_host, prefix)
             self.messages += 1
+        elif kind == "resume":
+            self._log.resume(pipeline.interpreter.name, *payload, t_host, prefix)
+            self.messages += 1
         elif kind == "baselines":
             zeros, info = payload
             self._log.baselines(pipeline.interpreter.name, zeros, info, t_host, prefix)
@@ -235,6 +238,11 @@ class _Listeners:
         if t_host - self._last_diag >= DIAGNOSTICS_PERIOD_S:
             self._last_diag = t_host
             put(("diag", (self.pipeline, self.pipeline.diagnostics()), t_host))
+            after_reads = self.pipeline.reads - self._first_read
+            if after_reads:  # where a replay whose start was lost (a damaged chunk) can begin: the first read has it
+                interpreter = self.pipeline.interpreter
+                put(("resume", (self.pipeline, (after_reads, self.pipeline.reconstructor.baselines(),
+                                                interpreter.info_document(), sorted(interpreter.sensors))), t_host))
         put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:

@@ -73,6 +73,17 @@ BASELINES = {
     },
 }
 
+RESUME = {
+    "title": "tactile.Resume",
+    "description": "Once a second of reads, the zeros and INFO in force before the board's read after_reads: where "
+                   "a replay whose first reads were lost (a damaged chunk) begins, as the recording ran from there",
+    "type": "object",
+    "properties": {**BASELINES["properties"],
+                   "after_reads": {"type": "integer", "description": "the board's reads recorded before it"},
+                   "described": {"type": "array", "items": {"type": "integer"},
+                                 "description": "the sensors then described (by INFO or their frames), tared or not"}},
+}
+
 TARE = {
     "title": "tactile.Tare",
     "description": "A tare made while recording (POST /tare): each sensor's baseline restarted before the board's "

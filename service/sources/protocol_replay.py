@@ -18,6 +18,7 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 from ..record.mcap_reader import boards_in, read_baselines, read_numbered, read_tares
 from ..record.pacing import Pacer, parse_speed
 from ..record.readers import is_timed_by_host, timed_chunks
+from ..record.resume import lost_start
 
 
 def parse_replay_url(url: str) -> tuple[str, float, str | None]:
@@ -55,13 +56,24 @@ def _recording(url: str) -> tuple[str, str | None] | None:
     return path, board if board is not None else next(iter(boards_in(path)), None)
 
 
+def recorded_start(url: str) -> tuple[int, dict | None]:
+    """(the URL's recording's first read of its board, the point its replay
+    begins at when the reads before that were lost: record/resume.py)."""
+    recording = _recording(url)
+    return (0, None) if recording is None else lost_start(*recording)
+
+
 def recorded_baselines(url: str) -> dict:
     """How the URL's recording began on a running service: {"board": the
     board's name then, "sensors": the zeros in force (reconstructor.
-    preset_baselines)}; empty for one that began with its stream, or a raw
-    capture."""
+    preset_baselines)}, or where its replay begins after its first reads
+    were lost, with "after_reads"; empty for one that began with its
+    stream, or a raw capture."""
     recording = _recording(url)
-    return {} if recording is None else read_baselines(recording[0]).get(recording[1], {})
+    if recording is None:
+        return {}
+    _, resumed = lost_start(*recording)
+    return resumed or read_baselines(recording[0]).get(recording[1], {})
 
 
 def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
@@ -73,12 +85,14 @@ def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
     if recording is None:
         return []
     path, board = recording
-    tares = sorted(read_tares(path).get(board, []))
+    _, resumed = lost_start(path, board)
+    begin = resumed["after_reads"] if resumed else 0  # an earlier tare is in the zeros it begins with
+    tares = sorted(tare for tare in read_tares(path).get(board, []) if tare[0] >= begin)
     if not tares:
         return []
     out, position = [], 0
     for name, number, _, data in read_numbered(path):
-        if name != board:
+        if name != board or number < begin:
             continue
         while tares and tares[0][0] <= number:
             _, sensor, judge = tares.pop(0)
@@ -102,7 +116,8 @@ class Serial(SerialBase):
             raise SerialException("Port must be configured before it can be used.")
         try:
             path, speed, board = parse_replay_url(self.portstr)
-            self._chunks = iter(timed_chunks(path, board=board))
+            resumed = recorded_start(self.portstr)[1]
+            self._chunks = iter(timed_chunks(path, board=board, from_read=resumed["after_reads"] if resumed else 0))
         except (ValueError, OSError) as exc:
             raise SerialException(str(exc)) from None
         self._pacer = Pacer(speed)
