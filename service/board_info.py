@@ -59,13 +59,14 @@ def _parse_sensor(entry) -> SensorInfo | None:
     return None
 
 
-def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
-    """Parse an INFO payload; raise ValueError naming what is wrong. Any
-    field of the wrong JSON type invalidates the whole INFO (the protocol's
-    rule); unknown keys are ignored. A sensor of a kind this service does not
-    know is left out (logged), so one exotic sensor does not hide the shapes
-    of the others; so is one described twice in two ways (the same
-    description twice counts once)."""
+def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo], dict[int, str]]:
+    """Parse an INFO payload into (its document, its sensors by id, why each
+    sensor it names but leaves undescribed is so, by id); raise ValueError
+    naming what is wrong. Any field of the wrong JSON type invalidates the
+    whole INFO (the protocol's rule); unknown keys are ignored. A sensor of
+    a kind this service does not know is left out (logged), so one exotic
+    sensor does not hide the shapes of the others; so is one described
+    twice in two ways (the same description twice counts once)."""
     try:
         doc = orjson.loads(payload)
     except orjson.JSONDecodeError as exc:
@@ -94,7 +95,9 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo]]:
         sensors.pop(sid, None)
         log.warning("INFO describes sensor %s twice, differently: it is left undescribed (its data frames give "
                     "its shape), the board and its other sensors are taken", sid)
-    return doc, sensors
+    undescribed = {sid: "gives it a kind this service does not know" for sid, info in first.items() if info is None}
+    undescribed.update({sid: "describes it twice, differently" for sid in conflicting})
+    return doc, sensors, undescribed
 
 
 UNNAMED_BOARD = "board"

@@ -36,6 +36,8 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "board": name,
             "id": sid,
             "kind": info.kind,
+            "rows": info.rows,
+            "cols": info.cols,
             "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
             "stale": stale,
             "last_frame_age_s": None if age is None else round(age, 3),
@@ -50,9 +52,45 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
             "below_zero": [] if history is None or stale else history.below_zero(),
+            "faulty_channels": {} if history is None or stale else _faulty(pipeline.reconstructor, sid, history),
+            "info_problem": pipeline.interpreter.undescribed.get(sid),
             **counters["sensors"].get(str(sid), {}),
         }
     return sensors
+
+
+def _faulty(reconstructor, sid: int, history) -> dict[str, list[int]]:
+    """History.faulty, without the channels the tare gave no zero (their own problem line says so)."""
+    unzeroed = set(reconstructor.unzeroed(sid))
+    found = history.faulty(outside=lambda pF: reconstructor.implausible(sid, pF))
+    found = {flag: [c for c in channels if c not in unzeroed] for flag, channels in found.items()}
+    return {flag: channels for flag, channels in found.items() if channels}
+
+
+DEAD_CHANNEL = "a dead channel? Check the sensor's cable and connector"
+# What each persistent flag says of a channel, and what to do about it.
+FAULTS = {
+    "no_reading": ("no reading (an open or shorted channel: null)", DEAD_CHANNEL),
+    "out_of_range": ("an implausible reading (null)", DEAD_CHANNEL),
+    "stale": ("a stale reading (its converter repeats one count: null)", DEAD_CHANNEL),
+    "loaded_at_tare": ("been loaded when tared (its zero is the calibration's C0)",
+                       "lift the load and tare it again (POST /sensors/{board}/{sid}/tare)"),
+}
+
+
+def _fault_lines(sid: str, sensor: dict) -> list[str]:
+    """One problem line per flag of ``faulty_channels``."""
+    noun = "electrodes" if sensor["kind"] == "quad" else "taxels"
+    lines = []
+    for flag, channels in sensor["faulty_channels"].items():
+        if len(channels) == sensor["rows"] * sensor["cols"]:  # one line a dashboard can show, not 64 positions
+            named = f"all {len(channels)} {noun}"
+        else:
+            named = noun + " " + ", ".join(f"{c} (row {c // sensor['cols']}, col {c % sensor['cols']})" for c in channels)
+        what, advice = FAULTS[flag]
+        lines.append(f"sensor {sid}: {named} had {what} in most of the last {BELOW_ZERO_S:g} s's frames: "
+                     + advice.format(board=sensor["board"], sid=sid))
+    return lines
 
 
 def _reconstruction(pipeline) -> dict:
@@ -88,8 +126,9 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
-    problems += [f"sensor {sid} sends data but the board's INFO does not list it (its shape is taken from its frames)"
-                 for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
+    problems += [line for sid, s in sensors.items() if s.get("faulty_channels") for line in _fault_lines(sid, s)]
+    problems += [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
+                 "(its shape is taken from its frames)" for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .readings import SensorInfo
 from .reconstruct import ForceFrame
-from .reconstruct.grid import OUT_OF_RANGE
+from .reconstruct.grid import LOADED_AT_TARE, NO_READING, OUT_OF_RANGE, STALE
 
 # Distinct flag sets seen (a few dozen at most: frame flags are a fixed vocabulary).
 _FLAG_SETS: dict[tuple[str, ...], tuple[str, ...]] = {}
@@ -24,6 +24,8 @@ BELOW_ZERO_S = 1.0
 BELOW_ZERO_SHARE = 0.9  # of the window's frames: noise alone puts a reading below −5σ about once in 3.5 million
 BELOW_ZERO_FRAMES = 20  # fewer frames in the window say nothing
 BELOW_ZERO_POINTS = 100  # frames looked at, evenly spread over the window: /health runs on the event loop
+# A channel null or flagged in more than this share of the window's frames is faulty, not a passing glitch.
+FAULTY_SHARE = 0.5
 
 
 class History:
@@ -117,17 +119,24 @@ class History:
         picks = np.unique(np.linspace(0, len(kept) - 1, max_points).round().astype(int))
         return kept[picks]
 
-    def below_zero(self, seconds: float = BELOW_ZERO_S) -> list[int]:
-        """Outputs (a grid's taxels, row-major; a quad's 2 for Fz) that read
-        below their tared zero — out of range at force 0 (grid.py, quad.py)
-        — in BELOW_ZERO_SHARE of the frames of the last ``seconds`` (at most
-        BELOW_ZERO_POINTS of them, evenly spread), or of the last
-        BELOW_ZERO_FRAMES frames when fewer came in that time."""
+    def recent_slots(self, seconds: float) -> np.ndarray:
+        """Ring slots of the last ``seconds`` (at most BELOW_ZERO_POINTS of
+        them, evenly spread), or of the last BELOW_ZERO_FRAMES frames when
+        fewer came in that time; empty while fewer were ever kept."""
         slots = self.window_slots(seconds, BELOW_ZERO_POINTS)
         if len(slots) < BELOW_ZERO_FRAMES:  # a slow board (RATE under 20 Hz): its last frames, however long they took
             if len(self) < BELOW_ZERO_FRAMES:
-                return []
+                return np.zeros(0, dtype=np.int64)
             slots = (self._count - BELOW_ZERO_FRAMES + np.arange(BELOW_ZERO_FRAMES)) % self.capacity
+        return slots
+
+    def below_zero(self, seconds: float = BELOW_ZERO_S) -> list[int]:
+        """Outputs (a grid's taxels, row-major; a quad's 2 for Fz) that read
+        below their tared zero — out of range at force 0 (grid.py, quad.py)
+        — in BELOW_ZERO_SHARE of the frames ``recent_slots`` picks."""
+        slots = self.recent_slots(seconds)
+        if not len(slots):
+            return []
         if self._taxel_flags is not None:
             below = (self._taxel_flags[slots] & OUT_OF_RANGE != 0) & (self._forces[slots] == 0.0)
         else:
@@ -136,6 +145,39 @@ class History:
         share = np.count_nonzero(below, axis=0) / len(slots)
         hits = np.flatnonzero(share >= BELOW_ZERO_SHARE).tolist()
         return hits if self._taxel_flags is not None else [2] * bool(hits)
+
+    def faulty(self, seconds: float = BELOW_ZERO_S, outside=None) -> dict[str, list[int]]:
+        """Channels (row-major) that were ``no_reading``, ``out_of_range``
+        with no force (not below zero: ``below_zero``), ``stale`` or
+        ``loaded_at_tare`` in more than FAULTY_SHARE of the frames
+        ``recent_slots`` picks, by flag (those with any). A quad's flags are
+        its frame's: its electrodes are told by their readings — a sentinel
+        (NaN) is no reading, a stale one repeats one count, and ``outside``
+        (the median reading (4,) pF → electrodes outside their plausible
+        range) names those out of range."""
+        slots = self.recent_slots(seconds)
+        if not len(slots):
+            return {}
+        if self._taxel_flags is not None:
+            bits = self._taxel_flags[slots]
+            masks = {"no_reading": bits & NO_READING != 0,
+                     "out_of_range": (bits & OUT_OF_RANGE != 0) & np.isnan(self._forces[slots]),
+                     "stale": bits & STALE != 0, "loaded_at_tare": bits & LOADED_AT_TARE != 0}
+            found = {name: np.flatnonzero(np.count_nonzero(mask, axis=0) > FAULTY_SHARE * len(slots)).tolist()
+                     for name, mask in masks.items()}
+            return {name: channels for name, channels in found.items() if channels}
+        raw = self._raw[slots]
+        found = {"no_reading": np.flatnonzero(np.count_nonzero(np.isnan(raw), axis=0) > FAULTY_SHARE * len(slots)).tolist()}
+        for name in ("out_of_range", "stale"):
+            flagged = np.array([name in self._flags[i] for i in slots.tolist()])
+            if np.count_nonzero(flagged) <= FAULTY_SHARE * len(slots):
+                continue
+            readings = raw[flagged]
+            if name == "stale":  # one count all along; a sentinel is no reading, told above
+                found[name] = np.flatnonzero((np.ptp(readings, axis=0) == 0) & ~np.isnan(readings[0])).tolist()
+            elif outside is not None:
+                found[name] = outside(np.median(readings, axis=0))
+        return {name: channels for name, channels in found.items() if channels}
 
     def numbers(self, slots: np.ndarray) -> np.ndarray:
         """Which frame each written slot holds, counted from the ring's first

@@ -56,6 +56,7 @@ class Interpreter:
         self._unannounced: set[int] = set()  # sensors known only from their data frames
         self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._ever_listed: set[int] = set()  # the sensors any INFO described
+        self.undescribed: dict[int, str] = {}  # sensors the INFO in force names but leaves undescribed: why
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
@@ -223,14 +224,14 @@ class Interpreter:
         of a recording begun mid-stream, before its first frame), with the
         shapes of the sensors it did not list."""
         self._on_info(orjson.dumps({k: v for k, v in document.items() if k != "unlisted"}))
-        _, unlisted = parse_info(orjson.dumps({"sensors": document.get("unlisted", [])}))
+        _, unlisted, _ = parse_info(orjson.dumps({"sensors": document.get("unlisted", [])}))
         for sid, info in unlisted.items():
             self.sensors.setdefault(sid, replace(info, board=self.board_name, board_identity=self._swapped_to,
                                                  board_info=self.board))
 
     def _on_info(self, payload: bytes) -> None:
         try:
-            doc, sensors = parse_info(payload)
+            doc, sensors, undescribed = parse_info(payload)
         except ValueError as exc:
             self.rejected["info_invalid"] += 1
             log.warning("ignoring INFO frame: %s", exc)
@@ -253,3 +254,4 @@ class Interpreter:
         self._unannounced.difference_update(sensors)
         self._listed = set(sensors)
         self._ever_listed |= self._listed
+        self.undescribed = undescribed

@@ -77,13 +77,13 @@ def test_bad_info_names_the_problem(payload, message):
 def test_a_sensor_described_twice_neither_loses_the_board_nor_its_other_sensors(caplog):
     """A firmware that lists a sensor twice: the same description counts
     once; two different ones leave that sensor undescribed (its frames give
-    its shape, /health says it is not in the INFO), the rest is taken."""
-    doc, sensors = parse_info(b'{"serial": "TMX-1", "sensors": [{"id": 0, "kind": "quad"}, {"id": 0, "kind": "quad"}, '
+    its shape, /health says the INFO describes it twice), the rest is taken."""
+    doc, sensors, _ = parse_info(b'{"serial": "TMX-1", "sensors": [{"id": 0, "kind": "quad"}, {"id": 0, "kind": "quad"}, '
                               b'{"id": 1, "kind": "grid", "rows": 4, "cols": 4}, {"id": 1, "kind": "grid", "rows": 8, '
                               b'"cols": 8}, {"id": 2, "kind": "grid", "rows": 2, "cols": 2}]}')
     assert doc["serial"] == "TMX-1" and sorted(sensors) == [0, 2] and sensors[0].kind == "quad"
     assert "sensor 1 twice, differently" in caplog.text
-    _, sensors = parse_info(b'{"sensors": [{"id": 1, "kind": "quad"}, {"id": 1, "kind": "thermo"}, {"id": 2, "kind": "quad"}]}')
+    _, sensors, _ = parse_info(b'{"sensors": [{"id": 1, "kind": "quad"}, {"id": 1, "kind": "thermo"}, {"id": 2, "kind": "quad"}]}')
     assert list(sensors) == [2]
     interpreter = Interpreter(clock=lambda: 0.0)
     frames = Decoder().feed(encode_frame(FrameType.INFO, 255, 0, 0, b'{"serial": "TMX-1", "sensors": [{"id": 0, '
@@ -93,7 +93,7 @@ def test_a_sensor_described_twice_neither_loses_the_board_nor_its_other_sensors(
 
 
 def test_unknown_sensor_kind_does_not_hide_the_others():
-    _, sensors = parse_info(b'{"sensors": [{"id": 0, "kind": "thermo"}, {"id": 1, "kind": "grid", "rows": 4, "cols": 4}]}')
+    _, sensors, _ = parse_info(b'{"sensors": [{"id": 0, "kind": "thermo"}, {"id": 1, "kind": "grid", "rows": 4, "cols": 4}]}')
     assert list(sensors) == [1] and sensors[1].rows == 4
 
 

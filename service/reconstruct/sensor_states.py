@@ -139,6 +139,16 @@ class SensorStates:
             return []
         return np.flatnonzero(np.isnan(state.baseline.value)).tolist()
 
+    def implausible(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
+        """Channels whose reading (n,) pF lies outside the plausible ΔC/C0
+        range against their zero (level0.py): read so, they give no force."""
+        state = self._sensors.get(sensor_id)
+        if state is None or not state.baseline.ready:
+            return []
+        low, high = state.processor.plausible
+        relative = capacitance_pF / state.baseline.value - 1.0
+        return np.flatnonzero((relative < low) | (relative > high)).tolist()
+
     def kind(self, sensor_id: int) -> str | None:
         """The sensor's kind ("grid", "quad"); None for a sensor not seen yet."""
         state = self._sensors.get(sensor_id)
