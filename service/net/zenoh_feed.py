@@ -171,6 +171,9 @@ class ZenohFeed:
                 self._shapes[known] = {
                     int(s["id"]): SensorInfo(int(s["id"]), str(s["kind"]), int(s["rows"]), int(s["cols"]), board=board)
                     for s in document.get("sensors", []) if s.get("kind") in ("grid", "quad")}
+                for old in [k for k in self._shapes if k[0] == board and k != known]:  # a restarted service's
+                    del self._shapes[old]
+                    self._asked.pop(old, None)
         info = self._shapes.get(known, {}).get(sensor_id)
         return info if info is not None and info.kind == kind else None
 
