@@ -180,11 +180,11 @@ def _add_gateway(sub) -> None:
     zenoh.add_argument("--zenoh", metavar="CONFIG", help="a Zenoh JSON5 configuration file")
     zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
                        help="connect to this Zenoh endpoint (repeatable; default without CONFIG: tcp/127.0.0.1:7447, "
-                            "a service's default, multicast scouting off)")
+                            "a service's default)")
     zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
                        help="listen on this Zenoh endpoint for services that connect to the gateway (repeatable)")
     zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
-    zenoh.add_argument("--no-multicast", action="store_true", help="turn Zenoh's multicast scouting off")
+    _add_multicast_options(zenoh)
     gateway.set_defaults(func=cmd_gateway)
 
 
@@ -193,13 +193,24 @@ def _add_zenoh_options(parser: argparse.ArgumentParser) -> None:
     zenoh = parser.add_argument_group("zenoh", "publish on Zenoh under tactile/<board>/ (docs/scale.md)")
     zenoh.add_argument("--zenoh", nargs="?", const="", metavar="CONFIG",
                        help="publish on Zenoh; CONFIG: a Zenoh JSON5 configuration file (default: listen on "
-                            "tcp/127.0.0.1:7447 only, multicast scouting off, unless --zenoh-listen is given)")
+                            "tcp/127.0.0.1:7447 only unless --zenoh-listen is given; multicast scouting off unless --multicast)")
     zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
                        help="connect to this Zenoh endpoint, e.g. tcp/192.168.1.10:7447 (repeatable)")
     zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
                        help="listen on this Zenoh endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
     zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
-    zenoh.add_argument("--no-multicast", action="store_true", help="turn Zenoh's multicast scouting off")
+    _add_multicast_options(zenoh)
+
+
+def _add_multicast_options(group) -> None:
+    """Scouting finds and joins every Zenoh peer on the LAN (another lab's
+    boards of the same name among them): off unless asked, or a CONFIG says."""
+    choice = group.add_mutually_exclusive_group()
+    choice.add_argument("--multicast", action="store_true",
+                        help="turn Zenoh's multicast scouting on: find and join the Zenoh peers of the LAN "
+                             "(default: off, unless a CONFIG turns it on)")
+    choice.add_argument("--no-multicast", action="store_true",
+                        help="turn Zenoh's multicast scouting off, even if a CONFIG turns it on")
 
 
 

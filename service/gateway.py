@@ -6,6 +6,8 @@ The gateway holds a RemoteBoard per board heard under ``tactile/`` (up to
 the same fan-out hub as a live service, so the API's routes serve it
 unchanged. It records nothing and changes nothing on a board: each board's
 own service does (its API's mutations answer 409 here, naming the board).
+Two services publishing one board name are not merged: the first heard is
+served, the other refused and the clash reported (net/board_claims.py).
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from .fanout.hub import Hub
 from .health import health_report
 from .history import DEFAULT_BUDGET_BYTES, Histories
 from .latency import LatencyMeter
+from .net.board_claims import BoardClaims
 from .remote_board import RemoteBoard
 from .sched import SliceRequest, current_slice_us
 
@@ -36,6 +39,7 @@ class GatewayService:
         self.calibrations = None
         self.zenoh = None  # the ZenohFeed, from start
         self.boards_refused = 0
+        self.claims = BoardClaims()  # which service each board name is served from
         self._boards: dict[str, RemoteBoard] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
 
@@ -54,7 +58,8 @@ class GatewayService:
         post = self._loop.call_soon_threadsafe
         self.zenoh = ZenohFeed(self.config, deliver=lambda board, frames: post(self._receive, board, frames),
                                on_health=lambda board, doc: post(self._on_health, board, doc),
-                               on_alive=lambda board, alive: post(self._on_alive, board, alive)).start()
+                               on_alive=lambda board, alive: post(self._on_alive, board, alive),
+                               claims=self.claims).start()
 
     def stop(self) -> None:
         if self.zenoh is not None:
@@ -82,7 +87,8 @@ class GatewayService:
             if len(self._boards) >= self.max_boards:
                 self.boards_refused += 1
                 return None
-            board = self._boards[name] = RemoteBoard(name, Histories(self.history_share))
+            board = self._boards[name] = RemoteBoard(name, Histories(self.history_share),
+                                                     publishers=lambda now, n=name: self.claims.report(n, now))
         return board
 
     def _receive(self, name: str, frames: list) -> None:

@@ -6,10 +6,13 @@ network; changes (tare, calibration) belong to the service that reads it and
 are refused naming it. A board is ``lost`` when its service's liveliness
 token goes (the session ended: a stopped or killed service is seen at once),
 or when neither frames nor health came for ``LOST_AFTER_S`` (a network that
-went silent, before Zenoh's lease expires).
+went silent, before Zenoh's lease expires). Liveliness and data are the
+served service's only (``publishers``: net/board_claims.py), so another
+service of the same name neither keeps it alive nor feeds it.
 """
 from __future__ import annotations
 
+from typing import Callable
 
 from .board import RemoteBoardError
 from .history import Histories
@@ -21,8 +24,10 @@ BOARD_FIELDS = ("link", "level", "stream", "rejected", "board_errors", "reconstr
 
 
 class RemoteBoard:
-    def __init__(self, name: str, histories: Histories) -> None:
+    def __init__(self, name: str, histories: Histories, publishers: Callable[[float], dict] | None = None) -> None:
+        """``publishers(now)``: the services publishing this name (BoardClaims.report)."""
         self.name = name
+        self.publishers = publishers
         self.source = f"zenoh:tactile/{name}"
         self.sensors: dict = {}
         self.latest: dict[int, ForceFrame] = {}
@@ -98,7 +103,9 @@ class RemoteBoard:
             sensors[str(sid)] = {**remote, "board": self.name, "id": sid, "kind": info.kind,
                                  "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
                                  "stale": stale, "last_frame_age_s": None if age is None else round(age, 3)}
-        problems = list(document.get("problems") or [])
+        claims = self.publishers(now) if self.publishers is not None else {"publisher": None, "publishers": [],
+                                                                            "problems": []}
+        problems = claims["problems"] + list(document.get("problems") or [])
         part = {key: document.get(key) for key in BOARD_FIELDS}
         if lost:  # the remote service's last word on its link no longer holds
             why = "its service's liveliness token is gone" if self.alive is False else \
@@ -112,7 +119,8 @@ class RemoteBoard:
             "problems": problems,
             **part,
             "sensors": sensors,
-            "remote": {"lost": lost, "alive": self.alive,
+            "remote": {"lost": lost, "alive": self.alive, "publisher": claims["publisher"],
+                       "publishers": claims["publishers"],
                        "lost_for_s": None if self.lost_at is None else round(now - self.lost_at, 3),
                        "last_health_age_s": None if self.health_at is None else round(now - self.health_at, 3),
                        "last_frame_age_s": None if self.frame_at is None else round(now - self.frame_at, 3)},

@@ -264,12 +264,38 @@ def test_without_a_config_or_listen_endpoint_the_service_is_reachable_from_loopb
 
     from service.cli_serve import zenoh_config
 
-    options = dict(zenoh_endpoint=[], zenoh_mode=None, no_multicast=False)
+    options = dict(zenoh_endpoint=[], zenoh_mode=None, multicast=False, no_multicast=False)
     config, note = zenoh_config(Namespace(zenoh="", zenoh_listen=[], **options))
     assert config.get_json("listen/endpoints") == '["tcp/127.0.0.1:7447"]'
     assert config.get_json("scouting/multicast/enabled") == "false" and "127.0.0.1" in note
     config, note = zenoh_config(Namespace(zenoh="", zenoh_listen=["tcp/0.0.0.0:7448"], **options))
     assert config.get_json("listen/endpoints") == '["tcp/0.0.0.0:7448"]' and note is None
+
+
+def test_explicit_endpoints_do_not_turn_multicast_scouting_on(tmp_path):
+    """The documented two-host commands (--zenoh-listen, --zenoh-endpoint) stay
+    off the LAN's other Zenoh networks unless --multicast or a CONFIG asks."""
+    from service.cli import build_parser
+    from service.cli_serve import gateway_zenoh_config, zenoh_config
+
+    def scouting(command: str) -> str:
+        args = build_parser().parse_args(command.split())
+        config, _ = (zenoh_config if args.command == "serve" else gateway_zenoh_config)(args)
+        return config.get_json("scouting/multicast/enabled")
+
+    listen, connect = "--zenoh-listen tcp/0.0.0.0:7448", "--zenoh-endpoint tcp/10.0.0.7:7447"
+    assert scouting(f"serve --zenoh {listen}") == "false"
+    assert scouting(f"serve --zenoh {listen} {connect}") == "false"
+    assert scouting(f"gateway {connect}") == "false"
+    assert scouting(f"gateway {listen}") == "false"
+    assert scouting(f"serve --zenoh {listen} --multicast") == "true"
+    assert scouting(f"gateway {connect} --multicast") == "true"
+    config = tmp_path / "zenoh.json5"
+    config.write_text('{scouting: {multicast: {enabled: true}}}')
+    assert scouting(f"serve --zenoh {config}") == "true"  # a CONFIG says for itself
+    assert scouting(f"gateway --zenoh {config} --no-multicast") == "false"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["gateway", "--multicast", "--no-multicast"])
 
 
 def test_a_second_service_on_the_same_zenoh_port_is_told_how_to_run_beside_the_first():

@@ -7,11 +7,20 @@ Keys (docs/scale.md):
     tactile/<board>/<sensor>/latest   queryable: the latest frame, same encoding
     tactile/<board>/sensors           queryable: the board's INFO and sensor shapes (JSON)
     tactile/<board>/health            the /health document (JSON), once per second
-    tactile/<board>/alive             liveliness token: present while the board's service runs
+    tactile/<board>/alive/<instance>  liveliness token: present while the board's service runs
+
+Every service process is an ``instance`` (``host:pid:random``): its frame and
+health samples carry it as their attachment, its sensors document and its
+liveliness token name it, so that a gateway tells apart two services that
+publish one board name (service/net/board_claims.py).
 """
 from __future__ import annotations
 
 import json
+import os
+import re
+import secrets
+import socket
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -38,8 +47,28 @@ def health_key(board: str) -> str:
     return f"{PREFIX}/{board}/health"
 
 
-def alive_key(board: str) -> str:
-    return f"{PREFIX}/{board}/alive"
+def alive_key(board: str, instance: str = "*") -> str:
+    return f"{PREFIX}/{board}/alive/{instance}"
+
+
+def instance_id() -> str:
+    """This process as a publisher: host, pid and a random part (two
+    containers may share a host name and a pid), safe as a key chunk."""
+    host = re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "host"
+    return f"{host}:{os.getpid()}:{secrets.token_hex(3)}"
+
+
+def instance_of_alive(key) -> str:
+    """The instance an alive token's key names ("" for a service from before
+    instances, whose token is ``tactile/<board>/alive``)."""
+    chunks = str(key).split("/")
+    return chunks[3] if len(chunks) > 3 else ""
+
+
+def instance_of_sample(sample: zenoh.Sample) -> str:
+    """The instance a frame or health sample's attachment names ("" without one)."""
+    attachment = sample.attachment
+    return "" if attachment is None else attachment.to_bytes()[:128].decode("utf-8", "replace")
 
 
 def session_config(file: str | Path | None = None, connect: Iterable[str] = (), listen: Iterable[str] = (),

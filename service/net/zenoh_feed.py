@@ -8,7 +8,10 @@ unknown sensor appears), rebuilds ForceFrames and hands each board's batch
 to ``deliver(board, frames)``; health documents go to
 ``on_health(board, document)``, liveliness to ``on_alive(board, alive)``.
 A sample larger than ``MAX_SAMPLE_BYTES`` is dropped and counted unparsed:
-what comes from the network is never parsed at any size.
+what comes from the network is never parsed at any size. Each sample and
+token names the service instance that sent it; ``claims`` (board_claims.py)
+says which instance each board name is served from, and the others' samples
+are dropped unparsed, their liveliness not passed on.
 """
 from __future__ import annotations
 
@@ -26,7 +29,8 @@ import zenoh
 from ..fanout.encoding import decode_binary
 from ..readings import SensorInfo
 from ..reconstruct import ForceFrame
-from .zenoh_config import PREFIX, open_session, sensors_key
+from .board_claims import BoardClaims
+from .zenoh_config import PREFIX, instance_of_alive, instance_of_sample, open_session, sensors_key
 
 log = logging.getLogger(__name__)
 
@@ -45,17 +49,19 @@ class ZenohFeed:
 
     def __init__(self, config: zenoh.Config, deliver: Callable[[str, list[ForceFrame]], None],
                  on_health: Callable[[str, dict], None], on_alive: Callable[[str, bool], None],
-                 queue_samples: int = QUEUE_SAMPLES) -> None:
+                 queue_samples: int = QUEUE_SAMPLES, claims: BoardClaims | None = None) -> None:
         self.session = open_session(config)
+        self.claims = BoardClaims() if claims is None else claims
         self._deliver, self._on_health, self._on_alive = deliver, on_health, on_alive
         self._samples: deque = deque(maxlen=queue_samples)
         self._ready = threading.Event()
         self._closing = threading.Event()
-        self._shapes: dict[str, dict[int, SensorInfo]] = {}
-        self._asked: dict[str, float] = {}
+        self._shapes: dict[tuple[str, str], dict[int, SensorInfo]] = {}  # by (board, instance)
+        self._asked: dict[tuple[str, str], float] = {}
         self.frames_received = 0
         self.samples_received = 0
         self.samples_dropped = 0  # the queue overflowed: the decoding thread fell behind
+        self.samples_refused = 0  # from an instance publishing a board name another one holds
         self.oversized = 0
         self.undecodable = 0
         self.unshaped_frames = 0  # frames of sensors whose shape the board's service did not tell
@@ -66,7 +72,7 @@ class ZenohFeed:
         self._subscriptions = [
             self.session.declare_subscriber(f"{PREFIX}/*/*/frame", lambda s: self._queue("frame", s)),
             self.session.declare_subscriber(f"{PREFIX}/*/health", lambda s: self._queue("health", s)),
-            self.session.liveliness().declare_subscriber(f"{PREFIX}/*/alive", lambda s: self._queue("alive", s),
+            self.session.liveliness().declare_subscriber(f"{PREFIX}/*/alive/**", lambda s: self._queue("alive", s),
                                                          history=True),
         ]
         self._thread.start()
@@ -83,7 +89,8 @@ class ZenohFeed:
         info = self.session.info
         return {"zid": str(info.zid()), "peers": len(info.peers_zid()), "routers": len(info.routers_zid()),
                 "frames_received": self.frames_received, "samples_received": self.samples_received,
-                "samples_dropped": self.samples_dropped, "oversized": self.oversized,
+                "samples_dropped": self.samples_dropped,
+                "samples_refused": self.samples_refused, "oversized": self.oversized,
                 "undecodable": self.undecodable, "unshaped_frames": self.unshaped_frames}
 
     def _queue(self, kind: str, sample: zenoh.Sample) -> None:
@@ -99,19 +106,25 @@ class ZenohFeed:
             self._ready.clear()
             batches: dict[str, list[ForceFrame]] = {}
             while self._samples:
-                kind, sample, _ = self._samples.popleft()
+                kind, sample, at = self._samples.popleft()
                 try:
-                    self._take(kind, sample, batches)
+                    self._take(kind, sample, at, batches)
                 except Exception as exc:  # noqa: BLE001 — one bad sample never stops the feed
                     self.undecodable += 1
                     log.warning("gateway: a %s sample on %s not taken: %r", kind, sample.key_expr, exc)
             for board, frames in batches.items():
                 self._deliver(board, frames)
 
-    def _take(self, kind: str, sample: zenoh.Sample, batches: dict) -> None:
+    def _take(self, kind: str, sample: zenoh.Sample, at: float, batches: dict) -> None:
         board = _board_of(sample.key_expr)
         if kind == "alive":
-            self._on_alive(board, sample.kind == zenoh.SampleKind.PUT)
+            alive = sample.kind == zenoh.SampleKind.PUT
+            if self.claims.heard(board, instance_of_alive(sample.key_expr), at, alive):
+                self._on_alive(board, alive)
+            return
+        instance = instance_of_sample(sample)
+        if not self.claims.heard(board, instance, at):
+            self.samples_refused += 1
             return
         payload = sample.payload
         if len(payload) > MAX_SAMPLE_BYTES:
@@ -130,29 +143,38 @@ class ZenohFeed:
             return
         frames = batches.setdefault(board, [])
         for record in records:
-            info = self._sensor(board, record["sensor_id"], record["kind"])
+            info = self._sensor(board, instance, record["sensor_id"], record["kind"])
             if info is None:
                 self.unshaped_frames += 1
                 continue
             frames.append(_frame(info, record))
         self.frames_received += len(records)
 
-    def _sensor(self, board: str, sensor_id: int, kind: str) -> SensorInfo | None:
-        """The sensor's shape as its board's service announced it (asked once,
-        again at most every SHAPES_RETRY_S while a sensor is missing)."""
-        info = self._shapes.get(board, {}).get(sensor_id)
+    def _sensor(self, board: str, instance: str, sensor_id: int, kind: str) -> SensorInfo | None:
+        """The sensor's shape as the board's service ``instance`` announced it
+        (asked once, again at most every SHAPES_RETRY_S while a sensor is
+        missing; another instance of that name may answer too, with its own)."""
+        known = (board, instance)
+        info = self._shapes.get(known, {}).get(sensor_id)
         if info is not None and info.kind == kind:
             return info
-        if time.monotonic() - self._asked.get(board, -SHAPES_RETRY_S) < SHAPES_RETRY_S:
+        if time.monotonic() - self._asked.get(known, -SHAPES_RETRY_S) < SHAPES_RETRY_S:
             return None
-        self._asked[board] = time.monotonic()
-        for reply in self.session.get(sensors_key(board), timeout=1.0):
+        self._asked[known] = time.monotonic()
+        # Every service's answer, not one consolidated: the one asked about may not be Zenoh's pick.
+        for reply in self.session.get(sensors_key(board), target=zenoh.QueryTarget.ALL,
+                                      consolidation=zenoh.ConsolidationMode.NONE, timeout=1.0):
             if reply.ok is not None and len(reply.ok.payload) <= MAX_SAMPLE_BYTES:
                 document = orjson.loads(reply.ok.payload.to_bytes())
-                self._shapes[board] = {
+                if not isinstance(document, dict) or document.get("instance", "") != instance:
+                    continue
+                self._shapes[known] = {
                     int(s["id"]): SensorInfo(int(s["id"]), str(s["kind"]), int(s["rows"]), int(s["cols"]), board=board)
                     for s in document.get("sensors", []) if s.get("kind") in ("grid", "quad")}
-        info = self._shapes.get(board, {}).get(sensor_id)
+                for old in [k for k in self._shapes if k[0] == board and k != known]:  # a restarted service's
+                    del self._shapes[old]
+                    self._asked.pop(old, None)
+        info = self._shapes.get(known, {}).get(sensor_id)
         return info if info is not None and info.kind == kind else None
 
 

@@ -10,8 +10,10 @@ thread at 2 000 frames/s: that thread only appends the frames to a bounded
 queue (the oldest are dropped and counted when it is full) and a sender
 thread encodes and puts them. The sender puts a sensor's frames that are
 queued together in one sample (up to ``MAX_RECORDS`` records), so nothing
-waits for a batch, and a late sender catches up with fewer puts. QoS and
-keys: docs/scale.md.
+waits for a batch, and a late sender catches up with fewer puts. Every
+sample's attachment is the process's instance id (zenoh_config.instance_id),
+which its liveliness tokens and sensors documents name too. QoS and keys:
+docs/scale.md.
 """
 from __future__ import annotations
 
@@ -26,7 +28,8 @@ import zenoh
 
 from ..fanout.encoding import DEFAULT_FIELDS, to_binary
 from ..latency import LatencyMeter
-from .zenoh_config import PREFIX, alive_key, frame_key, health_key, latest_key, open_session, sensors_key
+from .zenoh_config import (PREFIX, alive_key, frame_key, health_key, instance_id, latest_key, open_session,
+                           sensors_key)
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +88,8 @@ class ZenohPublisher:
     def __init__(self, config: zenoh.Config, queue_frames: int = QUEUE_FRAMES,
                  health_period_s: float = HEALTH_PERIOD_S) -> None:
         self.session = open_session(config)
+        self.instance = instance_id()
+        self._attachment = zenoh.ZBytes(self.instance.encode())
         self.health_period_s = health_period_s
         self.queue = FrameQueue(queue_frames)
         self.sent_latency = LatencyMeter()  # receive stamp → put on the session, per sample (its oldest frame)
@@ -138,6 +143,7 @@ class ZenohPublisher:
         info = self.session.info
         return {
             "boards": self.boards,
+            "instance": self.instance,
             "zid": str(info.zid()),
             "peers": len(info.peers_zid()),
             "routers": len(info.routers_zid()),
@@ -170,7 +176,7 @@ class ZenohPublisher:
                 self._queryables[name] = [
                     self.session.declare_queryable(latest_key(name, "*"), lambda q, b=board: self._answer_latest(b, q)),
                     self.session.declare_queryable(sensors_key(name), lambda q, b=board: self._answer_sensors(b, q)),
-                    self.session.liveliness().declare_token(alive_key(name))]
+                    self.session.liveliness().declare_token(alive_key(name, self.instance))]
 
     def _publisher(self, board: str, sensor: int) -> zenoh.Publisher:
         key = frame_key(board, sensor)
@@ -200,7 +206,7 @@ class ZenohPublisher:
             for start in range(0, len(group), MAX_RECORDS):
                 sample = group[start:start + MAX_RECORDS]
                 try:
-                    self._publisher(board, sensor).put(encode(sample))
+                    self._publisher(board, sensor).put(encode(sample), attachment=self._attachment)
                 except zenoh.ZError as exc:
                     self.put_errors += 1
                     if self.put_errors == 1:
@@ -225,7 +231,8 @@ class ZenohPublisher:
                     publisher = publishers[name] = self.session.declare_publisher(
                         health_key(name), congestion_control=zenoh.CongestionControl.BLOCK,
                         priority=zenoh.Priority.DATA, reliability=zenoh.Reliability.RELIABLE)
-                publisher.put(orjson.dumps(board_document(report, name), option=orjson.OPT_SERIALIZE_NUMPY))
+                publisher.put(orjson.dumps(board_document(report, name), option=orjson.OPT_SERIALIZE_NUMPY),
+                              attachment=self._attachment)
                 self.health_published += 1
             for gone in set(publishers) - set(report["boards"]):
                 publishers.pop(gone).undeclare()
@@ -235,11 +242,12 @@ class ZenohPublisher:
         for sensor, frame in list(board.pipeline.latest.items()):
             key = latest_key(board.name, sensor)
             if query.key_expr.intersects(key):
-                query.reply(key, encode([frame]))
+                query.reply(key, encode([frame]), attachment=self._attachment)
 
     def _answer_sensors(self, board, query: zenoh.Query) -> None:
         interpreter = board.pipeline.interpreter
-        document = {"board": board.name, "info": {k: v for k, v in interpreter.board.items() if k != "sensors"},
+        document = {"board": board.name, "instance": self.instance,
+                    "info": {k: v for k, v in interpreter.board.items() if k != "sensors"},
                     "sensors": [{"id": s.id, "kind": s.kind, "rows": s.rows, "cols": s.cols}
                                 for s in sorted(interpreter.sensors.values(), key=lambda s: s.id)]}
         query.reply(sensors_key(board.name), orjson.dumps(document))

@@ -1,0 +1,112 @@
+"""Which service a gateway serves each board name from.
+
+Board names are chosen per service (``--source NAME=URL``), so two services,
+on two hosts or one, may publish the same name. Merged, one address would
+carry frames alternating between two physical sensors, and either service's
+death would hide behind the other's liveliness. A gateway instead serves one
+publishing instance per name, the first it hears, and refuses the others'
+frames and health for as long as they live, reporting the clash in /health.
+
+The name passes to another instance only once its holder is gone (its
+liveliness token withdrawn, or nothing heard for ``LOST_AFTER_S``): a
+restarted service. An instance that was refused is never given it: a
+clashing service does not slip in, unannounced, when the other one stops.
+A refused instance that went is still reported for ``FORGET_GONE_S``.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+LOST_AFTER_S = 2.5  # as a RemoteBoard's: health comes every second
+FORGET_GONE_S = 60.0
+MAX_PUBLISHERS = 16  # per name; beyond, the least recently heard refused one is forgotten
+ADVICE = "give each board a unique name (--source NAME=URL, --board-name, or name in robot.toml)"
+
+
+@dataclass
+class Publisher:
+    instance: str  # host:pid:random (zenoh_config.instance_id); "" for a service from before instances
+    heard_at: float
+    alive: bool | None = None  # its liveliness token; None: not heard
+    gone_at: float | None = None
+    refused: bool = False
+    samples_refused: int = 0
+
+    def gone_since(self, now: float) -> float | None:
+        if self.alive is False:
+            return self.gone_at
+        return None if now - self.heard_at <= LOST_AFTER_S else self.heard_at
+
+
+class BoardClaims:
+    """Thread-safe: the gateway's Zenoh thread asks ``heard``, its event loop ``report``."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._publishers: dict[str, dict[str, Publisher]] = {}  # board → instance → publisher
+        self._holders: dict[str, str] = {}  # board → the instance served
+
+    def heard(self, board: str, instance: str, now: float, alive: bool | None = None) -> bool:
+        """A sample (``alive`` None) or a liveliness change of ``instance``
+        under ``board``: True when it is the instance served (after taking
+        the name, if it was free)."""
+        with self._lock:
+            publishers = self._publishers.setdefault(board, {})
+            publisher = publishers.get(instance)
+            if publisher is None:
+                if alive is False:
+                    return False  # the token of one never heard went: nothing to tell
+                publisher = publishers[instance] = Publisher(instance, now)
+                self._forget(board, publishers, now)
+            if alive is None or alive:
+                publisher.heard_at = now
+            if alive is not None:
+                publisher.alive, publisher.gone_at = alive, None if alive else now
+            if self._holders.get(board) == instance:
+                return True
+            holder = publishers.get(self._holders.get(board))
+            if not publisher.refused and alive is not False and (holder is None or holder.gone_since(now) is not None):
+                self._holders[board] = instance
+                return True
+            publisher.refused = True
+            if alive is None:
+                publisher.samples_refused += 1
+            return False
+
+    def report(self, board: str, now: float) -> dict:
+        """The board's ``publisher`` (the instance served), ``publishers``
+        (each with whether it is served, alive and how many samples were
+        refused) and ``problems`` (each clash, naming both instances)."""
+        with self._lock:
+            self._forget(board, self._publishers.get(board, {}), now)
+            publishers = list(self._publishers.get(board, {}).values())
+            holder = self._holders.get(board)
+        problems = []
+        for p in publishers:
+            if not p.refused:
+                continue
+            gone = p.gone_since(now)
+            clash = (f"name clash: board {board} is published by two services, {holder} (served) and {p.instance} "
+                     f"(refused, {p.samples_refused} samples ignored)")
+            if gone is not None:
+                why = "its liveliness token went" if p.alive is False else f"nothing heard for {LOST_AFTER_S} s"
+                clash += f"; {p.instance} is gone ({why}, {now - gone:.1f} s ago)"
+            problems.append(f"{clash}: {ADVICE}")
+        return {"publisher": holder, "problems": problems, "publishers": [
+            {"instance": p.instance, "served": p.instance == holder, "alive": p.alive,
+             "last_heard_age_s": round(now - p.heard_at, 3),
+             "gone_for_s": None if p.gone_since(now) is None else round(now - p.gone_since(now), 3),
+             "samples_refused": p.samples_refused} for p in publishers]}
+
+    def _forget(self, board: str, publishers: dict[str, Publisher], now: float) -> None:
+        """Refused publishers gone for FORGET_GONE_S, and the least recently
+        heard beyond MAX_PUBLISHERS (never the one served)."""
+        holder = self._holders.get(board)
+        for p in list(publishers.values()):
+            gone = p.gone_since(now)
+            if p.instance != holder and gone is not None and now - gone > FORGET_GONE_S:
+                del publishers[p.instance]
+        others = sorted((p for p in publishers.values() if p.instance != holder), key=lambda p: p.heard_at)
+        for p in others[:max(0, len(publishers) - MAX_PUBLISHERS)]:
+            del publishers[p.instance]

@@ -1,0 +1,58 @@
+"""A gateway's choice of the one service it serves a board name from
+(service/net/board_claims.py), on made-up instances and times."""
+from service.net.board_claims import FORGET_GONE_S, LOST_AFTER_S, BoardClaims
+
+A, B, C = "arm-pc:101:aaaaaa", "hand-pc:202:bbbbbb", "arm-pc:303:cccccc"
+
+
+def test_the_first_service_heard_is_served_and_another_of_its_name_refused_and_reported():
+    claims = BoardClaims()
+    assert claims.heard("arm", A, 0.0, alive=True)
+    assert not claims.heard("arm", B, 0.1, alive=True)
+    served = [claims.heard("arm", instance, 0.2 + i * 1e-3) for i, instance in enumerate([A, B] * 5)]
+    assert served == [True, False] * 5
+    assert claims.heard("hand", B, 0.3)  # another name: B's own
+    report = claims.report("arm", 0.5)
+    assert report["publisher"] == A
+    assert [(p["instance"], p["served"], p["samples_refused"]) for p in report["publishers"]] == \
+        [(A, True, 0), (B, False, 5)]
+    [problem] = report["problems"]
+    assert A in problem and B in problem and "--source NAME=URL" in problem and "gone" not in problem
+
+
+def test_the_refused_service_s_death_is_reported_and_forgotten_after_a_while():
+    claims = BoardClaims()
+    claims.heard("arm", A, 0.0, alive=True)
+    claims.heard("arm", B, 0.0, alive=True)
+    assert not claims.heard("arm", B, 1.0, alive=False)  # not the served one's: the board is not told
+    claims.heard("arm", A, 2.9)
+    report = claims.report("arm", 3.0)
+    assert "is gone (its liveliness token went, 2.0 s ago)" in report["problems"][0]
+    assert [p["gone_for_s"] for p in report["publishers"]] == [None, 2.0]
+    claims.heard("arm", A, FORGET_GONE_S)
+    assert claims.report("arm", FORGET_GONE_S + 0.5)["problems"]
+    claims.heard("arm", A, FORGET_GONE_S + 1.5)
+    assert claims.report("arm", FORGET_GONE_S + 1.5) == {
+        "publisher": A, "problems": [], "publishers": [{"instance": A, "served": True, "alive": True,
+                                                         "last_heard_age_s": 0.0, "gone_for_s": None,
+                                                         "samples_refused": 0}]}
+
+
+def test_a_restarted_service_takes_the_name_but_one_that_was_refused_never_does():
+    claims = BoardClaims()
+    claims.heard("arm", A, 0.0, alive=True)
+    claims.heard("arm", B, 0.5)  # refused while A lives
+    assert claims.heard("arm", A, 1.0, alive=False)  # the served one's death: told to the board
+    assert not claims.heard("arm", B, 1.1)  # B does not slip in
+    assert claims.heard("arm", C, 2.0, alive=True)  # A restarted as C: served
+    assert claims.report("arm", 2.0)["publisher"] == C
+    assert not claims.heard("arm", A, 2.1)  # a late sample of A, after C took over
+
+
+def test_a_silent_service_without_a_token_change_releases_its_name_after_the_lost_delay():
+    claims = BoardClaims()
+    claims.heard("arm", A, 0.0, alive=True)
+    assert not claims.heard("arm", C, LOST_AFTER_S - 0.1)  # A still counts: heard within the delay
+    claims2 = BoardClaims()
+    claims2.heard("arm", A, 0.0, alive=True)
+    assert claims2.heard("arm", C, LOST_AFTER_S + 0.1)
