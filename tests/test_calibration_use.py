@@ -430,7 +430,12 @@ def test_a_recording_of_a_sensor_swap_replays_with_each_sensors_calibration_and_
     """The registry calibrates A8-2291, not A8-B (swapped()): the recording
     replays A, B, A with the calibrations and load-cycle counts live used,
     forces bit for bit."""
-    _, registry_path, cid = calibrated
+    _, calibrated_in, cid = calibrated
+    registry_path = tmp_path / "registry.sqlite3"  # A's calibration alone (other tests activate others)
+    with reg.Registry(calibrated_in) as registry:
+        document = registry.get(cid)
+    with reg.Registry(registry_path) as registry:
+        cid = registry.add({k: v for k, v in document.items() if k != "id"}, activate=True)
     captures, raw = swapped(validation)
     pipeline, recorded = recorded_run(raw, tmp_path / "swap.mcap", CalibrationBook(registry_path))
     assert [{line["calibration"] for line in s} for s in segments(recorded, captures)] == \
