@@ -161,8 +161,9 @@ class Board:
             return
         # Only the sensors the board describes now: another board on the link left its own sensors' states behind.
         current = self.pipeline.interpreter.sensors
-        counts = {sid: entry for sid, entry in self.pipeline.reconstructor.cycle_counts().items()
-                  if current.get(sid) == entry[0]}
+        reconstructor = self.pipeline.reconstructor
+        counts = [entry for sid, entry in reconstructor.cycle_counts().items() if current.get(sid) == entry[0]]
+        counts += reconstructor.replacements.left_counts()  # sensors another took the place of: their counts
         try:
             self.calibrations.save_cycles(self.pipeline.interpreter.board, counts)
         except Exception as exc:  # noqa: BLE001 — counts are kept again at the next period

@@ -38,6 +38,9 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "kind": info.kind,
             "rows": info.rows,
             "cols": info.cols,
+            "serial": info.serial,
+            # Another sensor took this address's place ({count, from, to}): re-tared, its own calibration and counts.
+            "replaced": pipeline.reconstructor.replaced(sid),
             "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
             "stale": stale,
             "last_frame_age_s": None if age is None else round(age, 3),
@@ -121,6 +124,10 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"{s['calibration']['id']} at the tare: it is not this sensor's as it is now (made on another "
                  "sensor, or C0 drifted), so loaded taxels cannot be told" for sid, s in sensors.items()
                  if (s.get("calibration") or {}).get("below_c0")]
+    problems += [f"sensor {sid} is another sensor: {s['replaced']['to']} where {s['replaced']['from']} was; re-tared, "
+                 f"it reads with the built-in calibration {s['calibration']['id']}, none being stored for it (calibrate "
+                 f"it, or upload its own: PUT /sensors/{s['board']}/{sid}/calibration)" for sid, s in sensors.items()
+                 if s.get("replaced") and (s.get("calibration") or {}).get("builtin")]
     problems += [f"sensor {sid}: channels {s['unzeroed_channels']} have no zero (no plausible reading while it "
                  "tared, or one far off the sensor's own level: a fault then): their forces are null until they read plausibly" for sid, s in sensors.items() if s.get("unzeroed_channels")]
     problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "

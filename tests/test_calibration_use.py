@@ -43,8 +43,9 @@ def exported(capture_raw: bytes, tmp_path, book: CalibrationBook | None, name: s
     replay(path, out, calibrations=book)
     return [orjson.loads(line) for line in out.getvalue().splitlines()]
 
-def recorded_run(raw: bytes, path, book: CalibrationBook, board_name: str | None = None):
-    """(pipeline, the /forces documents) of ``raw`` recorded live, 4 KiB a read, through ``book``."""
+def recorded_run(raw: bytes, path, book: CalibrationBook, board_name: str | None = None, upload: dict | None = None):
+    """(pipeline, the /forces documents) of ``raw`` recorded live, 4 KiB a read, through ``book``;
+    ``upload`` made for sensor 0 after the first read, as PUT /sensors/0/calibration does."""
     from service.record.mcap_reader import iter_messages
     from service.record.recorder import Recorder
 
@@ -53,6 +54,9 @@ def recorded_run(raw: bytes, path, book: CalibrationBook, board_name: str | None
     recorder.attach(pipeline)
     for k in range(0, len(raw), 4096):
         pipeline.feed(raw[k:k + 4096], 1000.0 + k * 1e-6)
+        if k == 0 and upload is not None:
+            info = pipeline.interpreter.sensors[0]
+            pipeline.set_calibration(info, upload, reg.sensor_identity(pipeline.interpreter.board, info), book.store)
     assert recorder.stop()["error"] is None
     return pipeline, [orjson.loads(m.data) for topic, m in iter_messages(path) if topic.endswith("/forces")]
 
@@ -144,7 +148,7 @@ def test_a_recording_replays_with_its_own_calibration_after_the_registry_changed
     documents, cycles = recorded_calibrations(tmp_path / "run.mcap")
     address = f"{pipeline.interpreter.name}/0"  # the recording names each sensor by its board and id
     assert [(e["id"], e["document"]["id"]) for e in documents[address]] == [(cid, cid)]
-    assert cycles[address] == {cid: [0] * 64}
+    assert cycles[address] == {(documents[address][0]["key"], cid): [0] * 64}
     with reg.Registry(registry_path) as registry:  # another calibration becomes the active one
         other = registry.get(cid)
         other["taxels"]["gain"] = [g * 1.05 for g in other["taxels"]["gain"]]
@@ -363,3 +367,89 @@ def test_a_board_that_named_itself_late_replays_on_the_calibrations_it_ran_on_wh
                         book_from_options(str(elsewhere), None, recording=tmp_path / "run.mcap"), "run.mcap")
     assert [line["calibration"] for line in replayed] == [line["calibration"] for line in recorded]
     assert [line["taxels_N"] for line in replayed] == [line["taxels_N"] for line in recorded]
+
+
+def swapped(validation) -> tuple[list, bytes]:
+    """(captures, their bytes): A8-2291, then (a board restart) another sensor
+    at address 0 — serial A8-B, its own gains, C0 a third above A8-2291's,
+    unloaded at its tare — then A8-2291 again; each presses 12 taxels."""
+    from dataclasses import replace
+
+    from firmware_sim.calibration_session import user_grid_calibration
+
+    other = user_grid_calibration(seed=11)
+    other = validation_capture(replace(other, c0_pF=other.c0_pF * 1.33), rate_hz=RATE_HZ,
+                               **{**SERIALS, "sensor_serial": "A8-B"})
+    captures = [validation, other, validation]
+    return captures, b"".join(capture.raw for capture in captures)
+
+
+def segments(lines: list[dict], captures: list) -> list[list[dict]]:
+    """The grid lines of each capture."""
+    grid = [line for line in lines if line["kind"] == "grid"]
+    cut = np.cumsum([0] + [len(capture.truth_t_us) for capture in captures])
+    return [grid[cut[k]:cut[k + 1]] for k in range(len(captures))]
+
+
+def test_another_sensor_plugged_in_is_tared_on_its_own_calibration_not_the_upload_of_the_one_before(
+        calibrated, validation, tmp_path):
+    """A8-2291's calibration is uploaded (PUT), then A8-B takes its place
+    (swapped()), then A8-2291 again. B was read with A's upload, its tare
+    judged against A's C0: every taxel 'loaded at tare', unloaded ones
+    ~25 N. Now B has the built-in calibration (none stored for it) and its
+    own load-cycle count; A gets its upload back and goes on counting from
+    where it left."""
+    _, registry_path, cid = calibrated
+    with reg.Registry(registry_path) as registry:
+        upload = registry.get(cid)
+    captures, raw = swapped(validation)
+    pipeline, recorded = recorded_run(raw, tmp_path / "swap.mcap", CalibrationBook(tmp_path / "empty.sqlite3"),
+                                      upload=upload)
+    parts = segments(recorded, captures)
+    assert [{line["calibration"] for line in s if "taring" not in line["flags"]} for s in parts] == \
+        [{cid}, {"builtin-table1"}, {cid}]
+    for segment, capture, rms_max in zip(parts, captures, (0.015, 0.5, 0.015)):  # B: table 1 is not its gains
+        error, sigma, truth = errors_and_sigmas([line for line in segment if "taring" not in line["flags"]], capture)
+        unloaded, loaded = truth == 0, truth > 0.05
+        rms = float(np.sqrt(np.mean(error[loaded] ** 2)))
+        print(f"unloaded |F| max {np.abs(error[unloaded]).max():.3f} N; loaded RMS {rms:.3f} N, "
+              f"|z| ≤ 3 on {np.mean(np.abs(error[loaded]) <= 3 * sigma[loaded]):.3f}")
+        assert np.abs(error[unloaded]).max() <= 0.05 and rms <= rms_max
+        assert np.mean(np.abs(error[loaded]) <= 3 * sigma[loaded]) >= 0.95
+        assert not any("loaded_at_tare" in line["flags"] for line in segment)
+    states = pipeline.reconstructor
+    assert states.replaced(0) == {"count": 2, "from": "serial 'A8-B'", "to": "serial 'A8-2291'"}
+    presses = len(validation.presses)  # each a load cycle of its taxel (2–8 N), on A and on B alike
+    assert states.fatigue(0)["cycles_total"] == 2 * presses  # A went on from its own count, not from B's
+    (_, b_calibration, b_counts), = states.replacements.left_counts()
+    assert b_calibration == "builtin-table1" and sum(b_counts) == presses  # B counted its own from 0
+
+
+def test_a_recording_of_a_sensor_swap_replays_with_each_sensors_calibration_and_counts(calibrated, validation,
+                                                                                        tmp_path):
+    """The registry calibrates A8-2291, not A8-B (swapped()): the recording
+    replays A, B, A with the calibrations and load-cycle counts live used,
+    forces bit for bit."""
+    _, calibrated_in, cid = calibrated
+    registry_path = tmp_path / "registry.sqlite3"  # A's calibration alone (other tests activate others)
+    with reg.Registry(calibrated_in) as registry:
+        document = registry.get(cid)
+    with reg.Registry(registry_path) as registry:
+        cid = registry.add({k: v for k, v in document.items() if k != "id"}, activate=True)
+    captures, raw = swapped(validation)
+    pipeline, recorded = recorded_run(raw, tmp_path / "swap.mcap", CalibrationBook(registry_path))
+    assert [{line["calibration"] for line in s} for s in segments(recorded, captures)] == \
+        [{cid}, {"builtin-table1"}, {cid}]
+    presses = len(validation.presses)
+    assert pipeline.reconstructor.fatigue(0)["cycles_total"] == 2 * presses
+    book = book_from_options(str(registry_path), None, recording=tmp_path / "swap.mcap")
+    replayed = Pipeline(Reconstructor(), calibrations=book)
+    frames = [f for k in range(0, len(raw), 4096) for f in replayed.feed(raw[k:k + 4096], 1000.0 + k * 1e-6)]
+    grid = [f for f in frames if f.sensor.kind == "grid"]
+    assert [f.calibration for f in grid] == [line["calibration"] for s in segments(recorded, captures) for line in s]
+    assert all(np.array_equal(f.forces_N, np.array(line["taxels_N"], float), equal_nan=True)
+               for f, line in zip(grid, [line for line in recorded if line["kind"] == "grid"]))
+    assert replayed.reconstructor.fatigue(0) == pipeline.reconstructor.fatigue(0)
+    left = pipeline.reconstructor.replacements.left_counts()  # B's, as it left
+    assert [entry[1:] for entry in replayed.reconstructor.replacements.left_counts()] == [entry[1:] for entry in left]
+    assert left[0][1] == "builtin-table1" and sum(left[0][2]) == presses

@@ -90,7 +90,7 @@ def test_counts_survive_a_restart_and_a_new_calibration_starts_from_zero(tmp_pat
     first.load_cycles = lambda info, cid: book.load_cycles(board, info, cid)
     first.process_many(quad_readings(np.r_[np.zeros(10), presses, np.zeros(5)]))
     assert first.fatigue(1)["cycles_max"] == 25
-    book.save_cycles(board, first.cycle_counts())
+    book.save_cycles(board, list(first.cycle_counts().values()))
 
     second = Reconstructor(tare_frames=10, level="table")  # the service restarted
     second.load_cycles = lambda info, cid: CalibrationBook(registry).load_cycles(board, info, cid)

@@ -331,10 +331,13 @@ function age(seconds) {
 
 // Which calibration a sensor's forces rest on (from /health): a built-in one is
 // the papers', not this sensor's, and says so; loaded taxels and load cycles too.
-function showCalibration(panel, state, fatigue) {
+function showCalibration(panel, state, fatigue, sensor) {
   if (!state) return;
-  const parts = [state.builtin ? `calibration: built-in ${state.id} (the paper's, not measured on this sensor)`
-                               : `calibration ${state.id}${age(state.age_s)}`];
+  const parts = sensor.serial ? [`serial ${sensor.serial}`] : [];
+  // Another sensor plugged in at this address: say so, it is tared and calibrated as a new one.
+  if (sensor.replaced) parts.push(`replaced: ${sensor.replaced.to} where ${sensor.replaced.from} was`);
+  parts.push(state.builtin ? `calibration: built-in ${state.id} (the paper's, not measured on this sensor)`
+                               : `calibration ${state.id}${age(state.age_s)}`);
   if (state.problem) parts.push(`its own could not be used: ${state.problem}`);
   if (state.loaded_at_tare && state.loaded_at_tare.length)
     parts.push(`loaded at tare: taxels ${state.loaded_at_tare.join(", ")} (zero from the calibration)`);
@@ -626,7 +629,7 @@ async function pollHealth() {
   for (const [id, sensor] of Object.entries(health.sensors || {})) {
     const panel = panels.get(sensorKey(sensor.board, sensor.id ?? Number(id)));
     if (!panel) continue;
-    showCalibration(panel, sensor.calibration, sensor.fatigue);
+    showCalibration(panel, sensor.calibration, sensor.fatigue, sensor);
     if (sensor.stale && !panel.frame && !panel.recentAsked) loadRecent(panel);
   }
   const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();

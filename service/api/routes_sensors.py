@@ -52,7 +52,7 @@ def sensors(service: TactileService = Depends(get_service)) -> JSONResponse:
     its board and address (board/id). ``board`` is the INFO of a one-board
     service's board, as before boards were named."""
     boards = service.all_boards
-    listed = [{**info.as_dict(), "board": board.name, "address": f"{board.name}/{sid}", "name": f"{info.kind}{sid}",
+    listed = [{**info.as_dict(), "serial": info.serial, "board": board.name, "address": f"{board.name}/{sid}", "name": f"{info.kind}{sid}",
                "tared": board.tared(sid)}
               for board in boards for sid, info in sorted(board.sensors.items())]
     return JSONResponse({

@@ -19,14 +19,16 @@ In this order, the first that has one for the sensor:
    every frame then names.
 
 Load-cycle counts (reconstruct/fatigue.py) come the same way: a
-recording's counts at its start (never the registry's, in a replay), else the
+recording's counts at its start for the sensor's identity (never the
+registry's, in a replay), else the
 registry's for the sensor and the calibration in use; a live service saves
 them back (``save_cycles``).
 
 A registry that cannot be read is reported (``problems``) and skipped: a
 sensor's data never stops for its calibration. Lookups open the registry
-for the moment of the lookup (sensors are resolved once, when first seen,
-on whatever thread reconstructs them).
+for the moment of the lookup (sensors are resolved when first seen, and
+again when another takes an address's place: reconstruct/identity.py, on
+whatever thread reconstructs them).
 """
 from __future__ import annotations
 
@@ -92,7 +94,7 @@ class CalibrationBook:
 
     def __init__(self, registry_path: str | Path | None = None, pinned: list[dict] | None = None,
                  recorded: dict[int | str, list[dict]] | None = None, use_registry: bool = True,
-                 mounting: str = "flat", recorded_cycles: dict[int | str, dict[str, list[int]]] | None = None,
+                 mounting: str = "flat", recorded_cycles: dict[int | str, dict[tuple, list[int]]] | None = None,
                  replaying: bool = False) -> None:
         """``recorded``, ``recorded_cycles``: a recording's (record/calibrations.py),
         ``replaying`` one: its sensors' load cycles are its own, never the registry's."""
@@ -174,19 +176,22 @@ class CalibrationBook:
     def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None:
         """Load cycles kept for the sensor under this calibration: a
         recording's own at its start, else the registry's (None: none)."""
-        recorded = self._recorded(self.recorded_cycles, info)
-        if recorded is not None and calibration_id in recorded:
-            return recorded[calibration_id]
+        key = sensor_identity(board, info)["key"]
+        recorded = self._recorded(self.recorded_cycles, info) or {}
+        for identity in (key, None):  # None: a recording made before identities were recorded
+            if (identity, calibration_id) in recorded:
+                return recorded[(identity, calibration_id)]
         if not self.use_registry or self.replaying:
             return None  # a replay of a recording counts from what it recorded, never from today's registry
         with Registry(self.registry_path) as registry:
-            return registry.cycles(sensor_identity(board, info)["key"], calibration_id)
+            return registry.cycles(key, calibration_id)
 
-    def save_cycles(self, board: dict, counts: dict) -> None:
-        """``counts``: Reconstructor.cycle_counts(); kept in the registry (a live service's, not a replay's)."""
+    def save_cycles(self, board: dict, counts: list) -> None:
+        """``counts``: [(info, calibration id, counts)] (Reconstructor.cycle_counts()'s values); kept in the
+        registry (a live service's, not a replay's), each sensor under the identity its INFO gave it."""
         if not self.use_registry or self.replaying or not counts:
             return
-        entries = [(sensor_identity(board, info)["key"], cid, values) for info, cid, values in counts.values()]
+        entries = [(sensor_identity(info.board_info or board, info)["key"], cid, values) for info, cid, values in counts]
         with Registry(self.registry_path) as registry:
             registry.save_cycles(entries)
 

@@ -6,7 +6,8 @@ else ``resolve``'s — the registry, a recording, ``--calibration`` chosen
 above this layer — else the built-in one), the processor built on it
 (calibration_upload.py), its tare window and its load-cycle counter with the
 counts kept for that calibration (fatigue.py). A finished tare is judged
-against the calibration's C0 (loaded_tare.py).
+against the calibration's C0 (loaded_tare.py). Another sensor described at
+its address (identity.py) is made anew the same way, as first seen.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from .baseline import Baseline
 from .calibration_upload import own_level, processor_for, tare_window, upload_document
 from .fatigue import CycleCounter
 from .grid import GridProcessor
+from .identity import Replacements, identity
 from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
 from .sensor_calibration import SensorCalibration, builtin, from_document
@@ -56,7 +58,8 @@ class SensorStates:
         self._sensors: dict[int, SensorState] = {}
         self.resolve = resolve
         self.load_cycles: Callable[[SensorInfo, str], list | None] | None = None  # counts kept for (sensor, calibration)
-        self._chosen: dict[int, SensorCalibration] = {}  # set through set_calibration, over ``resolve``
+        self._chosen: dict[tuple, SensorCalibration] = {}  # by identity: set through set_calibration, over ``resolve``
+        self.replacements = Replacements()  # other sensors described at an address, and counts of those that left
         self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
         self._first_judge: dict[int, bool] = {}  # a forced tare recorded before the sensor's first frame (replay)
         self._preset: dict[int, dict] = {}  # zeros a recording began with, for sensors not seen yet (replay)
@@ -82,9 +85,9 @@ class SensorStates:
     def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
         """The quick half: swap the calibration and the sensor's processor in."""
         calibration, processor, document = prepared
-        self._chosen[info.id] = calibration
+        self._chosen[identity(info)] = calibration
         state = self._sensors.get(info.id)
-        if state is not None:
+        if state is not None and identity(state.info) == identity(info):  # not one still reconstructed as another
             self._swap(state, calibration, processor)
         return document
 
@@ -97,8 +100,11 @@ class SensorStates:
         that differs is swapped in, the zero kept (one set through
         ``set_calibration`` stays). At the first reading after the INFO,
         live or in a replay however its reads are joined."""
-        state.info = info
-        if info.id in self._chosen or self.resolve is None:
+        before, state.info = identity(state.info), info
+        if before in self._chosen:  # the INFO only named the board: the sensor is the same
+            self._chosen[identity(info)] = self._chosen.pop(before)
+            return
+        if self.resolve is None:
             return
         calibration = self._calibration_for(info)
         if calibration.id != state.calibration.id:
@@ -166,7 +172,7 @@ class SensorStates:
         """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
         A calibration that does not fit the sensor is set aside, with the
         reason kept, never a reason to stop the sensor's data."""
-        chosen = self._chosen.get(info.id)
+        chosen = self._chosen.get(identity(info))
         if chosen is not None and chosen.kind == info.kind and (
                 chosen.grid is None or (chosen.grid.rows, chosen.grid.cols) == (info.rows, info.cols)):
             return chosen
@@ -184,6 +190,11 @@ class SensorStates:
         if state is not None and state.info is not info and state.info == info:
             self._described_again(state, info)
         if state is None or state.info is not info:
+            change = None if state is None else self.replacements.replaced(state.info, info, state.calibration.id,
+                                                                           state.cycles)
+            if change is not None:
+                log.warning("sensor %d: %s where %s was: tared afresh, its calibration and load cycles looked up "
+                            "for it", info.id, change["to"], change["from"])
             calibration = self._calibration_for(info)
             window = tare_window(info, self.mounting, calibration)
             state = SensorState(info, Baseline(info.channels, self.tare_frames, window,
@@ -237,8 +248,12 @@ class SensorStates:
         self._preset.pop(sensor_id, None)
 
     def _cycles(self, info: SensorInfo, calibration: SensorCalibration) -> CycleCounter:
-        """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0)."""
+        """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0); one
+        back at its address after another sensor was there goes on with its own (identity.py)."""
         n = 1 if info.kind == "quad" else info.channels
+        back = self.replacements.returning(info, calibration.id)
+        if back is not None and back.counts.shape == (n,):
+            return back
         try:
             counts = self.load_cycles(info, calibration.id) if self.load_cycles is not None else None
             counter = CycleCounter(n, counts)
@@ -252,6 +267,10 @@ class SensorStates:
         """{sensor: (info, calibration id, counts)} to keep (the registry)."""
         return {sid: (state.info, state.calibration.id, state.cycles.counts.tolist())
                 for sid, state in list(self._sensors.items()) if state.cycles is not None}
+
+    def replaced(self, sensor_id: int) -> dict | None:
+        """How often another sensor took this address's place, the last time from which to which (identity.py)."""
+        return self.replacements.changes.get(sensor_id)
 
     def cycles_at_start(self, sensor_id: int) -> list[int] | None:
         state = self._sensors.get(sensor_id)

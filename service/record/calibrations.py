@@ -14,20 +14,21 @@ log = logging.getLogger(__name__)
 
 
 def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
-    """({sensor: [entry, …]}, {sensor: {calibration id: load cycles}}):
+    """({sensor: [entry, …]}, {sensor: {(key, calibration id): load cycles}}):
     each calibration a sensor used in the recording, in the order it first
     did (the recorder writes one before the first frame that uses it), as
     {"id", "key": the sensor identity it was chosen under (None in a
     recording made before it was recorded), "document": None for a built-in
-    one}, and the load-cycle counts the sensor had under each when it
-    began using it; each sensor by its address (board/id), or by its id in a
+    one}, and the load-cycle counts the sensor of that identity had under
+    each when it began using it (another sensor plugged in at the address
+    has its own, reconstruct/identity.py); each sensor by its address (board/id), or by its id in a
     recording made before boards were named. The replay reconstructs with
     the first entry of the sensor's identity at the time (calibration/book.py):
     a board whose INFO came after its first frames names its sensors' own
     calibration then, as live; a calibration changed for the same identity
     (an upload) is not replayed, and a warning says so."""
     found: dict[int | str, list[dict]] = {}
-    cycles: dict[int | str, dict[str, list[int]]] = {}
+    cycles: dict[int | str, dict[tuple, list[int]]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
         sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
@@ -37,7 +38,7 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
         if not any((e["id"], e["key"]) == (doc["id"], doc.get("key")) for e in entries):
             entries.append({"id": doc["id"], "key": doc.get("key"), "document": doc.get("document")})
         if doc.get("cycles_at_start") is not None:
-            cycles.setdefault(sensor, {}).setdefault(doc["id"], doc["cycles_at_start"])
+            cycles.setdefault(sensor, {}).setdefault((doc.get("key"), doc["id"]), doc["cycles_at_start"])
     for sensor, entries in found.items():
         differ = [e["id"] for e in _not_replayed(entries)]
         if differ:  # the replay does not make these changes: say so

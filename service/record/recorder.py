@@ -213,7 +213,7 @@ class _Listeners:
         self.recorder = recorder
         self.pipeline = pipeline
         self._last_diag = -math.inf  # the first read's snapshot: the counters the recording began with
-        self._calibrations_written: set[tuple[int, str]] = set()
+        self._calibrations_written: set[tuple] = set()  # (sensor id, serial, board identity, calibration id)
         self._first_read: int | None = None  # the pipeline's number of the first read recorded
 
     def on_bytes(self, data: bytes, t_host: float) -> None:
@@ -264,11 +264,12 @@ class _Listeners:
 
     def _new_calibrations(self, frames: list[ForceFrame]) -> list[tuple]:
         """(sensor, id, document, load cycles it started with) of calibrations
-        these frames are the first to use."""
+        these frames are the first to use, for the sensor they come from."""
         new = []
         reconstructor = self.pipeline.reconstructor
         for frame in frames:
-            key = (frame.sensor.id, frame.calibration)
+            sensor = frame.sensor  # another sensor at the address (its serial, its board): its own entry
+            key = (sensor.id, sensor.serial, sensor.board_identity, frame.calibration)
             if key not in self._calibrations_written:
                 self._calibrations_written.add(key)
                 calibration = reconstructor.calibration(frame.sensor.id)
