@@ -22,7 +22,7 @@ from .baseline import Baseline
 from .calibration_upload import own_level, processor_for, tare_window, upload_document
 from .fatigue import CycleCounter
 from .grid import GridProcessor
-from .identity import Replacements, identity
+from .identity import Replacements, identity, named
 from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
 from .sensor_calibration import SensorCalibration, builtin, from_document
@@ -172,7 +172,11 @@ class SensorStates:
         """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
         A calibration that does not fit the sensor is set aside, with the
         reason kept, never a reason to stop the sensor's data."""
-        chosen = self._chosen.get(identity(info))
+        key = identity(info)
+        if key not in self._chosen and named(info) and ("board", None, info.id) in self._chosen:
+            # set before any INFO named the address: the sensor first named there, as in _described_again
+            self._chosen[key] = self._chosen.pop(("board", None, info.id))
+        chosen = self._chosen.get(key)
         if chosen is not None and chosen.kind == info.kind and (
                 chosen.grid is None or (chosen.grid.rows, chosen.grid.cols) == (info.rows, info.cols)):
             return chosen
