@@ -4,6 +4,7 @@
     python scripts/hardening.py stale       # a board that goes mute: time from its last byte to 'stale'
     python scripts/hardening.py sensors     # data frames of 255 sensors without INFO: sensors kept, RSS (pipeline)
     python scripts/hardening.py body        # a 50 MB request body: time to the refusal, the service's RSS
+    python scripts/hardening.py loris       # 1 100 slow-header connections to a 1024-file service: its fds, /health
 """
 from __future__ import annotations
 
@@ -161,6 +162,49 @@ def body(megabytes: int = 50) -> dict:
     return out
 
 
+def loris(connections: int = 1100, seconds: int = 12, port: int | None = None) -> dict:
+    """``connections`` sockets each sending a header byte a second to a
+    service whose soft open-file limit is 1024 (the usual default): each
+    second, the service's descriptors, how many of the sockets it has
+    closed, and what /health answered on a new connection."""
+    if port is None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+    hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+    resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, 4 * connections), hard))  # ours, for the sockets
+    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (1024, hard)))
+    seconds_out, socks = [], []
+    try:
+        assert wait_for(lambda: _up(port), 20, 0.1)
+        for _ in range(connections):
+            sock = socket.create_connection(("127.0.0.1", port), timeout=2)
+            sock.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-a: ")
+            socks.append(sock)
+        closed: set = set()
+        for second in range(1, seconds + 1):
+            time.sleep(1)
+            for sock in set(socks) - closed:
+                try:
+                    sock.sendall(b"a")
+                except OSError:
+                    closed.add(sock)
+            try:
+                health = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=3))["status"]
+            except OSError as exc:
+                health = repr(exc)[:60]
+            seconds_out.append({"s": second, "service_fds": len(os.listdir(f"/proc/{server.pid}/fd")),
+                                "closed_by_service": len(closed), "health": health})
+    finally:
+        for sock in socks:
+            sock.close()
+        server.terminate()
+        server.wait(10)
+    return {"connections": connections, "soft_limit": 1024, "each_second": seconds_out}
+
+
 def _up(port: int) -> bool:
     try:
         return urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=1).status == 200
@@ -169,7 +213,7 @@ def _up(port: int) -> bool:
 
 
 if __name__ == "__main__":
-    figures = {"reconnect": reconnect, "stale": stale, "sensors": sensors, "body": body}
+    figures = {"reconnect": reconnect, "stale": stale, "sensors": sensors, "body": body, "loris": loris}
     if len(sys.argv) != 2 or sys.argv[1] not in figures:
         sys.exit(__doc__)
     print(json.dumps(figures[sys.argv[1]](), indent=1))

@@ -1,4 +1,5 @@
 """Shared fixtures: a real server on loopback, reading the simulator; a headless browser."""
+import contextlib
 import socket
 import threading
 import time
@@ -17,6 +18,25 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@contextlib.contextmanager
+def live_server(service: TactileService, sensors: int, **options):
+    """A uvicorn.Server serving ``service`` in a thread, as tactile serve
+    serves (SERVER_OPTIONS, ``options`` overriding), started and with a
+    frame of each of its ``sensors``."""
+    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=free_port(), log_level="warning",
+                                           **{**SERVER_OPTIONS, **options}))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not (server.started and len(service.pipeline.latest) == sensors) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    try:
+        yield server
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
 @pytest.fixture(scope="module")
 def served():
     """(base URL, list of tare calls) of a live uvicorn server in a thread."""
@@ -24,16 +44,8 @@ def served():
     tares = []
     original = service.pipeline.tare
     service.pipeline.tare = lambda sensor_id=None, force=False: tares.append(sensor_id) or original(sensor_id, force)
-    server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=free_port(), log_level="warning",
-                                           **SERVER_OPTIONS))  # as tactile serve serves
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not (server.started and len(service.pipeline.latest) == 3) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{server.config.port}/", tares
-    server.should_exit = True
-    thread.join(10)
+    with live_server(service, 3) as server:
+        yield f"http://127.0.0.1:{server.config.port}/", tares
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,12 @@ the tests' live servers share (docs/security.md).
   guard could answer 401. A request past the bound gets 400 at once. The
   REST API's request rate makes h11's cost per request immaterial; the
   streams are WebSockets, framed by the websockets library either way.
+* A request must arrive within 5 s of the connection opening (or of the
+  previous response), and connections are capped below the open-file
+  limit, the oldest one still waiting for its request making way for a
+  new one (connections.py): 1 100 slow-header connections held every
+  descriptor of a 1024-file service, and with them /health, the board's
+  reconnection and the registry.
 * A WebSocket client's messages are read only to notice it leave: at most
   WS_MAX_MESSAGE bytes each (a client sending 16 MB messages slowed every
   stream).
@@ -19,13 +25,15 @@ the tests' live servers share (docs/security.md).
 """
 from __future__ import annotations
 
+from .connections import BACKLOG, BoundedH11
 from .ws_handshake import protocol
 
 MAX_HEADER_BYTES = 8 << 10  # request line + headers still arriving; a browser's are a few KiB
 WS_MAX_MESSAGE = 4 << 10
 
 SERVER_OPTIONS = {
-    "http": "h11",
+    "http": BoundedH11,
+    "backlog": BACKLOG,
     "ws": protocol(),
     "h11_max_incomplete_event_size": MAX_HEADER_BYTES,
     "ws_max_size": WS_MAX_MESSAGE,
