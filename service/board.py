@@ -22,7 +22,7 @@ from .history import Histories
 from .pipeline import Pipeline
 from .readout import DEFAULT_SILENCE_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
-from .sources.protocol_replay import recorded_baselines, recorded_tares
+from .sources.protocol_replay import recorded_baselines, recorded_changes
 
 log = logging.getLogger(__name__)
 
@@ -115,18 +115,20 @@ class Board:
         if self.source.startswith("sim://"):
             self.pipeline.reconstructor.load_cycles = None
         if self.source.startswith("replay://"):
-            self._schedule_recorded_tares()
+            self._schedule_recorded_changes()
 
-    def _schedule_recorded_tares(self) -> None:
+    def _schedule_recorded_changes(self) -> None:
         """A recording served through the live path starts from the zeros it
-        began with and makes its recorded tares again where they were made
-        (else every force after one differs from what was recorded)."""
+        began with and makes its recorded tares and calibrations set again
+        where they were made (else every force after one differs from what
+        was recorded)."""
         try:
-            tares, began = recorded_tares(self.source), recorded_baselines(self.source)
+            changes, began = recorded_changes(self.source), recorded_baselines(self.source)
         except (ValueError, OSError) as exc:
-            log.warning("%s: its recorded tares cannot be read (%s); replayed without them", self.source, exc)
+            log.warning("%s: its recorded tares and calibrations cannot be read (%s); replayed without them",
+                        self.source, exc)
             return
-        self.pipeline.schedule_retares(tares)
+        self.pipeline.schedule_recorded(changes)
         if "after_reads" in began:
             log.warning("%s: its first reads are lost (a damaged chunk), and with them its INFO and zeros: served "
                         "from read %d, where the recording holds those then in force", self.source, began["after_reads"])

@@ -11,6 +11,7 @@ ForceFrames.
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 from collections import deque
@@ -28,9 +29,12 @@ from .reconstruct.sensor_calibration import SensorCalibration
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
 TareListener = Callable[[dict[int, int], bool], None]
+CalibrationListener = Callable[[int, int, dict], None]  # (before read, sensor id, document)
 Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
+
+log = logging.getLogger(__name__)
 
 
 class CalibrationSource(Protocol):
@@ -113,19 +117,20 @@ class Pipeline:
         # Tares, with each sensor's number of the first read they apply to
         # (the recorder writes them there, and a replay makes them there again).
         self.tare_listeners: list[TareListener] = []
+        self.calibration_listeners: list[CalibrationListener] = []  # calibrations set, placed as tares are
         self.reads = 0  # reads decoded so far
         self._reconstructed = {"grid": 0, "other": 0}  # reads whose grids / other sensors are reconstructed
         self._lock = threading.Lock()
         self._deferred: deque[tuple[list[Reading], float, int]] = deque()  # (grids, t_host, reads)
         self.bytes_fed = 0  # bytes of every read so far
-        self._retares: list[tuple[int, int, bool]] = []  # (byte offset, sensor, judged), in order
+        self._recorded: list[tuple[int, int, bool | dict]] = []  # (byte offset, sensor, change), in order
 
-    def schedule_retares(self, tares: list[tuple[int, int, bool]]) -> None:
-        """Recorded tares (byte offset in the stream, sensor id, judged) to
-        make again where the stream reaches each offset: a recording served
-        through the live path (replay:// gives the offsets: its reads are
-        not cut as they were recorded, its bytes are the same)."""
-        self._retares = sorted(tares, key=lambda tare: tare[0])
+    def schedule_recorded(self, changes: list[tuple[int, int, bool | dict]]) -> None:
+        """Recorded changes (byte offset in the stream, sensor id, change:
+        see ``redo``) to make again where the stream reaches each offset: a
+        recording served through the live path (replay:// gives the offsets:
+        its reads are not cut as they were recorded, its bytes are the same)."""
+        self._recorded = sorted(changes, key=lambda change: change[0])
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
         """One read: decoded, reconstructed and published as one batch, in arrival order."""
@@ -150,8 +155,8 @@ class Pipeline:
         together. Each sensor's frames stay in order."""
         if not chunks:
             return
-        if self._retares and self._retares[0][0] < self.bytes_fed + sum(len(data) for data, _ in chunks):
-            self._feed_with_retares(chunks, defer)
+        if self._recorded and self._recorded[0][0] < self.bytes_fed + sum(len(data) for data, _ in chunks):
+            self._feed_with_recorded(chunks, defer)
             return
         t_host = chunks[-1][1]
         cheap, grids = [], []
@@ -166,11 +171,11 @@ class Pipeline:
             with self._lock:
                 self._reconstructed["grid"] += len(chunks)
 
-    def _feed_with_retares(self, chunks: list[tuple[bytes, float]], defer: Defer) -> None:
-        """Reads that reach a scheduled tare's offset: the bytes before it
-        decoded and reconstructed (grids waiting included), the tare made,
+    def _feed_with_recorded(self, chunks: list[tuple[bytes, float]], defer: Defer) -> None:
+        """Reads that reach a scheduled change's offset: the bytes before it
+        decoded and reconstructed (grids waiting included), the change made,
         then the rest."""
-        offset = self._retares[0][0]
+        offset = self._recorded[0][0]
         before, after, position = [], [], self.bytes_fed
         for data, t_host in chunks:
             cut = min(max(offset - position, 0), len(data))
@@ -181,9 +186,9 @@ class Pipeline:
             position += len(data)
         self.feed_reads(before, defer)
         self._reconstruct_deferred()
-        while self._retares and self._retares[0][0] <= self.bytes_fed:
-            _, sensor_id, judge = self._retares.pop(0)
-            self.retare(sensor_id, judge)
+        while self._recorded and self._recorded[0][0] <= self.bytes_fed:
+            _, sensor_id, change = self._recorded.pop(0)
+            self.redo(sensor_id, change)
         self.feed_reads(after, defer)
 
     def finish(self, t_host: float) -> list[ForceFrame]:
@@ -219,6 +224,14 @@ class Pipeline:
                 for listener in self.tare_listeners:
                     listener(before_read, not force)
             return tared
+
+    def redo(self, sensor_id: int, change: bool | dict) -> None:
+        """A change recorded while recording, made again (replay.py): a tare
+        (``change`` its ``judge``) or a calibration set (``change`` its document)."""
+        if isinstance(change, dict):
+            self.recalibrate(sensor_id, change)
+        else:
+            self.retare(sensor_id, change)
 
     def retare(self, sensor_id: int, judge: bool) -> None:
         """A recorded tare made again (replay.py): the sensor's baseline
@@ -257,7 +270,33 @@ class Pipeline:
         if store is not None:
             store(prepared[2])
         with self._lock:
-            return self.reconstructor.apply_calibration(info, prepared)
+            document = self.reconstructor.apply_calibration(info, prepared)
+            self._calibration_set(info, document)
+            return document
+
+    def recalibrate(self, sensor_id: int, document: dict) -> None:
+        """A calibration set while recording, set again (replay.py) for the
+        sensor described at ``sensor_id`` now; one that no longer fits it
+        (the recording's bytes describe it otherwise) is said and skipped."""
+        info = self.interpreter.sensors.get(sensor_id)
+        try:
+            if info is None:
+                raise ValueError("no such sensor described yet")
+            prepared = self.reconstructor.prepare_calibration(info, document)
+        except ValueError as exc:
+            log.warning("sensor %d: the calibration %s set while recording cannot be set again (%s); kept the one "
+                        "in use", sensor_id, document.get("id"), exc)
+            return
+        with self._lock:
+            self._calibration_set(info, self.reconstructor.apply_calibration(info, prepared))
+
+    def _calibration_set(self, info: SensorInfo, document: dict) -> None:
+        """Tell the calibration listeners (a recording) where it applies from:
+        the first read whose frames of the sensor's kind were not reconstructed yet."""
+        if self.calibration_listeners:
+            before_read = self._reconstructed["grid" if info.kind == "grid" else "other"]
+            for listener in self.calibration_listeners:
+                listener(before_read, info.id, document)
 
     def diagnostics(self) -> dict:
         """The decoder's counters and the interpreter's rejections (a recording's /diagnostics)."""

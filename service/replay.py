@@ -4,13 +4,13 @@ A recording is a sequence of timed byte chunks (record/readers.py); they go
 through the same pipeline as live data, paced by a ``Pacer`` (injectable
 clock, any speed, or as fast as possible). As fast as possible, the bytes
 go in large chunks (a raw capture is not decoded just to time them; a
-recording's reads are joined, JOIN_READS a call, split at its tares) and
+recording's reads are joined, JOIN_READS a call, split at its tares and calibrations set) and
 the pipeline keeps no history: an export needs neither, and the forces do
 not depend on how the stream is cut.
 A raw capture's readings are held until each sensor's auto-tare is
 complete, so every exported frame has forces. A recording is replayed as it
 ran live (the tare window null and flagged), with the tares made while it
-was recorded made again before the same read, and at the level and mounting
+was recorded made again before the same read, and so the calibrations set then (uploads), and at the level and mounting
 it was recorded with (unless told otherwise), so its forces come out bit for
 bit as recorded. One begun on a running service starts from the zeros then
 in force (recorded as ``/baselines``), not from a tare on whatever load it
@@ -32,7 +32,7 @@ from .pipeline import Pipeline
 from .reconstruct import DEFAULT_LEVEL, ForceFrame, Reconstructor
 from .record.export import JsonLines, export_line
 from .record.pacing import Pacer
-from .record.mcap_reader import read_baselines, read_numbered, read_resumes, read_settings, read_tares
+from .record.mcap_reader import read_baselines, read_numbered, read_changes, read_resumes, read_settings
 from .record.resume import resume_point
 from .record.readers import HostTime, is_timed_by_host, timed_chunks
 
@@ -100,7 +100,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
     paced = not math.isinf(pacer.speed)
     # A raw capture's reads are not numbered (no tares to place among them).
     chunks = read_numbered(path) if not hold else ((None, 0, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
-    tares = {} if hold else {board: sorted(made, key=lambda tare: tare[0]) for board, made in read_tares(path).items()}
+    changes = {} if hold else read_changes(path)  # tares and calibrations set while recording, where they were
     zeros = {} if hold else read_baselines(path)  # a recording begun on a running service: the zeros it began with
     settings = {} if hold else read_settings(path)
     resumes = {} if hold else read_resumes(path)
@@ -118,7 +118,10 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
                         path, board or "(the only one)", first)
             return first
         resumed[board] = point
-        tares[board] = [tare for tare in tares.get(board, []) if tare[0] >= point["after_reads"]]  # in its zeros
+        # An earlier tare is in its zeros; an earlier calibration set is set again where it begins.
+        begin = point["after_reads"]
+        changes[board] = [(max(n, begin), sensor, change) for n, sensor, change in changes.get(board, [])
+                          if n >= begin or isinstance(change, dict)]
         log.warning("%s: board %s's reads before read %d are lost (a damaged chunk), and with them its INFO and zeros: "
                     "replayed from read %d, where the recording holds those then in force (%d reads skipped)",
                     path, point["board"], first, point["after_reads"], point["after_reads"] - first)
@@ -131,7 +134,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
     pacing_time = HostTime() if paced and not hold else lambda board, t, chunk: t
     t_last = 0.0
     # At full speed a recording's reads (a frame or two per sensor each, as the live port gave them) are joined,
-    # a board's consecutive reads up to JOIN_READS, never across a tare made while recording (a raw capture's
+    # a board's consecutive reads up to JOIN_READS, never across a change made while recording (a raw capture's
     # chunks are a megabyte already).
     joined: list[tuple[bytes, float]] = []
     joined_board: str | None = None
@@ -149,14 +152,14 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
             if number < start:
                 continue
             pacer.wait(pacing_time(board, t_recorded, chunk))
-            pending = tares.get(board)
-            retare = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
-            if paced or hold or board != joined_board or retare or len(joined) >= JOIN_READS:
+            pending = changes.get(board)
+            redo = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
+            if paced or hold or board != joined_board or redo or len(joined) >= JOIN_READS:
                 feed_joined()
             pipeline = pipeline_of(board)
             while pending and pending[0][0] <= number:
-                _, sensor_id, judge = pending.pop(0)
-                pipeline.retare(sensor_id, judge)
+                _, sensor_id, change = pending.pop(0)
+                pipeline.redo(sensor_id, change)
             joined.append((chunk, t_recorded))
             joined_board = board
             t_last = t_recorded

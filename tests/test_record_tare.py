@@ -9,7 +9,7 @@ import pytest
 from firmware_sim.board import BoardConfig, capture
 from service.pipeline import Pipeline
 from service.reconstruct import Reconstructor
-from service.record.mcap_reader import iter_messages, read_tares
+from service.record.mcap_reader import iter_messages, read_changes
 from service.record.recorder import Recorder
 from service.replay import replay
 
@@ -60,7 +60,7 @@ def test_a_tare_in_the_middle_of_a_recording_replays_where_it_was_made(tmp_path,
         pipeline.feed(chunk, t)
         t += 0.002
     recorder.stop()
-    made = read_tares(tmp_path / "run.mcap")[None]
+    made = read_changes(tmp_path / "run.mcap")[None]
     assert [(sensor, judge) for _, sensor, judge in made] == [(0, False), (1, False), (1, True)]
     live, again = by_frame(recorded_forces(tmp_path / "run.mcap")), by_frame(replayed_forces(tmp_path / "run.mcap"))
     assert live.keys() == again.keys() and len(live) > 4000
@@ -93,7 +93,7 @@ def test_a_tare_while_grids_wait_for_the_loop_applies_to_them_in_the_replay_too(
     while waiting:
         waiting.pop(0)()
     recorder.stop()
-    made = read_tares(tmp_path / "run.mcap")[None]
+    made = read_changes(tmp_path / "run.mcap")[None]
     by_sensor = {}
     for after, sensor, _ in made:
         by_sensor.setdefault(sensor, []).append(after)
@@ -114,30 +114,9 @@ def test_without_its_tares_the_replay_would_differ(tmp_path, pressed, monkeypatc
             pipeline.tare(force=True)
         pipeline.feed(chunk, 1000.0 + 0.002 * i)
     recorder.stop()
-    monkeypatch.setattr("service.replay.read_tares", lambda path: {})
+    monkeypatch.setattr("service.replay.read_changes", lambda path: {})
     live, again = by_frame(recorded_forces(tmp_path / "run.mcap")), by_frame(replayed_forces(tmp_path / "run.mcap"))
     assert sum(live[key] != again[key] for key in live) > 500
-
-
-def test_a_calibration_changed_while_recording_is_said_by_the_replay(tmp_path, pressed, caplog):
-    """Not replayed (the replay keeps each sensor's first calibration): a
-    warning says so, naming the sensor and both calibrations."""
-    import logging
-
-    from service.record.calibrations import recorded_calibrations
-
-    pipeline = Pipeline(Reconstructor())
-    recorder = Recorder(tmp_path / "run.mcap")
-    recorder.attach(pipeline)
-    for i, chunk in reads(pressed):
-        if i == 400:
-            pipeline.set_calibration(pipeline.interpreter.sensors[1],
-                                     {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]})
-        pipeline.feed(chunk, 1000.0 + 0.002 * i)
-    recorder.stop()
-    with caplog.at_level(logging.WARNING, logger="service.record.calibrations"):
-        recorded_calibrations(tmp_path / "run.mcap")
-    assert f"sensor {pipeline.interpreter.name}/1 changed calibration while recording (builtin-fits34-35 → " in caplog.text
 
 
 def test_a_board_restarted_with_another_shape_is_no_calibration_change_the_replay_misses(tmp_path, caplog):
@@ -230,13 +209,13 @@ def served_forces(path, read_size: int, schedule: bool = True, merge: int = 1):
     """The recording through the live path's pieces: its replay:// port read
     ``read_size`` bytes at a time (not as recorded), ``merge`` port reads
     fed to a pipeline as one (as a serial read takes what has piled up), as
-    the loop feeds one, with the tares recorded_tares gives scheduled."""
-    from service.sources.protocol_replay import Serial, recorded_tares
+    the loop feeds one, with the tares recorded_changes gives scheduled."""
+    from service.sources.protocol_replay import Serial, recorded_changes
 
     url = f"replay://{path}?speed=max"
     pipeline = Pipeline(Reconstructor())
     if schedule:
-        pipeline.schedule_retares(recorded_tares(url))
+        pipeline.schedule_recorded(recorded_changes(url))
     frames = []
     pipeline.listeners.append(frames.extend)
     port = Serial(url)  # opened; no timeout: an empty read at the end
@@ -279,9 +258,9 @@ def test_a_board_serving_a_recording_schedules_its_tares(tmp_path, pressed):
     recorded(tmp_path / "run.mcap", pressed, {400: 1})
     board = Board(BoardSpec(f"replay://{tmp_path / 'run.mcap'}?speed=max"), CalibrationBook(), Histories())
     offset = sum(len(chunk) for i, chunk in reads(pressed) if i < 400)
-    assert board.pipeline._retares == [(offset, 1, False)] and board.pipeline.interpreter.board_name is None
+    assert board.pipeline._recorded == [(offset, 1, False)] and board.pipeline.interpreter.board_name is None
     (tmp_path / "run.bin").write_bytes(pressed)
-    assert Board(BoardSpec(f"replay://{tmp_path / 'run.bin'}"), CalibrationBook(), Histories()).pipeline._retares == []
+    assert Board(BoardSpec(f"replay://{tmp_path / 'run.bin'}"), CalibrationBook(), Histories()).pipeline._recorded == []
 
 
 @pytest.mark.parametrize("level", ["table", "full"])
@@ -340,10 +319,10 @@ def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path
     served = Pipeline(Reconstructor())
     again = Recorder(tmp_path / "second.mcap")
     again.attach(served)
-    from service.sources.protocol_replay import Serial, recorded_tares
+    from service.sources.protocol_replay import Serial, recorded_changes
 
     url = f"replay://{tmp_path / 'first.mcap'}?speed=max"
-    served.schedule_retares(recorded_tares(url))
+    served.schedule_recorded(recorded_changes(url))
     port = Serial(url)
     t = 1000.0
     while chunk := port.read(4096):
@@ -351,7 +330,7 @@ def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path
         t += 0.002
     port.close()
     again.stop()
-    assert [(sensor, judge) for _, sensor, judge in read_tares(tmp_path / "second.mcap")[None]] == [(1, False)]
+    assert [(sensor, judge) for _, sensor, judge in read_changes(tmp_path / "second.mcap")[None]] == [(1, False)]
     first, second = by_frame(recorded_forces(tmp_path / "first.mcap")), by_frame(replayed_forces(tmp_path / "second.mcap"))
     assert [key for key in first if first[key].get("taxels_N", first[key].get("fxyz_N")) !=
             second[key].get("taxels_N", second[key].get("fxyz_N"))] == []

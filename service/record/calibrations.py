@@ -8,7 +8,7 @@ from pathlib import Path
 import orjson
 
 from ..physics.paper_data import BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS, TABLE1_ROWS
-from .mcap_reader import iter_messages
+from .mcap_reader import iter_messages, read_calibrations_set
 
 log = logging.getLogger(__name__)
 
@@ -25,8 +25,9 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
     recording made before boards were named. The replay reconstructs with
     the first entry of the sensor's identity at the time (calibration/book.py):
     a board whose INFO came after its first frames names its sensors' own
-    calibration then, as live; a calibration changed for the same identity
-    (an upload) is not replayed, and a warning says so."""
+    calibration then, as live; a calibration set for the same identity
+    while recording (an upload) is set again where it was (replay.py), in a
+    recording made before those were recorded it is not, and a warning says so."""
     found: dict[int | str, list[dict]] = {}
     cycles: dict[int | str, dict[tuple, list[int]]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
@@ -39,8 +40,9 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
             entries.append({"id": doc["id"], "key": doc.get("key"), "document": doc.get("document")})
         if doc.get("cycles_at_start") is not None:
             cycles.setdefault(sensor, {}).setdefault((doc.get("key"), doc["id"]), doc["cycles_at_start"])
+    replayed = read_calibrations_set(path)  # set again by the replay where they were set (replay.py)
     for sensor, entries in found.items():
-        differ = [e["id"] for e in _not_replayed(entries)]
+        differ = [e["id"] for e in _not_replayed(entries) if (sensor, e["id"]) not in replayed]
         if differ:  # the replay does not make these changes: say so
             log.warning("%s: sensor %s changed calibration while recording (%s); the replay reconstructs with the "
                         "first throughout (a built-in one where the first does not fit the sensor's shape), so its "

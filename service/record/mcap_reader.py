@@ -76,16 +76,36 @@ def raw_board(topic: str, channel: str = "raw") -> str | None | bool:
     return parts[1] if len(parts) == 3 and parts[0] == "" and parts[2] == channel else False
 
 
-def read_tares(path: str | Path) -> dict[str | None, list[tuple[int, int, bool]]]:
-    """The tares made while recording, per board (as ``read_boards`` names
-    them): (reads of that board before the tare took effect, sensor id,
-    judged) in the order they were made."""
-    tares: dict[str | None, list[tuple[int, int, bool]]] = {}
-    for topic, message in _topics_of(path, lambda topic: raw_board(topic, "tare") is not False):
+def read_changes(path: str | Path) -> dict[str | None, list[tuple[int, int, bool | dict]]]:
+    """What was changed while recording, per board (as ``read_boards`` names
+    them), to make again where it was made (Pipeline.redo): (reads of that
+    board before it took effect, sensor id, change: a tare's ``judge``, or
+    the document of a calibration set), by read and in the order made."""
+    changes: dict[str | None, list[tuple[int, int, bool | dict]]] = {}
+
+    def recorded(topic: str) -> bool:
+        return raw_board(topic, "tare") is not False or raw_board(topic, "calibration_set") is not False
+
+    for topic, message in _topics_of(path, recorded):
         doc = orjson.loads(message.data)
-        tares.setdefault(raw_board(topic, "tare"), []).extend(
-            (int(s["after_reads"]), int(s["sensor"]), bool(doc["judge"])) for s in doc["sensors"])
-    return tares
+        if topic.endswith("/tare"):
+            changes.setdefault(raw_board(topic, "tare"), []).extend(
+                (int(s["after_reads"]), int(s["sensor"]), bool(doc["judge"])) for s in doc["sensors"])
+        else:
+            changes.setdefault(raw_board(topic, "calibration_set"), []).append(
+                (int(doc["after_reads"]), int(doc["sensor"]), doc["document"]))
+    return {board: sorted(made, key=lambda change: change[0]) for board, made in changes.items()}
+
+
+def read_calibrations_set(path: str | Path) -> set[tuple[int | str, str]]:
+    """(sensor address: board/id, or the id in a recording of an unnamed
+    board; calibration id) of each calibration set while recording."""
+    found = set()
+    for _, message in _topics_of(path, lambda topic: raw_board(topic, "calibration_set") is not False):
+        doc = orjson.loads(message.data)
+        found.add((f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"]),
+                   doc["document"]["id"]))
+    return found
 
 
 def read_settings(path: str | Path) -> dict[str | None, dict]:

@@ -11,7 +11,8 @@ decoder held when the recording began), per sensor
 calibration document, written before the first frame that uses it, so a
 replay reconstructs with it whatever the registry holds then), ``/tare``
 (tactile.Tare: a tare made while recording, with the read before which it
-took effect, so a replay makes it there), ``/resume`` (tactile.Resume: once a second of reads, the
+took effect, so a replay makes it there), ``/calibration_set`` (tactile.CalibrationSet: a calibration
+set while recording, an upload, likewise placed), ``/resume`` (tactile.Resume: once a second of reads, the
 zeros and INFO in force before a read, where a replay whose start was lost to a damaged chunk begins), ``/settings`` (tactile.Settings: the level and mounting the
 board's forces were reconstructed with, which its replay takes). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
@@ -56,6 +57,7 @@ class McapLog:
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
                                  ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
                                  ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE),
+                                 ("calibration_set", schemas.CALIBRATION_SET),
                                  ("baselines", schemas.BASELINES), ("resume", schemas.RESUME),
                                  ("settings", schemas.SETTINGS))
         }
@@ -103,6 +105,12 @@ class McapLog:
         self._add(f"{prefix}/tare", "tare", t_host, {
             "board": board, "judge": judge,
             "sensors": [{"sensor": sid, "after_reads": n} for sid, n in sorted(after_reads.items())]})
+
+    def calibration_set(self, board: str, sensor: int, after_reads: int, document: dict, t_host: float,
+                        prefix: str = "") -> None:
+        """A calibration set (an upload) for ``sensor`` before the board's read ``after_reads`` of the recording."""
+        self._add(f"{prefix}/calibration_set", "calibration_set", t_host,
+                  {"board": board, "sensor": sensor, "after_reads": after_reads, "document": document})
 
     def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "") -> None:
         """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded, …} when the recording

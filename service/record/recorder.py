@@ -79,6 +79,7 @@ class Recorder:
         pipeline.byte_listeners = [*pipeline.byte_listeners, listeners.on_bytes]
         pipeline.listeners = [*pipeline.listeners, listeners.on_frames]
         pipeline.tare_listeners = [*pipeline.tare_listeners, listeners.on_tare]
+        pipeline.calibration_listeners = [*pipeline.calibration_listeners, listeners.on_calibration]
 
     def detach(self) -> None:
         """Stop listening, each pipeline's diagnostics written as they stand
@@ -93,6 +94,8 @@ class Recorder:
                 pipeline.byte_listeners = [f for f in pipeline.byte_listeners if f != listeners.on_bytes]
                 pipeline.listeners = [f for f in pipeline.listeners if f != listeners.on_frames]
                 pipeline.tare_listeners = [f for f in pipeline.tare_listeners if f != listeners.on_tare]
+                pipeline.calibration_listeners = [f for f in pipeline.calibration_listeners
+                                                  if f != listeners.on_calibration]
                 if self.active:
                     self._queue.put(("diag", (pipeline, pipeline.diagnostics()), time.time()))
 
@@ -178,6 +181,9 @@ class Recorder:
             after_reads, judge = payload
             self._log.tare(pipeline.interpreter.name, after_reads, judge, t_host, prefix)
             self.messages += 1
+        elif kind == "calibration_set":
+            self._log.calibration_set(pipeline.interpreter.name, *payload, t_host, prefix)
+            self.messages += 1
         elif kind == "settings":
             self._log.settings(pipeline.interpreter.name, *payload, t_host, prefix)
             self.messages += 1
@@ -252,6 +258,13 @@ class _Listeners:
             first = self._first_read if self._first_read is not None else self.pipeline.reads
             after_reads = {sid: max(0, n - first) for sid, n in before_read.items()}
             self.recorder._queue.put(("tare", (self.pipeline, (after_reads, judge)), time.time()))
+
+    def on_calibration(self, before_read: int, sensor_id: int, document: dict) -> None:
+        """A calibration set (an upload), from the pipeline's read ``before_read`` on."""
+        if self.recorder.active:
+            first = self._first_read if self._first_read is not None else self.pipeline.reads
+            self.recorder._queue.put(("calibration_set", (self.pipeline, (sensor_id, max(0, before_read - first),
+                                                                          document)), time.time()))
 
     def on_frames(self, frames: list[ForceFrame]) -> None:
         recorder = self.recorder

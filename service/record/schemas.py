@@ -99,6 +99,20 @@ TARE = {
     },
 }
 
+CALIBRATION_SET = {
+    "title": "tactile.CalibrationSet",
+    "description": "A calibration set while recording (PUT /sensors/.../calibration): the sensor reconstructed "
+                   "with it from the board's read after_reads (counted from the recording's first read of that "
+                   "board), where a replay sets it too",
+    "type": "object",
+    "properties": {
+        "board": {"type": "string"},
+        "sensor": {"type": "integer"},
+        "after_reads": {"type": "integer"},
+        "document": {"type": "object", "description": "the calibration document set (with its id)"},
+    },
+}
+
 SETTINGS = {
     "title": "tactile.Settings",
     "description": "How a board's forces were reconstructed while recording: what its replay reconstructs with "

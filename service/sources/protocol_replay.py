@@ -15,7 +15,7 @@ import urllib.parse
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from ..record.mcap_reader import boards_in, read_baselines, read_numbered, read_tares
+from ..record.mcap_reader import boards_in, read_baselines, read_changes, read_numbered
 from ..record.pacing import Pacer, parse_speed
 from ..record.readers import is_timed_by_host, timed_chunks
 from ..record.resume import lost_start
@@ -76,29 +76,30 @@ def recorded_baselines(url: str) -> dict:
     return resumed or read_baselines(recording[0]).get(recording[1], {})
 
 
-def recorded_tares(url: str) -> list[tuple[int, int, bool]]:
-    """The tares made while the URL's recording was made, as (offset in the
-    bytes this port streams, sensor id, judged): the read each took effect
-    before, placed by the raw channel's read numbers (pipeline.schedule_retares).
-    A raw capture has none."""
+def recorded_changes(url: str) -> list[tuple[int, int, bool | dict]]:
+    """The tares made and calibrations set while the URL's recording was
+    made, as (offset in the bytes this port streams, sensor id, change:
+    Pipeline.redo): the read each took effect before, placed by the raw
+    channel's read numbers (pipeline.schedule_recorded). A raw capture has none."""
     recording = _recording(url)
     if recording is None:
         return []
     path, board = recording
     _, resumed = lost_start(path, board)
     begin = resumed["after_reads"] if resumed else 0  # an earlier tare is in the zeros it begins with
-    tares = sorted(tare for tare in read_tares(path).get(board, []) if tare[0] >= begin)
-    if not tares:
+    changes = [(max(n, begin), sensor, change) for n, sensor, change in read_changes(path).get(board, [])
+               if n >= begin or isinstance(change, dict)]
+    if not changes:
         return []
     out, position = [], 0
     for name, number, _, data in read_numbered(path):
         if name != board or number < begin:
             continue
-        while tares and tares[0][0] <= number:
-            _, sensor, judge = tares.pop(0)
-            out.append((position, sensor, judge))
+        while changes and changes[0][0] <= number:
+            _, sensor, change = changes.pop(0)
+            out.append((position, sensor, change))
         position += len(data)
-    return out + [(position, sensor, judge) for _, sensor, judge in tares]
+    return out + [(position, sensor, change) for _, sensor, change in changes]
 
 
 class Serial(SerialBase):
