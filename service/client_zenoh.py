@@ -14,9 +14,10 @@ from the services (``tactile serve --zenoh``), no gateway.
 Frames have the shape ``TactileClient.subscribe(binary=True)`` gives
 (service/client.py: header, rows/cols for grids, force_N and a quad's wrench,
 sigma, flags; numpy float32 with NaN), plus ``header["board"]``, the board's
-key, and ``header["instance"]``, the service that published it. A grid's rows and cols are not in the binary records: the client asks
-the board's ``tactile/<board>/sensors`` queryable once per board (and again
-for a sensor it does not know yet). Keys and QoS: docs/scale.md.
+key, and ``header["instance"]``, the service that published it. A grid's
+rows and cols are not in the binary records: the client asks the board's
+``tactile/<board>/sensors`` queryable once per board and service (and
+again for a sensor it does not know yet). Keys and QoS: docs/scale.md.
 
 A consumer slower than the stream loses the oldest waiting frames, never
 the service's time or memory: ``dropped`` counts them. Every failure — no
