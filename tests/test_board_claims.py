@@ -56,3 +56,19 @@ def test_a_silent_service_without_a_token_change_releases_its_name_after_the_los
     claims2 = BoardClaims()
     claims2.heard("arm", A, 0.0, alive=True)
     assert claims2.heard("arm", C, LOST_AFTER_S + 0.1)
+
+
+def test_a_client_s_claims_hand_the_name_to_a_live_refused_service_once_the_holder_is_gone():
+    claims = BoardClaims(hand_over=True)
+    claims.heard("arm", A, 0.0, alive=True)
+    claims.heard("arm", B, 0.1, alive=True)
+    claims.heard("arm", C, 0.2, alive=True)
+    assert not claims.heard("arm", B, 0.5) and claims.holder("arm") == A
+    claims.heard("arm", C, 0.9, alive=False)  # C went while refused: it never takes the name
+    assert claims.heard("arm", A, 1.0, alive=False)
+    assert not claims.heard("arm", C, 1.05)  # a late sample of C, gone
+    assert claims.heard("arm", B, 1.1) and claims.holder("arm") == B
+    assert not claims.heard("arm", A, 1.2)  # a late sample of A, after B took over
+    report = claims.report("arm", 1.2)
+    assert report["publisher"] == B and [p["instance"] for p in report["publishers"] if p["served"]] == [B]
+    assert [(p["instance"], p["samples_refused"]) for p in report["publishers"]] == [(A, 1), (B, 1), (C, 1)]

@@ -35,8 +35,10 @@ def collect(client: ZenohClient, stop: threading.Event, into: list) -> None:
 
 
 def same_frame(ours: dict, theirs: dict) -> bool:
-    """A Zenoh frame equals a WebSocket binary frame, key for key, the board in the header included."""
-    return ours.keys() == theirs.keys() and ours["header"] == theirs["header"] and all(
+    """A Zenoh frame equals a WebSocket binary frame, key for key, the board in the header included;
+    the Zenoh one's header also names the service instance that published it."""
+    header = {k: v for k, v in ours["header"].items() if k != "instance"}
+    return ours.keys() == theirs.keys() and header == theirs["header"] and ours["header"]["instance"] and all(
         np.array_equal(ours[k], theirs[k], equal_nan=True) if isinstance(ours[k], np.ndarray) else ours[k] == theirs[k]
         for k in ours if k != "header")
 

@@ -12,6 +12,11 @@ liveliness token withdrawn, or nothing heard for ``LOST_AFTER_S``): a
 restarted service. An instance that was refused is never given it: a
 clashing service does not slip in, unannounced, when the other one stops.
 A refused instance that went is still reported for ``FORGET_GONE_S``.
+
+A ZenohClient (``hand_over=True``) differs in one thing: once the holder is
+gone, a refused instance still alive may take the name. Its user is told
+(a warning naming both instances), and a controller left without frames
+would stop, where a gateway's users read the clash in its /health.
 """
 from __future__ import annotations
 
@@ -42,7 +47,8 @@ class Publisher:
 class BoardClaims:
     """Thread-safe: the gateway's Zenoh thread asks ``heard``, its event loop ``report``."""
 
-    def __init__(self) -> None:
+    def __init__(self, hand_over: bool = False) -> None:
+        self.hand_over = hand_over
         self._lock = threading.Lock()
         self._publishers: dict[str, dict[str, Publisher]] = {}  # board → instance → publisher
         self._holders: dict[str, str] = {}  # board → the instance served
@@ -66,13 +72,20 @@ class BoardClaims:
             if self._holders.get(board) == instance:
                 return True
             holder = publishers.get(self._holders.get(board))
-            if not publisher.refused and alive is not False and (holder is None or holder.gone_since(now) is not None):
+            may_hold = not publisher.refused or (self.hand_over and publisher.alive is not False)
+            if may_hold and alive is not False and (holder is None or holder.gone_since(now) is not None):
                 self._holders[board] = instance
+                publisher.refused = False
                 return True
             publisher.refused = True
             if alive is None:
                 publisher.samples_refused += 1
             return False
+
+    def holder(self, board: str) -> str | None:
+        """The instance served under ``board`` (None: none heard yet)."""
+        with self._lock:
+            return self._holders.get(board)
 
     def report(self, board: str, now: float) -> dict:
         """The board's ``publisher`` (the instance served), ``publishers``
