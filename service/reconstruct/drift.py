@@ -52,7 +52,17 @@ plate is unseen and reads on its force; a plate held until the reach
 covers it is taken for drift then, as it could be: 0.6 N/taxel (ΔC/C0 ≈
 0.7 %) after ~40 s, 5 N after ~6 min. Frames are flagged
 ``drift_suspect`` once the estimate has been frozen ``suspect_after_s``,
-or while the drift exceeds ``max_drift``.
+or while the drift exceeds ``max_drift`` — but not a frame whose own quiet
+median (enough quiet taxels) is within a taxel's noise of the held
+estimate: it shows no drift since the freeze. After a plate's release the
+slow average still carries the ramp's lag (rate × (tau_slow_s − tau_s):
+6.7e-4 for 0.6 N/taxel lifted over 3 s) and holds the estimate frozen ~1 s
+more; each of those frames was flagged, its median back within 2e-5 of the
+estimate (3 N plates: 492–666 frames at 500 Hz). A drift under the plate
+leaves the median off the estimate after the release (0.5 %/min over a
+20 s hold: 8σ), flagged until taken up; a release whose median crosses the
+estimate on its way to a drifted level goes unflagged for the frames it
+spends within that noise (1 N lifted over 1 s: 17 frames).
 
 A frame needs MIN_REFERENCE_TAXELS valid taxels to be a reference at all:
 one pressed taxel is left out only where the frame's median lies on an
@@ -205,7 +215,9 @@ class DriftTracker:
                 frozen_since = None
             elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
-            out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after)
+            # A frame whose own quiet median is the held estimate shows no drift since the freeze (module docstring)
+            confirmed = ok and abs(median - drift) <= noise
+            out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after and not confirmed)
                         or abs(drift) > max_drift))
         self.drift, self._average, self._slow, self._since = drift, average, slow, since
         self._anchor, self._anchor_t = anchor, anchor_t
