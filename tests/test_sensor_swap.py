@@ -110,3 +110,25 @@ def test_health_and_sensors_name_the_serial_and_the_change():
     assert any(p.startswith("sensor 1 is another sensor: serial 'Q-B' where serial 'Q-A' was") for p in report["problems"])
     listed = orjson.loads(sensors(service).body)["sensors"]
     assert [(s["id"], s["serial"]) for s in listed] == [(1, "Q-B")]
+
+
+def test_two_sensors_swapped_between_addresses_each_keep_counting_their_own_cycles():
+    """Q-A at 1 and Q-B at 2, pressed 5 times each, then swapped (scans
+    interleaved, address 1 first): Q-B at 1 went on from the registry's stale
+    200, its live counter parked as one that left and saved after the live
+    one under the same key (the registry froze at 205 while it counted on)."""
+    a1, b2 = SensorInfo(1, "quad", 2, 2, "Q-A"), SensorInfo(2, "quad", 2, 2, "Q-B")
+    b1, a2 = SensorInfo(1, "quad", 2, 2, "Q-B"), SensorInfo(2, "quad", 2, 2, "Q-A")
+    states = Reconstructor(tare_frames=10, level="table")
+    states.load_cycles = lambda info, cid: {"Q-A": [100], "Q-B": [200]}.get(info.serial)
+    for info in (a1, b2):
+        states.process_many(readings(info, np.zeros(10)))
+        states.process_many(readings(info, np.tile(PRESS, 5)))
+    assert (states.fatigue(1)["cycles_max"], states.fatigue(2)["cycles_max"]) == (105, 205)
+    swapped = [r for pair in zip(readings(b1, np.zeros(10)), readings(a2, np.zeros(10))) for r in pair]
+    states.process_many(swapped)
+    assert (states.fatigue(1)["cycles_max"], states.fatigue(2)["cycles_max"]) == (205, 105)
+    states.process_many(readings(b1, np.tile(PRESS, 3)))
+    kept = {info.serial: counts for info, _, counts in [*states.cycle_counts().values(),
+                                                         *states.replacements.left_counts()]}
+    assert kept == {"Q-B": [208], "Q-A": [105]}

@@ -194,8 +194,10 @@ class SensorStates:
         if state is not None and state.info is not info and state.info == info:
             self._described_again(state, info)
         if state is None or state.info is not info:
+            # A sensor that left for another address (a swap) takes its counter along: not kept as one that left.
+            leaving = None if state is None or self._live_elsewhere(state.info) else state.cycles
             change = None if state is None else self.replacements.replaced(state.info, info, state.calibration.id,
-                                                                           state.cycles)
+                                                                           leaving)
             if change is not None:
                 log.warning("sensor %d: %s where %s was: tared afresh, its calibration and load cycles looked up "
                             "for it", info.id, change["to"], change["from"])
@@ -255,6 +257,10 @@ class SensorStates:
         """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0); one
         back at its address after another sensor was there goes on with its own (identity.py)."""
         n = 1 if info.kind == "quad" else info.channels
+        moved = self._live_elsewhere(info)
+        if moved is not None and moved.calibration.id == calibration.id and moved.cycles is not None \
+                and moved.cycles.counts.shape == (n,):
+            return moved.cycles  # moved from another address (sensors swapped): its count goes on, one counter
         back = self.replacements.returning(info, calibration.id)
         if back is not None and back.counts.shape == (n,):
             return back
@@ -266,6 +272,12 @@ class SensorStates:
             counter = CycleCounter(n)
         counter.at_start = counter.counts.tolist()  # what a recording stores, so its replay starts from the same
         return counter
+
+    def _live_elsewhere(self, info: SensorInfo) -> SensorState | None:
+        """The state of the same sensor (a serial's identity) at another address, if any."""
+        key = identity(info)
+        return next((state for sid, state in self._sensors.items() if sid != info.id and identity(state.info) == key),
+                    None)
 
     def cycle_counts(self) -> dict[int, tuple[SensorInfo, str, list[int]]]:
         """{sensor: (info, calibration id, counts)} to keep (the registry)."""
