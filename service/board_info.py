@@ -23,6 +23,8 @@ def default_sensor(sensor_id: int, frame: Frame) -> SensorInfo | None:
     return None
 
 
+UNKNOWN_KIND = "gives it a kind this service does not know"  # a board's other sensors (a thermistor): no fault
+
 # Top-level INFO fields and the JSON types they must have (bool is an int
 # subclass in Python, so it is excluded explicitly where a number is meant).
 _BOARD_FIELDS = {"board": str, "fw": str, "serial": str, "rate_hz": (int, float), "pong": bool, "sensors": list}
@@ -36,27 +38,35 @@ def _is_int(value) -> bool:
     return _has_type(value, int)
 
 
-def _parse_sensor(entry) -> SensorInfo | None:
-    """One ``sensors`` entry; None for a well-formed sensor of a kind this
-    service does not know."""
+def _parse_sensor(entry) -> tuple[int, SensorInfo | None, str | None]:
+    """One ``sensors`` entry: (its id, its SensorInfo, None), or (its id,
+    None, why it is left undescribed: a kind this service does not know, a
+    shape no grid can have, an id no sensor can have). ValueError for a field of the wrong JSON type, which makes the
+    whole INFO invalid (protocol.md); a value out of range only sets that
+    sensor aside, so one mis-described sensor does not stop the others'."""
     if not isinstance(entry, dict):
         raise ValueError(f"INFO sensor entry is not an object: {entry!r}")
     sid, kind, serial = entry.get("id"), entry.get("kind"), entry.get("serial")
-    if not (_is_int(sid) and 0 <= sid <= MAX_SENSOR_ID):
-        raise ValueError(f"INFO sensor entry without an integer id in 0..{MAX_SENSOR_ID}: {entry!r}")
+    if not _is_int(sid):
+        raise ValueError(f"INFO sensor entry without an integer id: {entry!r}")
     if not isinstance(kind, str):
         raise ValueError(f"INFO sensor {sid} has no kind string: {kind!r}")
     if "serial" in entry and not isinstance(serial, str):
         raise ValueError(f"INFO sensor {sid} has a serial that is not a string: {serial!r}")
+    if not 0 <= sid <= MAX_SENSOR_ID:
+        return sid, None, f"gives it an id no sensor can have (ids are 0..{MAX_SENSOR_ID})"
     if kind == "quad":
-        return SensorInfo(sid, "quad", 2, 2, serial)
+        return sid, SensorInfo(sid, "quad", 2, 2, serial), None
     if kind == "grid":
         rows, cols = entry.get("rows"), entry.get("cols")
-        if not (_is_int(rows) and _is_int(cols) and rows > 0 and cols > 0 and rows * cols <= MAX_CHANNELS):
-            raise ValueError(f"INFO grid sensor {sid} has invalid shape rows={rows!r} cols={cols!r}")
-        return SensorInfo(sid, "grid", rows, cols, serial)
-    log.warning("INFO: ignoring sensor %s of unknown kind %r", sid, kind)
-    return None
+        for name, value in (("rows", rows), ("cols", cols)):
+            if value is not None and not _is_int(value):
+                raise ValueError(f"INFO grid sensor {sid} has {name} that is not an integer: {value!r}")
+        if rows is None or cols is None or rows <= 0 or cols <= 0 or rows * cols > MAX_CHANNELS:
+            return sid, None, (f"gives it a shape no grid frame can have (rows={rows!r}, cols={cols!r}: each 1 or more, "
+                          f"at most {MAX_CHANNELS} channels)")
+        return sid, SensorInfo(sid, "grid", rows, cols, serial), None
+    return sid, None, f"{UNKNOWN_KIND} ({kind!r})"
 
 
 def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo], dict[int, str]]:
@@ -64,9 +74,10 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo], dict[int, s
     sensor it names but leaves undescribed is so, by id); raise ValueError
     naming what is wrong. Any field of the wrong JSON type invalidates the
     whole INFO (the protocol's rule); unknown keys are ignored. A sensor of
-    a kind this service does not know is left out (logged), so one exotic
-    sensor does not hide the shapes of the others; so is one described
-    twice in two ways (the same description twice counts once)."""
+    a kind this service does not know, or of a shape no grid can have, is
+    left out (logged), so one mis-described sensor does not hide the shapes
+    of the others; so is one described twice in two ways (the same
+    description twice counts once)."""
     try:
         doc = orjson.loads(payload)
     except orjson.JSONDecodeError as exc:
@@ -78,12 +89,12 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo], dict[int, s
             raise ValueError(f"INFO field {name!r} has the wrong type: {doc[name]!r}")
     if doc.get("rate_hz", 1) <= 0:
         raise ValueError(f"INFO rate_hz {doc['rate_hz']!r} is not positive")
+    parsed = [_parse_sensor(entry) for entry in doc.get("sensors", [])]  # every entry's types first
     sensors: dict[int, SensorInfo] = {}
     first: dict[int, SensorInfo | None] = {}
+    undescribed: dict[int, str] = {}
     conflicting: set[int] = set()
-    for entry in doc.get("sensors", []):
-        info = _parse_sensor(entry)
-        sid = entry["id"]
+    for sid, info, why in parsed:
         if sid in first:  # the same description again is harmless; two different ones say nothing sure
             if info != first[sid]:
                 conflicting.add(sid)
@@ -91,11 +102,14 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo], dict[int, s
         first[sid] = info
         if info is not None:
             sensors[sid] = info
+        else:
+            undescribed[sid] = why
+            log.warning("sensor %s: the INFO %s; it is left undescribed (its data frames give its shape where "
+                        "they can), the board and its other sensors are taken", sid, why)
     for sid in sorted(conflicting):
         sensors.pop(sid, None)
         log.warning("INFO describes sensor %s twice, differently: it is left undescribed (its data frames give "
                     "its shape), the board and its other sensors are taken", sid)
-    undescribed = {sid: "gives it a kind this service does not know" for sid, info in first.items() if info is None}
     undescribed.update({sid: "describes it twice, differently" for sid in conflicting})
     return doc, sensors, undescribed
 

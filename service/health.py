@@ -4,6 +4,7 @@ from __future__ import annotations
 import time
 
 from .board import Board, calibration_state
+from .board_info import UNKNOWN_KIND
 from .history import BELOW_ZERO_S
 from .readout import MIN_STALE_S, LinkState
 
@@ -139,6 +140,16 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     return problems
 
 
+def _info_problems(interpreter, sensors: dict) -> list[str]:
+    """What the board's INFO got wrong: an INFO refused as a whole, and sensors
+    it leaves undescribed that send nothing readable (those that do: _problems)."""
+    problems = [f"the board's last INFO was refused ({interpreter.info_refused}); the description before it "
+                "stays in force"] if interpreter.info_refused else []
+    return problems + [f"sensor {sid}: the board's INFO {why}; its frames are read only where their size tells "
+                       "an 8x8 grid or a quad" for sid, why in sorted(interpreter.undescribed.items())
+                       if str(sid) not in sensors and not why.startswith(UNKNOWN_KIND)]
+
+
 def _shared_serials(boards) -> list[str]:
     """A problem per serial that several boards' INFO report: a serial names one board, and its sensors'
     calibrations and load-cycle counts are stored under it (a firmware's default serial, a cloned board)."""
@@ -173,7 +184,7 @@ def board_health(board, now: float, book=None) -> dict:
     link_state = link.as_dict(now, stale_after)
     sensors = _sensors(pipeline, now, counters, stale_after, book)
     reconstruction = _reconstruction(pipeline)
-    problems = _problems(link_state, sensors, reconstruction["errors"])
+    problems = _problems(link_state, sensors, reconstruction["errors"]) + _info_problems(pipeline.interpreter, sensors)
     return {
         "source": board.source,
         "info": pipeline.interpreter.board,

@@ -57,6 +57,7 @@ class Interpreter:
         self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._ever_listed: set[int] = set()  # the sensors any INFO described
         self.undescribed: dict[int, str] = {}  # sensors the INFO in force names but leaves undescribed: why
+        self.info_refused: str | None = None  # why the last INFO was invalid as a whole (None: it was taken)
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
@@ -234,8 +235,10 @@ class Interpreter:
             doc, sensors, undescribed = parse_info(payload)
         except ValueError as exc:
             self.rejected["info_invalid"] += 1
+            self.info_refused = str(exc)
             log.warning("ignoring INFO frame: %s", exc)
             return
+        self.info_refused = None
         board = {k: v for k, v in doc.items() if k != "sensors"}
         identity, before = board.get("serial") or board.get("board"), self.board.get("serial") or self.board.get("board")
         if self.board and identity != before:

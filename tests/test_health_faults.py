@@ -132,7 +132,28 @@ def test_a_sensor_the_info_describes_twice_is_said_so_not_unlisted():
     assert report["sensors"]["0"]["not_in_info"] is True and report["sensors"]["1"]["not_in_info"] is False
     assert report["sensors"]["0"]["info_problem"] == "describes it twice, differently"
     assert service.pipeline.interpreter.undescribed == {0: "describes it twice, differently",
-                                                        2: "gives it a kind this service does not know"}
+                                                        2: "gives it a kind this service does not know ('thermo')"}
     assert "sensor 0 sends data but the board's INFO describes it twice, differently (its shape is taken from its " \
            "frames)" in report["problems"]
     assert not any("does not list" in p for p in report["problems"])
+
+
+def test_a_sensor_described_with_a_shape_no_grid_has_and_a_refused_info_are_said():
+    """Sensor 2 described as a 0x4 grid: set aside (the whole INFO was refused
+    and every frame of the board rejected as unknown_shape, /health ok); the
+    others read. Then an INFO with a field of the wrong type: refused, said."""
+    rng = np.random.default_rng(7)
+    service = TactileService("sim://")
+    info = (b'{"board": "tmux", "serial": "TMX-3", "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}, '
+            b'{"id": 1, "kind": "quad"}, {"id": 2, "kind": "grid", "rows": 0, "cols": 4}, {"id": 3, "kind": "thermo"}]}')
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info), time.time())
+    feed(service, rng, 0, 150, GRID, QUAD, time.time())
+    report = health_report(service)
+    assert sorted(report["sensors"]) == ["0", "1"] and report["rejected"]["unknown_shape"] == 0
+    assert report["problems"] == ["link down",  # sim:// is never started here
+                                  "sensor 2: the board's INFO gives it a shape no grid frame can have (rows=0, cols=4: "
+                                  "each 1 or more, at most 256 channels); its frames are read only where their size "
+                                  "tells an 8x8 grid or a quad"]
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, b'{"board": "tmux", "rate_hz": "fast"}'), time.time())
+    assert "the board's last INFO was refused (INFO field 'rate_hz' has the wrong type: 'fast'); the description " \
+           "before it stays in force" in health_report(service)["problems"]

@@ -65,7 +65,8 @@ def test_grid_of_unknown_shape_without_info_is_dropped_and_counted():
     [
         (b"not json", "not JSON"),
         (b"[1]", "JSON object"),
-        (b'{"sensors": [{"id": 0, "kind": "grid", "rows": 0, "cols": 8}]}', "invalid shape"),
+        (b'{"sensors": [{"id": 0, "kind": "grid", "rows": "8", "cols": 8}]}', "rows that is not an integer"),
+        (b'{"sensors": [{"id": true, "kind": "quad"}]}', "integer id"),
         (b'{"sensors": [{"kind": "quad"}]}', "integer id"),
     ],
 )
@@ -90,6 +91,27 @@ def test_a_sensor_described_twice_neither_loses_the_board_nor_its_other_sensors(
                                          b'"kind": "quad"}, {"id": 0, "kind": "grid", "rows": 2, "cols": 2}]}'))
     interpreter.interpret(frames[0])
     assert interpreter.rejected["info_invalid"] == 0 and interpreter.board["serial"] == "TMX-1"
+
+
+@pytest.mark.parametrize("entry, why", [
+    ('{"id": 6, "kind": "grid", "rows": 0, "cols": 4}', "rows=0, cols=4"),
+    ('{"id": 6, "kind": "grid", "rows": 16, "cols": 17}', "rows=16, cols=17"),
+    ('{"id": 6, "kind": "grid", "rows": 4}', "rows=4, cols=None"),
+    ('{"id": 999, "kind": "quad"}', "an id no sensor can have"),
+])
+def test_one_sensor_described_with_a_shape_no_grid_has_leaves_the_others_theirs(entry, why):
+    """A value out of range (not a wrong JSON type, which invalidates the
+    INFO: protocol.md) sets that sensor aside: the board's other sensors
+    keep their shapes and their frames are read (the whole INFO was refused
+    and a 4x4's every frame rejected as unknown_shape)."""
+    payload = ('{"serial": "B-1", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 4}, ' + entry + "]}").encode()
+    _, sensors, undescribed = parse_info(payload)
+    assert list(sensors) == [0] and sensors[0].rows == 4
+    assert why in undescribed[6 if 6 in undescribed else 999]
+    interpreter = Interpreter(clock=lambda: 0.0)
+    readings = feed(interpreter, info_frame(orjson.loads(payload)), encode_frame(FrameType.GRID, 0, 0, 0, bytes(64)))
+    assert readings[1] is not None and readings[1].sensor.rows == 4
+    assert interpreter.rejected["info_invalid"] == 0 and interpreter.info_refused is None
 
 
 def test_unknown_sensor_kind_does_not_hide_the_others():
@@ -175,8 +197,6 @@ MALFORMED_INFO = {
     "id float": with_sensor(id=0.0),
     "id string": with_sensor(id="0"),
     "id null": with_sensor(id=None),
-    "id 255": with_sensor(id=255),
-    "id negative": with_sensor(id=-1),
     "id huge": with_sensor(id=2**70),
     "kind number": with_sensor(kind=1),
     "kind null": with_sensor(kind=None),
@@ -185,11 +205,6 @@ MALFORMED_INFO = {
     "rows float": with_sensor(rows=8.0),
     "rows bool": with_sensor(rows=True),
     "cols bool": with_sensor(cols=True),
-    "rows zero": with_sensor(rows=0),
-    "cols negative": with_sensor(cols=-8),
-    "rows absurd": with_sensor(rows=2**40, cols=2**40),
-    "more channels than a payload holds": with_sensor(rows=16, cols=17),
-    "rows missing": {**GOOD_INFO, "sensors": [{"id": 0, "kind": "grid", "cols": 8}]},
     "board number": with_board(board=7),
     "board null": with_board(board=None),
     "fw number": with_board(fw=1.1),
@@ -215,6 +230,32 @@ def test_malformed_info_is_rejected_whole_and_counted_never_raised(doc):
     assert interpreter.board_name == "old"  # named by the first valid INFO, kept
     assert (interpreter.sensors[0].rows, interpreter.sensors[0].cols) == (4, 16)
     assert interpreter.board == {"board": "old"}
+    assert interpreter.info_refused  # said in /health
+
+
+# Values out of range for one sensor (its types right): that sensor is set aside, the rest taken.
+SENSOR_SET_ASIDE = {
+    "id 255": with_sensor(id=255),
+    "id negative": with_sensor(id=-1),
+    "rows zero": with_sensor(rows=0),
+    "cols negative": with_sensor(cols=-8),
+    "rows absurd": with_sensor(rows=2**40, cols=2**40),
+    "more channels than a payload holds": with_sensor(rows=16, cols=17),
+    "rows missing": {**GOOD_INFO, "sensors": [{"id": 0, "kind": "grid", "cols": 8}, GOOD_INFO["sensors"][1]]},
+}
+
+
+@pytest.mark.parametrize("doc", list(SENSOR_SET_ASIDE.values()), ids=list(SENSOR_SET_ASIDE))
+def test_a_sensor_described_out_of_range_is_set_aside_and_the_board_taken(doc):
+    interpreter = Interpreter()
+    first = {"board": "old", "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 16}]}
+    feed(interpreter, info_frame(first), info_frame(doc))
+    assert interpreter.rejected["info_invalid"] == 0 and interpreter.info_refused is None
+    assert interpreter.board["serial"] == "TMX-1" and interpreter.sensors[1].kind == "quad"
+    bad = doc["sensors"][0].get("id")
+    assert "gives it" in interpreter.undescribed[bad]
+    assert bad not in interpreter.sensors or interpreter.sensors[bad] != replace(
+        parse_info(orjson.dumps(first))[1][0], board="old")
 
 
 def test_well_formed_info_with_every_optional_field_is_accepted():
