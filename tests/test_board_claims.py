@@ -72,3 +72,22 @@ def test_a_client_s_claims_hand_the_name_to_a_live_refused_service_once_the_hold
     report = claims.report("arm", 1.2)
     assert report["publisher"] == B and [p["instance"] for p in report["publishers"] if p["served"]] == [B]
     assert [(p["instance"], p["samples_refused"]) for p in report["publishers"]] == [(A, 1), (B, 1), (C, 1)]
+
+
+def test_a_service_restarted_on_its_host_before_its_predecessor_is_declared_gone_takes_the_name():
+    """The new process heard 1 s after the old one's last sample, its token
+    withdrawn only later (a lease expiring): it was refused for good, the
+    board lost at the gateway. One from another host stays refused."""
+    claims = BoardClaims()
+    claims.heard("arm", A, 0.0)
+    assert not claims.heard("arm", C, 1.0, alive=True)  # A's host, A not yet gone
+    assert not claims.heard("arm", B, 1.1, alive=True)  # another host
+    claims.heard("arm", A, 1.2, alive=False)
+    assert claims.heard("arm", C, 2.0) and claims.report("arm", 2.0)["publisher"] == C
+    assert not claims.heard("arm", B, 2.1)
+    clash = BoardClaims()  # two services of one name on one host: the holder published on after the other came
+    clash.heard("arm", A, 0.0, alive=True)
+    clash.heard("arm", C, 1.0, alive=True)
+    clash.heard("arm", A, 1.5)
+    clash.heard("arm", A, 1.6, alive=False)
+    assert not clash.heard("arm", C, 2.0)

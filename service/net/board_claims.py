@@ -10,7 +10,11 @@ frames and health for as long as they live, reporting the clash in /health.
 The name passes to another instance only once its holder is gone (its
 liveliness token withdrawn, or nothing heard for ``LOST_AFTER_S``): a
 restarted service. An instance that was refused is never given it: a
-clashing service does not slip in, unannounced, when the other one stops.
+clashing service does not slip in, unannounced, when the other one stops —
+unless it is on the holder's host and was first heard after the holder's
+last sample (``SUCCESSION_SLACK_S`` allowed for samples in flight): the
+holder restarted, the new process heard before the old one was declared
+gone (its token withdrawn late: a lease expiring, a link blip).
 A refused instance that went is still reported for ``FORGET_GONE_S``.
 
 A ZenohClient (``hand_over=True``) differs in one thing: once the holder is
@@ -25,6 +29,7 @@ from dataclasses import dataclass
 
 LOST_AFTER_S = 2.5  # as a RemoteBoard's: health comes every second
 FORGET_GONE_S = 60.0
+SUCCESSION_SLACK_S = 0.25  # a holder's last samples may arrive after its successor's first
 MAX_PUBLISHERS = 16  # per name; beyond, the least recently heard refused one is forgotten
 ADVICE = "give each board a unique name (--source NAME=URL, --board-name, or name in robot.toml)"
 
@@ -33,6 +38,7 @@ ADVICE = "give each board a unique name (--source NAME=URL, --board-name, or nam
 class Publisher:
     instance: str  # host:pid:random (zenoh_config.instance_id); "" for a service from before instances
     heard_at: float
+    first_heard: float
     alive: bool | None = None  # its liveliness token; None: not heard
     gone_at: float | None = None
     refused: bool = False
@@ -63,7 +69,7 @@ class BoardClaims:
             if publisher is None:
                 if alive is False:
                     return False  # the token of one never heard went: nothing to tell
-                publisher = publishers[instance] = Publisher(instance, now)
+                publisher = publishers[instance] = Publisher(instance, now, now)
                 self._forget(board, publishers, now)
             if alive is None or alive:
                 publisher.heard_at = now
@@ -72,8 +78,11 @@ class BoardClaims:
             if self._holders.get(board) == instance:
                 return True
             holder = publishers.get(self._holders.get(board))
-            may_hold = not publisher.refused or (self.hand_over and publisher.alive is not False)
-            if may_hold and alive is not False and (holder is None or holder.gone_since(now) is not None):
+            gone = None if holder is None else holder.gone_since(now)
+            successor = (gone is not None and publisher.alive is not False and _host(holder.instance) == _host(instance)
+                         and holder.heard_at <= publisher.first_heard + SUCCESSION_SLACK_S)
+            may_hold = not publisher.refused or successor or (self.hand_over and publisher.alive is not False)
+            if may_hold and alive is not False and (holder is None or gone is not None):
                 self._holders[board] = instance
                 publisher.refused = False
                 return True
@@ -123,3 +132,8 @@ class BoardClaims:
         others = sorted((p for p in publishers.values() if p.instance != holder), key=lambda p: p.heard_at)
         for p in others[:max(0, len(publishers) - MAX_PUBLISHERS)]:
             del publishers[p.instance]
+
+
+def _host(instance: str) -> str:
+    """The host part of an instance id (zenoh_config.instance_id: host:pid:random)."""
+    return instance.split(":", 1)[0]
