@@ -2,8 +2,9 @@
 
 Array frame: origin at the array's centre, x along columns (column 1 at
 x = −(cols−1)/2 · pitch), y along rows (row 1 at y = −(rows−1)/2 · pitch),
-millimetres. A taxel is in contact when its force exceeds the threshold;
-contacts are 4-connected regions of such taxels.
+millimetres. A taxel is in contact when its force exceeds the threshold
+and NOISE_SIGMAS times its σ (``contact_threshold``); contacts are
+4-connected regions of such taxels.
 """
 from __future__ import annotations
 
@@ -12,6 +13,21 @@ import numpy as np
 from ..physics.paper_data import PITCH_MM, taxel_centres_mm
 
 DEFAULT_THRESHOLD_N = 0.05
+# A fixed 0.05 N alone put phantom contacts on untouched low-C0 or large grids (a 1x4 at 3 pF: 60 % of frames, a
+# 16x16: 41 %): their noise is that size. At 4 σ an untouched 16x16 shows one in ~0.5 % of frames (tests/test_contact.py).
+NOISE_SIGMAS = 4.0
+NOISE_CAP_N = 0.5  # σ of a large force holds its gain and model terms: no reason to miss it
+
+
+def contact_threshold(sigma_N: np.ndarray | None, threshold_N: float = DEFAULT_THRESHOLD_N) -> np.ndarray | float:
+    """Per taxel (σ's shape), the force above which it is in contact:
+    ``threshold_N``, or NOISE_SIGMAS σ where larger (at most NOISE_CAP_N). A
+    null σ (a saturated taxel's; none kept) or none: ``threshold_N``."""
+    if sigma_N is None:
+        return threshold_N
+    # σ as float32, as the history ring keeps it: a frame read back from history has the same contacts.
+    return np.minimum(np.fmax(threshold_N, NOISE_SIGMAS * np.asarray(sigma_N, dtype=np.float32)),
+                      max(threshold_N, NOISE_CAP_N))
 
 
 def _regions(cells: list[int], cols: int) -> int:
@@ -32,12 +48,14 @@ def _regions(cells: list[int], cols: int) -> int:
     return regions
 
 
-def summarise(forces_N: np.ndarray, rows: int, cols: int, threshold_N: float = DEFAULT_THRESHOLD_N) -> dict:
-    """Contact summary of one frame's (rows*cols,) forces (NaN = no reading).
+def summarise(forces_N: np.ndarray, rows: int, cols: int, sigma_N: np.ndarray | None = None,
+              threshold_N: float = DEFAULT_THRESHOLD_N) -> dict:
+    """Contact summary of one frame's (rows*cols,) forces (NaN = no reading)
+    with their σ (rows*cols,) (None: the threshold alone).
 
     Returns plain numbers: total_N, cop_x_mm, cop_y_mm (NaN without
     contact), area_mm2, contacts."""
-    active = np.flatnonzero(forces_N > threshold_N)  # NaN compares False: no reading, no contact
+    active = np.flatnonzero(forces_N > contact_threshold(sigma_N, threshold_N))  # NaN compares False: no contact
     if not active.size:
         return {"total_N": 0.0, "cop_x_mm": float("nan"), "cop_y_mm": float("nan"), "area_mm2": 0.0, "contacts": 0}
     loaded = forces_N[active]

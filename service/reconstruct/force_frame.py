@@ -39,7 +39,7 @@ class ForceFrame:
         or a frame without any force (taring). Computed on first use: most
         listeners of a 1 kHz stream never ask."""
         if self._contact is None and self.sensor.kind == "grid" and not np.isnan(self.forces_N).all():
-            self._contact = summarise(self.forces_N, self.sensor.rows, self.sensor.cols)
+            self._contact = summarise(self.forces_N, self.sensor.rows, self.sensor.cols, self.sigma_N)
         return self._contact
 
     def keep_contact(self, summary: dict | None) -> None:

@@ -13,20 +13,30 @@ from __future__ import annotations
 import numpy as np
 
 from ..physics.paper_data import PITCH_MM, taxel_centres_mm
-from ..reconstruct.contact import DEFAULT_THRESHOLD_N
+from ..reconstruct.contact import DEFAULT_THRESHOLD_N, contact_threshold
 
 
-def summaries(forces_N: np.ndarray, rows: int, cols: int, threshold_N: float = DEFAULT_THRESHOLD_N) -> list[dict | None]:
-    """Per frame of (N, rows*cols) forces: ForceFrame.contact's value (None
-    for a frame without any force)."""
-    found = columns(forces_N, rows, cols, threshold_N)
+def summaries(forces_N: np.ndarray, rows: int, cols: int, sigma_N: np.ndarray | None = None,
+              threshold_N: float = DEFAULT_THRESHOLD_N) -> list[dict | None]:
+    """Per frame of (N, rows*cols) forces and their σ (N, rows*cols) (None:
+    the threshold alone): ForceFrame.contact's value (None for a frame
+    without any force)."""
+    found = columns(forces_N, rows, cols, sigma_N, threshold_N)
     return [None if none else {"total_N": total, "cop_x_mm": x, "cop_y_mm": y, "area_mm2": area, "contacts": contacts}
             for none, total, x, y, area, contacts in zip(*(column.tolist() for column in found))]
 
 
-def columns(forces_N: np.ndarray, rows: int, cols: int, threshold_N: float = DEFAULT_THRESHOLD_N) -> tuple:
+def sigmas(frames, shape: tuple[int, int]) -> np.ndarray:
+    """(N, n) σ of N frames of one grid, 0 for a frame without (the threshold alone, as summarise without σ)."""
+    if all(f.sigma_N is not None for f in frames):
+        return np.concatenate([f.sigma_N for f in frames]).reshape(shape)
+    return np.stack([np.zeros(shape[1]) if f.sigma_N is None else f.sigma_N for f in frames])
+
+
+def columns(forces_N: np.ndarray, rows: int, cols: int, sigma_N: np.ndarray | None = None,
+            threshold_N: float = DEFAULT_THRESHOLD_N) -> tuple:
     """(no force at all, total_N, cop_x_mm, cop_y_mm, area_mm2, contacts), each (N,)."""
-    active = forces_N > threshold_N  # NaN compares False
+    active = forces_N > contact_threshold(sigma_N, threshold_N)  # NaN compares False
     counts = np.count_nonzero(active, axis=1)
     total = np.zeros(len(forces_N))
     cop_x = np.full(len(forces_N), np.nan)

@@ -20,7 +20,7 @@ import orjson
 from ..fanout.encoding import to_export_dict
 from ..readings import SensorInfo
 from ..reconstruct import ForceFrame
-from .contact_batch import summaries
+from .contact_batch import sigmas, summaries
 
 JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
@@ -44,7 +44,8 @@ def keep_contacts(frames: list[ForceFrame]) -> None:
     for info, grid_frames in by_sensor.values():
         # One copy of the rows (np.stack costs 3× more for 64-value rows).
         forces = np.concatenate([f.forces_N for f in grid_frames]).reshape(len(grid_frames), info.rows * info.cols)
-        for frame, summary in zip(grid_frames, summaries(forces, info.rows, info.cols)):
+        sigma = sigmas(grid_frames, forces.shape)
+        for frame, summary in zip(grid_frames, summaries(forces, info.rows, info.cols, sigma)):
             frame.keep_contact(summary)
 
 

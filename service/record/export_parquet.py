@@ -33,7 +33,7 @@ import pyarrow.parquet as pq
 
 from ..reconstruct import ForceFrame
 from .arrow_columns import fixed_lists, floats, lists, numbers, strings, structs
-from .contact_batch import columns
+from .contact_batch import columns, sigmas
 
 ROW_GROUP = 65_536
 GATHER = 1024  # frames made into columns together; 4 096 a table faulted its temporaries in again (export.py)
@@ -70,7 +70,8 @@ def _grid_forces(frames: list[ForceFrame], grid: np.ndarray) -> tuple[pa.Array, 
         else:
             block = np.stack([flat[starts[k] : starts[k] + size] for k in ks])
         targets = [rows[k] for k in ks]
-        for out, column in zip(found, columns(block, info.rows, info.cols)):
+        sigma = sigmas([frames[i] for i in targets], block.shape)
+        for out, column in zip(found, columns(block, info.rows, info.cols, sigma)):
             out[targets] = column
     contact = structs([floats(column) if field.type == pa.float64() else numbers(column, field.type)
                        for column, field in zip(found[1:], CONTACT)], CONTACT, ~found[0])
