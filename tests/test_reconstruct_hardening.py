@@ -15,7 +15,7 @@ from service.interpreter import Interpreter
 from service.readings import Reading, SensorInfo
 from service.reconstruct import Reconstructor
 from service.reconstruct import reconstructor as reconstructor_module
-from service.reconstruct.grid import NO_READING, OUT_OF_RANGE, SATURATED, STALE
+from service.reconstruct.taxel_flags import NO_READING, OUT_OF_RANGE, SATURATED, STALE
 
 GRID = SensorInfo(0, "grid", 8, 8)
 QUAD = SensorInfo(1, "quad", 2, 2)
