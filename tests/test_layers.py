@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # (module prefix, rank): a module may import modules of its own rank or below.
 # The longest matching prefix decides.
 LAYERS = [
-    ("service.protocol", 0), ("service.protocol_bulk", 0), ("service.physics", 0), ("service.latency", 0), ("service.sched", 0),
+    ("service.protocol", 0), ("service.protocol_decoder", 0), ("service.protocol_sequence", 0), ("service.protocol_bulk", 0), ("service.physics", 0), ("service.latency", 0), ("service.sched", 0),
     ("service.clock_map", 0),
     ("service.readings", 1), ("service.board_info", 1), ("service.interpreter", 1),
     ("service.reconstruct", 2),
