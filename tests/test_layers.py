@@ -19,7 +19,7 @@ LAYERS = [
     ("service.history", 3), ("service.fanout", 3), ("service.record", 3), ("service.sources", 3),
     ("service.net", 3),
     ("service.calibration.registry", 3), ("service.calibration.book", 3),
-    ("service.pipeline", 4), ("service.handover", 4), ("service.readout", 4), ("service.board", 4),
+    ("service.pipeline", 4), ("service.pipeline_changes", 4), ("service.handover", 4), ("service.readout", 4), ("service.board", 4),
     ("service.remote_board", 4), ("service.gateway", 5),
     ("service.live_service", 5), ("service.health", 5), ("service.replay", 5), ("service.robot_config", 5),
     ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.client_zenoh", 6),
