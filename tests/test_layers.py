@@ -24,7 +24,7 @@ LAYERS = [
     ("service.live_service", 5), ("service.health", 5), ("service.replay", 5), ("service.robot_config", 5),
     ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.client_zenoh", 6),
     ("service.calibration", 6),
-    ("service.cli", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7), ("service.cli_serve", 7),
+    ("service.cli", 7), ("service.cli_options", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7), ("service.cli_serve", 7),
     ("service.cli_signals", 7),
 ]
 # Peers that must not know each other.
