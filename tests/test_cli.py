@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from service import cli
-from service.cli_serve import LinkWatcher, check_port_free
+from service.cli_link import LinkWatcher
+from service.cli_serve import check_port_free
 from service.readout import LinkState
 
 TACTILE = str(Path(sys.executable).with_name("tactile"))

@@ -12,8 +12,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # (module prefix, rank): a module may import modules of its own rank or below.
 # The longest matching prefix decides.
 LAYERS = [
-    ("service.protocol", 0), ("service.protocol_decoder", 0), ("service.protocol_sequence", 0), ("service.protocol_bulk", 0), ("service.physics", 0), ("service.latency", 0), ("service.sched", 0),
-    ("service.clock_map", 0),
+    ("service.protocol", 0), ("service.protocol_decoder", 0), ("service.protocol_sequence", 0), ("service.protocol_bulk", 0),
+    ("service.physics", 0), ("service.latency", 0), ("service.sched", 0), ("service.clock_map", 0),
     ("service.readings", 1), ("service.board_info", 1), ("service.interpreter", 1),
     ("service.reconstruct", 2),
     ("service.history", 3), ("service.fanout", 3), ("service.record", 3), ("service.sources", 3),
@@ -24,7 +24,8 @@ LAYERS = [
     ("service.live_service", 5), ("service.health", 5), ("service.replay", 5), ("service.robot_config", 5),
     ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.client_zenoh", 6),
     ("service.calibration", 6),
-    ("service.cli", 7), ("service.cli_options", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7), ("service.cli_serve", 7),
+    ("service.cli", 7), ("service.cli_options", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7),
+    ("service.cli_serve", 7), ("service.cli_link", 7), ("service.cli_zenoh", 7),
     ("service.cli_signals", 7),
 ]
 # Peers that must not know each other.
