@@ -5,7 +5,7 @@
 Per rate (1000 and 200 Hz) and seed: two boards with clocks at +200 and
 −200 ppm and offsets far apart (one wraps during the run), their scans
 delivered late by up to ``--jitter-ms`` (one-sided, a late scan holding up
-the next: several per read), decoded by service.protocol.Decoder and mapped
+the next: several per read), decoded by service.protocol_decoder.Decoder and mapped
 by one service.clock_map.ClockMap per board. After ``--seconds`` it maps the
 true times of 500 events in the last second to each board's clock and back
 to the host's, and prints the max and p99 over seeds of the two boards'
@@ -23,7 +23,8 @@ from firmware_sim.board import BoardConfig
 from firmware_sim.delivery import deliveries
 from firmware_sim.sensors import SimQuad
 from service.clock_map import ClockMap
-from service.protocol import DATA_TYPES, Decoder
+from service.protocol import DATA_TYPES
+from service.protocol_decoder import Decoder
 
 WRAP = 1 << 32
 BOARDS = [(200.0, 123_456_789), (-200.0, WRAP - 4_000_000)]

@@ -1,6 +1,7 @@
 """`tactile` command line: serve | sim | record | replay | tables | model | bench.
 
-This module only parses; cli_serve.py (serve), cli_recordings.py (record,
+This module only parses (cli_options.py: the value types and option groups
+several commands share); cli_serve.py (serve), cli_recordings.py (record,
 replay) and cli_commands.py (the others) do the work, cli_signals.py
 handles Ctrl-C.
 """
@@ -13,136 +14,13 @@ import sys
 
 from . import cli_commands as commands
 from .calibration.cli import add_parsers as add_calibration_parsers
-from .calibration.cli import check_registry_env, existing_registry, new_or_existing_registry
+from .calibration.cli import check_registry_env
+from .cli_options import (SceneHelp, add_http_options, add_multicast_options, add_reconstruction_options,
+                          add_serving_options, add_zenoh_options, bench_seconds, port_or_free, positive, scene, speed)
 from .cli_recordings import cmd_record, cmd_replay
 from .cli_serve import cmd_gateway, cmd_serve
 from .cli_signals import interrupted, watchdog_for
-from .physics.mountings import MOUNTINGS
-from .reconstruct.levels import DEFAULT_LEVEL, LEVELS
-from .record.pacing import parse_speed
 from .sources import DEFAULT_SOURCE
-
-
-def _slice_us(text: str) -> int:
-    from .sched import MAX_SLICE_US, MIN_SLICE_US
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"slice {text!r} must be a whole number of microseconds") from None
-    if value and not MIN_SLICE_US <= value <= MAX_SLICE_US:
-        raise argparse.ArgumentTypeError(f"slice {value} us is outside {MIN_SLICE_US}..{MAX_SLICE_US} (or 0 for the default)")
-    return value
-
-
-def _port(text: str, free_ok: bool = False) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"port {text!r} is not a whole number") from None
-    low = 0 if free_ok else 1
-    if not low <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"port {value} is outside {low}..65535")
-    return value
-
-
-def _port_or_free(text: str) -> int:
-    """A port, or 0 for any free one."""
-    return _port(text, free_ok=True)
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return value
-
-
-def _bench_seconds(text: str) -> float:
-    """The scenes begin with 1 s unloaded (the tare's): the loaded errors need frames after it."""
-    value = _positive(text)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"{text} s holds no loaded frame (each scene begins with 1 s unloaded, "
-                                         "for the tare): give at least 2")
-    return value
-
-
-def _speed(text: str) -> float:
-    try:
-        return parse_speed(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-class _SceneHelp(str):
-    """The --scene help, naming the simulator's scenes only when help is shown
-    (importing the simulator takes a second)."""
-
-    def __mod__(self, params):
-        return f"one of {' | '.join(commands.scene_names())} (default: {params['default']})"
-
-
-def _scene(text: str) -> str:
-    names = commands.scene_names()
-    if text not in names:
-        raise argparse.ArgumentTypeError(f"unknown scene {text!r}; known scenes: {', '.join(names)}")
-    return text
-
-
-def _add_reconstruction_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
-    """``stores``: the command stores into the registry (serve: uploads, load cycles), so it may make one."""
-    parser.set_defaults(registry_reads=not stores)
-    parser.add_argument("--level", default=DEFAULT_LEVEL, choices=LEVELS,
-                        help="fidelity level; auto takes the cheapest meeting the scene's error budget and says which "
-                             "(default: %(default)s)")
-    parser.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
-                        help="grid mounting: picks the load-shape table (default: %(default)s)")
-    parser.add_argument("--registry", metavar="PATH", type=new_or_existing_registry if stores else existing_registry,
-                        help="calibration registry: each sensor's active calibration is used (default: "
-                             "$TACTILE_REGISTRY, else $XDG_DATA_HOME/tactile/registry.sqlite3)" + (
-                                 "; made, saying so, if missing" if stores else "; it must exist"))
-    parser.add_argument("--calibration", action="append", metavar="ID|FILE",
-                        help="use this calibration (a registry id or an exported JSON file) for the sensor it was "
-                             "made for, over the registry's active one (repeatable; a recording's own come first)")
-
-
-def _add_http_options(parser: argparse.ArgumentParser) -> None:
-    """Where and to whom the API is served (serve, replay --serve, gateway)."""
-    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s; beyond localhost "
-                                                                "a token is required, see --token)")
-    parser.add_argument("--port", type=_port, default=8000, help="HTTP port (default: %(default)s)")
-    parser.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"],
-                        help="server log level (default: %(default)s)")
-    parser.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
-                                        "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
-    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
-                        help="a host name clients may use for this service besides localhost and IP addresses "
-                             "(repeatable; DNS names are refused otherwise, against DNS rebinding)")
-    parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
-                        help="a web origin (e.g. http://lab-pc:3000) whose pages may change state or stream "
-                             "(repeatable; default: only the service's own dashboard)")
-
-
-def _add_serving_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
-    """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
-    _add_http_options(parser)
-    parser.add_argument("--recordings-dir", default="recordings", metavar="DIR",
-                        help="where POST /record/start and the dashboard's Record write (default: %(default)s, "
-                             "created on demand)")
-    parser.add_argument("--silence-s", type=_positive, default=2.0, metavar="S",
-                        help="after this long without a byte, ask the board INFO? and then reopen the link "
-                             "(default: %(default)s)")
-    _add_reconstruction_options(parser, stores)
-    parser.add_argument("--grid-batch-ms", type=float, default=0.0, metavar="MS",
-                        help="let grids wait up to MS to be reconstructed together with the reads that come "
-                             "meanwhile: less CPU for up to MS more grid latency; quads never wait (default: "
-                             "%(default)s; docs/performance.md)")
-    parser.add_argument("--sched-slice-us", type=_slice_us, default=0, metavar="US",
-                        help="ask Linux >= 6.12 for this scheduler time slice (100-100000 us) so the service is "
-                             "woken promptly on a busy host; 0 keeps the kernel's default (default: %(default)s)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -167,15 +45,15 @@ def _add_serve(sub) -> None:
     serve.add_argument("--board-name", metavar="NAME",
                        help="name a single bare --source (as NAME=URL does): its address in the API and its key in "
                             "tactile/<board>/… (default: the serial, else the board name, from INFO)")
-    _add_serving_options(serve, stores=True)
-    _add_zenoh_options(serve)
+    add_serving_options(serve, stores=True)
+    add_zenoh_options(serve)
     serve.set_defaults(func=cmd_serve)
 
 
 def _add_gateway(sub) -> None:
     gateway = sub.add_parser("gateway", help="serve the API and dashboard for every board that services publish on "
                                              "Zenoh (tactile serve --zenoh on this or other hosts)")
-    _add_http_options(gateway)
+    add_http_options(gateway)
     zenoh = gateway.add_argument_group("zenoh", "where the services are (docs/scale.md)")
     zenoh.add_argument("--zenoh", metavar="CONFIG", help="a Zenoh JSON5 configuration file")
     zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
@@ -184,48 +62,22 @@ def _add_gateway(sub) -> None:
     zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
                        help="listen on this Zenoh endpoint for services that connect to the gateway (repeatable)")
     zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
-    _add_multicast_options(zenoh)
+    add_multicast_options(zenoh)
     gateway.set_defaults(func=cmd_gateway)
-
-
-def _add_zenoh_options(parser: argparse.ArgumentParser) -> None:
-    """``serve --zenoh``: frames, health and latest frames on Zenoh (docs/scale.md)."""
-    zenoh = parser.add_argument_group("zenoh", "publish on Zenoh under tactile/<board>/ (docs/scale.md)")
-    zenoh.add_argument("--zenoh", nargs="?", const="", metavar="CONFIG",
-                       help="publish on Zenoh; CONFIG: a Zenoh JSON5 configuration file (default: listen on "
-                            "tcp/127.0.0.1:7447 only unless --zenoh-listen is given; multicast scouting off unless --multicast)")
-    zenoh.add_argument("--zenoh-endpoint", action="append", default=[], metavar="ENDPOINT",
-                       help="connect to this Zenoh endpoint, e.g. tcp/192.168.1.10:7447 (repeatable)")
-    zenoh.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
-                       help="listen on this Zenoh endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
-    zenoh.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default: peer)")
-    _add_multicast_options(zenoh)
-
-
-def _add_multicast_options(group) -> None:
-    """Scouting finds and joins every Zenoh peer on the LAN (another lab's
-    boards of the same name among them): off unless asked, or a CONFIG says."""
-    choice = group.add_mutually_exclusive_group()
-    choice.add_argument("--multicast", action="store_true",
-                        help="turn Zenoh's multicast scouting on: find and join the Zenoh peers of the LAN "
-                             "(default: off, unless a CONFIG turns it on)")
-    choice.add_argument("--no-multicast", action="store_true",
-                        help="turn Zenoh's multicast scouting off, even if a CONFIG turns it on")
-
 
 
 def _add_sim(sub) -> None:
     sim = sub.add_parser("sim", help="run the board simulator on a pty, TCP, or into a capture file")
     where = sim.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a new pseudo-terminal and print its path")
-    where.add_argument("--tcp", type=_port_or_free, metavar="PORT", help="serve on TCP (0 picks a free port)")
+    where.add_argument("--tcp", type=port_or_free, metavar="PORT", help="serve on TCP (0 picks a free port)")
     where.add_argument("--capture", metavar="FILE", help="write the simulator's exact bytes to FILE")
     sim.add_argument("--host", default="127.0.0.1", help="TCP bind address (default: %(default)s)")
-    sim.add_argument("--seconds", type=_positive,
+    sim.add_argument("--seconds", type=positive,
                      help="a capture's length, s (default: 10); on a pty or TCP, stop after this long (default: "
                           "at Ctrl-C)")
-    sim.add_argument("--scene", type=_scene, default="demo", help=_SceneHelp("scene"))
-    sim.add_argument("--rate", type=_positive, default=1000.0, help="scans per second per sensor (default: %(default)s)")
+    sim.add_argument("--scene", type=scene, default="demo", help=SceneHelp("scene"))
+    sim.add_argument("--rate", type=positive, default=1000.0, help="scans per second per sensor (default: %(default)s)")
     sim.add_argument("--noise", type=float, default=1.0, help="white capacitance noise, fF rms (default: %(default)s)")
     sim.add_argument("--seed", type=int, default=0,
                      help="seed of the simulator's noise: the same seed gives the same bytes (default: %(default)s)")
@@ -240,9 +92,9 @@ def _add_record(sub) -> None:
     record.add_argument("--out", required=True, metavar="RUN.mcap", help="the MCAP file to write")
     record.add_argument("--raw", metavar="RUN.bin", help="also write the raw bytes, exactly as received")
     record.add_argument("--overwrite", action="store_true", help="replace files that exist (default: refuse them)")
-    record.add_argument("--seconds", type=_positive, help="stop after this long (default: until Ctrl-C); "
+    record.add_argument("--seconds", type=positive, help="stop after this long (default: until Ctrl-C); "
                                                            "exit 1 if not one byte came")
-    _add_reconstruction_options(record)
+    add_reconstruction_options(record)
     record.set_defaults(func=cmd_record)
 
 
@@ -250,12 +102,12 @@ def _add_replay(sub) -> None:
     replay = sub.add_parser("replay", help="replay a recording (.mcap) or raw capture through the pipeline")
     replay.add_argument("file", nargs="?", help="recording (.mcap) or raw capture (any other suffix)")
     replay.add_argument("--raw", metavar="FILE", help="a raw capture (same as giving FILE)")
-    replay.add_argument("--speed", type=_speed, default=None,
+    replay.add_argument("--speed", type=speed, default=None,
                         help="1 (real time), 2, … or max (default: max for --export, 1 for --serve)")
     replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout); "
                                                               "OUT.parquet: one row per data frame, a Parquet table")
-    _add_serving_options(replay)
+    add_serving_options(replay)
     # None: as the recording was made (its /settings), else the defaults (cli_recordings.replay_settings)
     replay.set_defaults(func=cmd_replay, level=None, mounting=None)
 
@@ -287,7 +139,7 @@ def _add_model(sub) -> None:
 
 def _add_bench(sub) -> None:
     bench = sub.add_parser("bench", help="speed against error of every fidelity level on the simulator's scenes")
-    bench.add_argument("--seconds", type=_bench_seconds, default=10.0,
+    bench.add_argument("--seconds", type=bench_seconds, default=10.0,
                        help="simulated seconds per scenario, at least 2 (default: %(default)s)")
     bench.add_argument("--process-seconds", type=float, default=60.0,
                        help="simulated seconds of the capture the whole-process figures replay "

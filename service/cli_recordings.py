@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 from .cli_commands import progress_bar
-from .cli_serve import LinkWatcher, cmd_serve, quiet_readout_transitions
+from .cli_link import LinkWatcher, quiet_readout_transitions
+from .cli_serve import cmd_serve
 from .reconstruct.levels import DEFAULT_LEVEL
 from .sources import check_source
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .readings import SensorInfo
 from .reconstruct import ForceFrame
-from .reconstruct.grid import LOADED_AT_TARE, NO_READING, OUT_OF_RANGE, STALE
+from .reconstruct.taxel_flags import LOADED_AT_TARE, NO_READING, OUT_OF_RANGE, STALE
 
 # Distinct flag sets seen (a few dozen at most: frame flags are a fixed vocabulary).
 _FLAG_SETS: dict[tuple[str, ...], tuple[str, ...]] = {}

@@ -6,12 +6,11 @@ reconstruct, keep history and rates, publish. Byte listeners (the
 recorder's raw channel) see every chunk as received, before decoding it,
 under the pipeline's lock;
 frame listeners (the fan-out hub, the recorder) see each batch of
-ForceFrames.
+ForceFrames. Tares and calibrations: pipeline_changes.py.
 """
 from __future__ import annotations
 
 import asyncio
-import logging
 import threading
 import time
 from collections import deque
@@ -22,19 +21,16 @@ from .history import Histories
 from .protocol_bulk import BulkDecoder
 from .board_info import name_from_info
 from .interpreter import Interpreter
+from .pipeline_changes import CalibrationListener, SensorChanges, TareListener
 from .readings import Reading, SensorInfo
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
 
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
-TareListener = Callable[[dict[int, int], bool], None]
-CalibrationListener = Callable[[int, int, dict], None]  # (before read, sensor id, document)
 Defer = Callable[[Callable[[], None]], object]
 
 RATE_WINDOW_S = 1.0
-
-log = logging.getLogger(__name__)
 
 
 class CalibrationSource(Protocol):
@@ -43,16 +39,6 @@ class CalibrationSource(Protocol):
     def for_sensor(self, board: dict, info: SensorInfo, mounting: str) -> SensorCalibration | None: ...
 
     def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None: ...
-
-
-class LoadedAtTare(RuntimeError):
-    """A tare refused: ``taxels`` {sensor id: [row-major taxels]} read loaded
-    against their calibration's C0."""
-
-    def __init__(self, taxels: dict[int, list[int]]) -> None:
-        self.taxels = taxels
-        super().__init__("loaded now, so a tare would make the load their zero: " + "; ".join(
-            f"sensor {sid} taxels {t}" for sid, t in sorted(taxels.items())) + " (tare with force=true to accept)")
 
 
 class RateMeter:
@@ -73,7 +59,7 @@ class RateMeter:
             self._window_start, self._window_count = now, self.count
 
 
-class Pipeline:
+class Pipeline(SensorChanges):
     """Decodes and reconstructs everything fed to it and hands each batch of
     ForceFrames to the listeners. Feeding is done from one thread at a time
     (the readout's, the event loop's or a replay's); ``tare`` and
@@ -204,99 +190,6 @@ class Pipeline:
         so the scans lost while away show up as a gap."""
         with self._lock:
             self.decoder.reset()
-
-    def tare(self, sensor_id: int | None = None, force: bool = False) -> list[int]:
-        """Restart the baseline of one sensor (or all). Unless ``force``,
-        LoadedAtTare names the taxels whose latest reading stands above the
-        calibration's C0 (that load would become the zero); with ``force``
-        the load present is the zero."""
-        with self._lock:
-            if not force:
-                loaded = self._loaded(sensor_id)
-                if loaded:
-                    raise LoadedAtTare(loaded)
-            tared = self.reconstructor.tare(sensor_id, judge=not force)
-            if self.tare_listeners:
-                # Each sensor's tare applies from the first read whose frames of its kind were not
-                # reconstructed yet (a grid's may wait in _deferred).
-                done = self._reconstructed
-                before_read = {sid: done["grid" if self.reconstructor.kind(sid) == "grid" else "other"] for sid in tared}
-                for listener in self.tare_listeners:
-                    listener(before_read, not force)
-            return tared
-
-    def redo(self, sensor_id: int, change: bool | dict) -> None:
-        """A change recorded while recording, made again (replay.py): a tare
-        (``change`` its ``judge``) or a calibration set (``change`` its document)."""
-        if isinstance(change, dict):
-            self.recalibrate(sensor_id, change)
-        else:
-            self.retare(sensor_id, change)
-
-    def retare(self, sensor_id: int, judge: bool) -> None:
-        """A recorded tare made again (replay.py): the sensor's baseline
-        restarted, without the loaded check the live tare passed; a sensor
-        not seen yet (a recording begun while it streamed) tares at its first
-        frame anyway, judged as the recorded tare was."""
-        with self._lock:
-            kind = self.reconstructor.kind(sensor_id)
-            if kind is not None:
-                self.reconstructor.tare(sensor_id, judge=judge)
-            else:
-                self.reconstructor.judge_first_tare(sensor_id, judge)
-            if self.tare_listeners:  # a recording of this replay records it too
-                done = self._reconstructed
-                before_read = {sensor_id: done["grid" if kind == "grid" else "other"] if kind else min(done.values())}
-                for listener in self.tare_listeners:
-                    listener(before_read, judge)
-
-    def loaded(self, sensor_id: int | None = None) -> dict[int, list[int]]:
-        """{sensor id: taxels} whose latest reading stands above the
-        calibration's C0, of one sensor (or all): what a tare would refuse."""
-        with self._lock:
-            return self._loaded(sensor_id)
-
-    def _loaded(self, sensor_id: int | None) -> dict[int, list[int]]:
-        ids = self.reconstructor.sensor_ids() if sensor_id is None else [sensor_id]
-        loaded = {sid: self.reconstructor.loaded_now(sid, self.latest[sid].capacitance_pF)
-                  for sid in ids if sid in self.latest}
-        return {sid: taxels for sid, taxels in loaded.items() if taxels}
-
-    def set_calibration(self, info, upload: dict, sensor: dict | None = None,
-                        store: Callable[[dict], object] | None = None) -> dict:
-        """Validate ``upload`` (ValueError naming the field), ``store`` its
-        document (the registry), then swap it in; returns the document."""
-        prepared = self.reconstructor.prepare_calibration(info, upload, sensor)  # tens of ms, not under the lock
-        if store is not None:
-            store(prepared[2])
-        with self._lock:
-            document = self.reconstructor.apply_calibration(info, prepared)
-            self._calibration_set(info, document)
-            return document
-
-    def recalibrate(self, sensor_id: int, document: dict) -> None:
-        """A calibration set while recording, set again (replay.py) for the
-        sensor described at ``sensor_id`` now; one that no longer fits it
-        (the recording's bytes describe it otherwise) is said and skipped."""
-        info = self.interpreter.sensors.get(sensor_id)
-        try:
-            if info is None:
-                raise ValueError("no such sensor described yet")
-            prepared = self.reconstructor.prepare_calibration(info, document)
-        except ValueError as exc:
-            log.warning("sensor %d: the calibration %s set while recording cannot be set again (%s); kept the one "
-                        "in use", sensor_id, document.get("id"), exc)
-            return
-        with self._lock:
-            self._calibration_set(info, self.reconstructor.apply_calibration(info, prepared))
-
-    def _calibration_set(self, info: SensorInfo, document: dict) -> None:
-        """Tell the calibration listeners (a recording) where it applies from:
-        the first read whose frames of the sensor's kind were not reconstructed yet."""
-        if self.calibration_listeners:
-            before_read = self._reconstructed["grid" if info.kind == "grid" else "other"]
-            for listener in self.calibration_listeners:
-                listener(before_read, info.id, document)
 
     def diagnostics(self) -> dict:
         """The decoder's counters and the interpreter's rejections (a recording's /diagnostics)."""

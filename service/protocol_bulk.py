@@ -1,4 +1,4 @@
-"""The decoder of protocol.py with its common case inlined, for the live path.
+"""The decoder of protocol_decoder.py with its common case inlined, for the live path.
 
 At 1 kHz per sensor a read holds one small frame per sensor, so what a
 frame costs is Python's per-call and per-lookup overhead, not its bytes.
@@ -14,8 +14,10 @@ from __future__ import annotations
 
 from binascii import crc_hqx
 
-from .protocol import (_CRC, _HALF_CLOCK, _HEADER, _KNOWN_TYPES, CRC_SIZE, HEADER_SIZE, RECENT_SCANS, SEQ_MODULUS, SYNC,
-                       T_US_MODULUS, VERSION, Decoder, Frame, FrameType, _length_is_valid, conflicting)
+from .protocol import (_CRC, _HEADER, _KNOWN_TYPES, CRC_SIZE, HEADER_SIZE, SEQ_MODULUS, SYNC, T_US_MODULUS, VERSION, Frame,
+                       FrameType, _length_is_valid)
+from .protocol_decoder import Decoder
+from .protocol_sequence import _HALF_CLOCK, RECENT_SCANS, conflicting
 
 _DATA = {int(FrameType.GRID): FrameType.GRID, int(FrameType.QUAD): FrameType.QUAD}
 _PAYLOAD_AT = HEADER_SIZE - 2  # the payload's offset in a frame's body (all but sync and crc)

@@ -19,7 +19,8 @@ import orjson
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.faults import inject
 from firmware_sim.sensors import Drift, SimGrid, SimQuad
-from service.protocol import Decoder, FrameType, encode_frame
+from service.protocol import FrameType, encode_frame
+from service.protocol_decoder import Decoder
 from service.replay import replay
 
 DATA = Path(__file__).parent / "data"

@@ -13,7 +13,7 @@ import pytest
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimGrid, SimQuad
 from service.physics.paper_data import table1
-from service.protocol import Decoder
+from service.protocol_decoder import Decoder
 from service.interpreter import Interpreter
 from service.readings import Reading
 from service.reconstruct import Reconstructor

@@ -249,7 +249,7 @@ def test_a_force_past_an_empirical_curves_end_is_flagged_saturated_without_sigma
 
     from service.readings import SensorInfo
     from service.reconstruct.calibration_upload import processor_for
-    from service.reconstruct.grid import SATURATED
+    from service.reconstruct.taxel_flags import SATURATED
     from service.reconstruct.sensor_calibration import builtin
 
     info = SensorInfo(0, "grid", 8, 8)

@@ -12,7 +12,8 @@ from firmware_sim.calibration_session import Press, session, validation_capture
 from service.calibration import registry as reg
 from service.calibration.book import CalibrationBook, book_from_options
 from service.calibration.calibrate import calibrate, document
-from service.pipeline import LoadedAtTare, Pipeline
+from service.pipeline import Pipeline
+from service.pipeline_changes import LoadedAtTare
 from service.reconstruct import Reconstructor
 from service.replay import replay
 

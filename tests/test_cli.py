@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from service import cli
-from service.cli_serve import LinkWatcher, check_port_free
+from service.cli_link import LinkWatcher
+from service.cli_serve import check_port_free
 from service.readout import LinkState
 
 TACTILE = str(Path(sys.executable).with_name("tactile"))
@@ -276,7 +277,7 @@ def test_an_export_suffix_in_capitals_is_its_format(tmp_path):
 def test_a_capture_whose_every_data_frame_is_corrupt_exits_1_saying_so(tmp_path, capsys):
     """Its INFO counted as a valid frame: 0 rows exported and exit 0."""
     from firmware_sim.board import BoardConfig, SimGrid, capture
-    from service.protocol import Decoder
+    from service.protocol_decoder import Decoder
 
     data = bytearray(capture(BoardConfig(scene="idle", sensors=[SimGrid(0)]), 0.5)[0])
     frames = Decoder().feed(bytes(data))

@@ -8,7 +8,8 @@ from firmware_sim.delivery import deliveries
 from firmware_sim.sensors import SimQuad
 from firmware_sim.urlhandler.protocol_sim import config_from_url
 from service.clock_map import ClockMap
-from service.protocol import DATA_TYPES, Decoder
+from service.protocol import DATA_TYPES
+from service.protocol_decoder import Decoder
 
 WRAP = 1 << 32
 LATENCY = 0.5e-3  # the link's least delay: part of the envelope, the same for every board

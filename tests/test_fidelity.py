@@ -223,7 +223,7 @@ def test_forces_do_not_depend_on_how_the_stream_is_cut():
 def test_a_sensors_forces_do_not_depend_on_the_other_sensors():
     """Grids (and quads) of a board are reconstructed together, one call per
     step; each sensor must get exactly what it would get alone."""
-    from service.protocol import Decoder
+    from service.protocol_decoder import Decoder
     from service.interpreter import Interpreter
 
     sensors = [SimGrid(0, electrical_leakage=0.01, drift=Drift(0.002, 5.0)), SimGrid(1, mechanical_coupling=-0.004),

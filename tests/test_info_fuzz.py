@@ -8,7 +8,8 @@ import orjson
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from service.protocol import Decoder, FrameType, encode_frame
+from service.protocol import FrameType, encode_frame
+from service.protocol_decoder import Decoder
 from service.interpreter import Interpreter
 
 text = st.text(st.characters(blacklist_categories=("Cs",)), max_size=8)  # JSON cannot carry lone surrogates

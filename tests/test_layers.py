@@ -12,19 +12,20 @@ ROOT = Path(__file__).resolve().parents[1]
 # (module prefix, rank): a module may import modules of its own rank or below.
 # The longest matching prefix decides.
 LAYERS = [
-    ("service.protocol", 0), ("service.protocol_bulk", 0), ("service.physics", 0), ("service.latency", 0), ("service.sched", 0),
-    ("service.clock_map", 0),
+    ("service.protocol", 0), ("service.protocol_decoder", 0), ("service.protocol_sequence", 0), ("service.protocol_bulk", 0),
+    ("service.physics", 0), ("service.latency", 0), ("service.sched", 0), ("service.clock_map", 0),
     ("service.readings", 1), ("service.board_info", 1), ("service.interpreter", 1),
     ("service.reconstruct", 2),
     ("service.history", 3), ("service.fanout", 3), ("service.record", 3), ("service.sources", 3),
     ("service.net", 3),
     ("service.calibration.registry", 3), ("service.calibration.book", 3),
-    ("service.pipeline", 4), ("service.handover", 4), ("service.readout", 4), ("service.board", 4),
+    ("service.pipeline", 4), ("service.pipeline_changes", 4), ("service.handover", 4), ("service.readout", 4), ("service.board", 4),
     ("service.remote_board", 4), ("service.gateway", 5),
     ("service.live_service", 5), ("service.health", 5), ("service.replay", 5), ("service.robot_config", 5),
     ("service.api", 6), ("service.reports", 6), ("service.client", 6), ("service.client_zenoh", 6),
     ("service.calibration", 6),
-    ("service.cli", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7), ("service.cli_serve", 7),
+    ("service.cli", 7), ("service.cli_options", 7), ("service.cli_commands", 7), ("service.cli_recordings", 7),
+    ("service.cli_serve", 7), ("service.cli_link", 7), ("service.cli_zenoh", 7),
     ("service.cli_signals", 7),
 ]
 # Peers that must not know each other.

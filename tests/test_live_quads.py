@@ -16,7 +16,7 @@ import pytest
 
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimQuad
-from service.protocol import Decoder
+from service.protocol_decoder import Decoder
 from service.interpreter import Interpreter
 from service.readings import Reading
 from service.reconstruct import Reconstructor

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from service.clock_map import ClockMap
-from service.protocol import Decoder, FrameType, encode_frame
+from service.protocol import FrameType, encode_frame
+from service.protocol_decoder import Decoder
 from service.interpreter import Interpreter
 
 DATA = Path(__file__).parent / "data"

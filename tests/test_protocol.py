@@ -3,12 +3,8 @@ from binascii import crc_hqx
 
 import pytest
 
-from service.protocol import (
-    FLAG_OVERRUN,
-    Decoder,
-    FrameType,
-    encode_frame,
-)
+from service.protocol import FLAG_OVERRUN, FrameType, encode_frame
+from service.protocol_decoder import Decoder
 from service.protocol_bulk import BulkDecoder
 
 

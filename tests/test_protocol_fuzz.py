@@ -1,5 +1,5 @@
 """Property-based fuzzing of the decoder with hypothesis, and a seeded
-byte-mutation fuzz of real captures; each on both decoders (protocol.py's
+byte-mutation fuzz of real captures; each on both decoders (protocol_decoder.py's
 and protocol_bulk.py's), and the two compared frame for frame and counter
 for counter on the mutated captures."""
 import random
@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimQuad
-from service.protocol import RESTART_JUMP_US, Decoder, FrameType, encode_frame
+from service.protocol import FrameType, encode_frame
+from service.protocol_decoder import Decoder
+from service.protocol_sequence import RESTART_JUMP_US
 from service.protocol_bulk import BulkDecoder
 
 DECODERS = pytest.mark.parametrize("decoder_class", [Decoder, BulkDecoder])

@@ -5,7 +5,8 @@ import numpy as np
 import orjson
 import pytest
 
-from service.protocol import FLAG_SATURATED, Decoder, FrameType, encode_frame
+from service.protocol import FLAG_SATURATED, FrameType, encode_frame
+from service.protocol_decoder import Decoder
 from service.board_info import parse_info
 from service.interpreter import Interpreter
 

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.protocol import Decoder, Frame, FrameType, encode_frame
+from service.protocol import Frame, FrameType, encode_frame
+from service.protocol_decoder import Decoder
 from service.interpreter import Interpreter
 from service.readings import OPEN_SENTINEL
 

@@ -10,12 +10,12 @@ import pytest
 from firmware_sim.board import BoardConfig, capture
 from firmware_sim.sensors import SimGrid, SimQuad
 from service.physics.paper_data import table1
-from service.protocol import Decoder
+from service.protocol_decoder import Decoder
 from service.interpreter import Interpreter
 from service.readings import Reading, SensorInfo
 from service.reconstruct import Reconstructor
 from service.reconstruct import reconstructor as reconstructor_module
-from service.reconstruct.grid import NO_READING, OUT_OF_RANGE, SATURATED, STALE
+from service.reconstruct.taxel_flags import NO_READING, OUT_OF_RANGE, SATURATED, STALE
 
 GRID = SensorInfo(0, "grid", 8, 8)
 QUAD = SensorInfo(1, "quad", 2, 2)

@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from firmware_sim.board import BoardConfig, capture
 from service.api.app import create_app
 from service.pipeline import Pipeline
-from service.protocol import Decoder
+from service.protocol_decoder import Decoder
 from service.reconstruct import Reconstructor
 from service.record.mcap_reader import iter_messages, read_raw, summary
 from service.record.recorder import Recorder

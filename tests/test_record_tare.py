@@ -629,7 +629,8 @@ def test_a_recording_whose_first_chunk_is_damaged_replays_the_rest_described_and
 
     from mcap.reader import make_reader
 
-    from service.protocol import DATA_TYPES, Decoder
+    from service.protocol import DATA_TYPES
+    from service.protocol_decoder import Decoder
 
     pipeline = Pipeline(Reconstructor(level=level))
     recorder = Recorder(tmp_path / "run.mcap")

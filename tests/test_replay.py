@@ -74,7 +74,8 @@ def test_sentinel_channels_export_as_null(tmp_path):
     data, _ = capture(BoardConfig(scene="idle"), 0.2)
     frames = bytearray(data)
     # Rewrite one grid frame with an open channel, through the encoder.
-    from service.protocol import Decoder, encode_frame
+    from service.protocol import encode_frame
+    from service.protocol_decoder import Decoder
 
     out = bytearray()
     for frame in Decoder().feed(bytes(frames)):

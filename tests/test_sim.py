@@ -12,7 +12,8 @@ from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig, capture
 from firmware_sim.sensors import Drift, SimGrid, SimQuad
 from service.physics.paper_data import table1
-from service.protocol import FLAG_OVERRUN, Decoder, FrameType
+from service.protocol import FLAG_OVERRUN, FrameType
+from service.protocol_decoder import Decoder
 from service.sources import open_source
 
 

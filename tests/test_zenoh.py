@@ -262,7 +262,7 @@ def test_serve_refuses_zenoh_options_without_zenoh_and_a_zenoh_port_in_use(live,
 def test_without_a_config_or_listen_endpoint_the_service_is_reachable_from_loopback_only():
     from argparse import Namespace
 
-    from service.cli_serve import zenoh_config
+    from service.cli_zenoh import zenoh_config
 
     options = dict(zenoh_endpoint=[], zenoh_mode=None, multicast=False, no_multicast=False)
     config, note = zenoh_config(Namespace(zenoh="", zenoh_listen=[], **options))
@@ -276,7 +276,7 @@ def test_explicit_endpoints_do_not_turn_multicast_scouting_on(tmp_path):
     """The documented two-host commands (--zenoh-listen, --zenoh-endpoint) stay
     off the LAN's other Zenoh networks unless --multicast or a CONFIG asks."""
     from service.cli import build_parser
-    from service.cli_serve import gateway_zenoh_config, zenoh_config
+    from service.cli_zenoh import gateway_zenoh_config, zenoh_config
 
     def scouting(command: str) -> str:
         args = build_parser().parse_args(command.split())

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import Field
 
 from ..board import RemoteBoardError
-from ..pipeline import LoadedAtTare
+from ..pipeline_changes import LoadedAtTare
 from .deps import Addressed, JSONResponse, authorised, find_sensor, get_service, known_sensor
 from .schemas import CalibrationDocumentUpload, GridCalibrationUpload, QuadCalibrationUpload
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..protocol import FLAG_SATURATED, T_US_MODULUS, Decoder, FrameType
+from ..protocol import FLAG_SATURATED, T_US_MODULUS, FrameType
+from ..protocol_decoder import Decoder
 from ..interpreter import Interpreter
 from ..readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, SensorInfo
 from ..record.readers import is_timed_by_host, timed_chunks

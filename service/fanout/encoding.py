@@ -33,7 +33,7 @@ concatenated; a message starts with the u16 record count:
     f64 scan_stamp (NaN: not mapped) · u32 frame-flag bits (FRAME_FLAG_BITS order) · u16 n · u8 m ·
     m bytes calibration id (ASCII) · u8 b · b bytes board name (ASCII) · f32[n] force · f32[n] sigma (if
     requested) · f32[n'] raw (if requested; n' = channels) · u8[n] taxel flags (a grid's, with the
-    ``flags`` field; bits of reconstruct/grid.py's TAXEL_FLAG_NAMES) — NaN = no value. n is always
+    ``flags`` field; bits of reconstruct/taxel_flags.py's TAXEL_FLAG_NAMES) — NaN = no value. n is always
     the frame's force count (forces NaN when not asked for), so a record's size follows from its head.
 Version 4 added the taxel flags: a binary client learns which taxels are
 saturated, stale or corrected, as a JSON one does. ``decode_binary`` also

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..readings import SensorInfo
 from .contact import summarise
-from .grid import TAXEL_FLAG_NAMES
+from .taxel_flags import TAXEL_FLAG_NAMES
 
 
 @dataclass(slots=True)
@@ -27,7 +27,7 @@ class ForceFrame:
     capacitance_pF: np.ndarray
     flags: list[str]
     level: str
-    taxel_flags: np.ndarray | None = None  # grid: (rows*cols,) bit set, see grid.TAXEL_FLAG_NAMES
+    taxel_flags: np.ndarray | None = None  # grid: (rows*cols,) bit set, see taxel_flags.TAXEL_FLAG_NAMES
     calibration: str = ""  # id of the calibration the forces rest on (registry id or "builtin-…")
     sigma_N: np.ndarray | None = None  # 1-σ of each force, shape of forces_N; NaN where the force is
     t_host_scan: float = float("nan")  # the scan's time on the host clock (s since the epoch), NaN: not mapped
@@ -53,7 +53,7 @@ class ForceFrame:
 
 
 def taxel_flag_lists(bits: np.ndarray | None) -> dict[str, list[int]]:
-    """(n,) per-taxel flag bits (grid.TAXEL_FLAG_NAMES) as {name: [row-major
+    """(n,) per-taxel flag bits (taxel_flags.TAXEL_FLAG_NAMES) as {name: [row-major
     taxel indices]}, only flags set."""
     if bits is None or not np.count_nonzero(bits):  # ndarray.any() costs 5× more at this size, on every frame
         return {}

@@ -1,7 +1,7 @@
 """The full grid level for several sensors at once, row by row.
 
 Leakage → drift → mechanical unmixing → table inversion (grid.py describes
-the levels and the flags; GridProcessor keeps each sensor's state). Every
+the levels and the flags; GridProcessor keeps each sensor's state: grid_state.py). Every
 step except the drift's exponential average and the estimator's
 bookkeeping works row by row, so the frames of all sensors go through one
 call per step: at 1 kHz the per-call cost, not the per-frame arithmetic,
@@ -17,8 +17,8 @@ from . import level0
 from .drift import quiet_medians
 from .sigma import empirical_forces, table_sigma
 from .stuck import stale_rows
-from .grid import (CROSSTALK_CORRECTED, DRIFT_SUSPECT, NO_READING, OUT_OF_RANGE, SATURATED, STALE, GridProcessor,
-                   GridResult)
+from .grid import GridProcessor, GridResult
+from .taxel_flags import CROSSTALK_CORRECTED, DRIFT_SUSPECT, NO_READING, OUT_OF_RANGE, SATURATED, STALE
 
 CORRECTION_SIGMAS = 3.0
 

@@ -17,7 +17,8 @@ from collections.abc import Iterable, Iterator
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..protocol import DATA_TYPES, T_US_MODULUS, Decoder, Frame
+from ..protocol import DATA_TYPES, T_US_MODULUS, Frame
+from ..protocol_decoder import Decoder
 from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096

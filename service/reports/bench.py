@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..protocol import Decoder
+from ..protocol_decoder import Decoder
 from ..interpreter import Interpreter
 from ..reconstruct import Reconstructor
 from ..reconstruct.baseline import DEFAULT_TARE_FRAMES
