@@ -48,11 +48,7 @@ from .drift import MIN_REFERENCE_TAXELS, DriftTracker
 from .grid_state import GridState
 from .levels import GRID_LEVELS
 from .sigma import empirical_forces, level0_sigma, table_sigma
-# FLAG_NAMES_BY_BITS, LOADED_AT_TARE and NO_READING only for reconstructor.py, which imports them from here; it is being
-# changed on another branch: point its import at taxel_flags.py there and drop them here.
-from .taxel_flags import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING, OUT_OF_RANGE, SATURATED, STALE, ReadingFlags
-
-__all__ = ["FLAG_NAMES_BY_BITS", "LOADED_AT_TARE", "NO_READING", "GridProcessor", "GridResult"]
+from .taxel_flags import OUT_OF_RANGE, SATURATED, STALE, ReadingFlags
 
 
 @dataclass

@@ -22,7 +22,7 @@ from ..readings import Reading, SensorInfo
 from . import level0
 from .baseline import DEFAULT_TARE_FRAMES
 from .force_frame import ForceFrame
-from .grid import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING
+from .taxel_flags import FLAG_NAMES_BY_BITS, LOADED_AT_TARE, NO_READING
 from .grid_full import GridJob, process_full
 from .fatigue import update_many
 from .isolation import Isolation
