@@ -1,7 +1,9 @@
 """Structured fuzz of INFO: JSON of every type in every field, against an
 oracle written from protocol.md (a field of the wrong JSON type invalidates
 the whole INFO; unknown keys are ignored; a sensor described twice in two
-ways is left undescribed, the protocol naming no rule for it)."""
+ways is left undescribed, the protocol naming no rule for it; so is one
+whose values, of the right types, no sensor can have: an id past 0..254, a
+grid shape without rows or cols, or past 256 channels)."""
 import json
 
 import orjson
@@ -67,19 +69,22 @@ def expected_sensors(doc):
         return None
     described, conflicting = {}, set()  # id: (kind, rows, cols, serial), None for a kind not known
     for entry in doc.get("sensors", []):
-        if type(entry) is not dict or type(entry.get("id")) is not int or not 0 <= entry["id"] <= 254:
+        if type(entry) is not dict or type(entry.get("id")) is not int:
             return None
         if type(entry.get("kind")) is not str or ("serial" in entry and type(entry["serial"]) is not str):
             return None
+        rows, cols = entry.get("rows"), entry.get("cols")
+        if entry["kind"] == "grid" and any(v is not None and type(v) is not int for v in (rows, cols)):
+            return None  # a wrong type: the whole INFO; a value out of range: that sensor alone (below)
         description = None
-        if entry["kind"] == "quad":
+        if not 0 <= entry["id"] <= 254:
+            pass
+        elif entry["kind"] == "quad":
             description = ("quad", 2, 2, entry.get("serial"))
         elif entry["kind"] == "grid":
-            rows, cols = entry.get("rows"), entry.get("cols")
             # At most 256 channels: a payload is at most 1024 bytes of u32.
-            if type(rows) is not int or type(cols) is not int or rows < 1 or cols < 1 or rows * cols > 256:
-                return None
-            description = ("grid", rows, cols, entry.get("serial"))
+            if rows is not None and cols is not None and rows >= 1 and cols >= 1 and rows * cols <= 256:
+                description = ("grid", rows, cols, entry.get("serial"))
         if entry["id"] in described:  # described again: the same counts once, another leaves it undescribed
             if described[entry["id"]] != description:
                 conflicting.add(entry["id"])
@@ -98,7 +103,7 @@ FIRST = {"board": "first", "serial": "TMX-1", "sensors": [{"id": 0, "kind": "gri
 
 @settings(max_examples=600, deadline=None)
 @given(st.one_of(info_docs(), any_json))
-def test_any_info_is_taken_whole_or_rejected_whole_and_counted(doc):
+def test_any_info_is_taken_or_rejected_whole_as_the_protocol_says_and_counted(doc):
     payload = json.dumps(doc).encode()
     if len(payload) > 1024:  # not a frame the protocol allows
         event("too long")
