@@ -183,7 +183,10 @@ def test_websocket_decimates_and_batches_on_request(client):
 @pytest.mark.parametrize(
     "query, message",
     [("max_rate=-1", "max_rate='-1'"), ("sensors=a,b", "sensors='a,b'"), ("fields=x", "fields='x'"),
-     ("encoding=xml", "encoding='xml'"), ("batch_ms=0", "batch_ms='0'")],
+     ("encoding=xml", "encoding='xml'"), ("batch_ms=0", "batch_ms='0'"),
+     # A typo, a repeat or an empty value took the default, silently; ids no sensor can have got a notice only.
+     ("max_rte=100", "unknown parameter 'max_rte'"), ("sensors=0&sensors=1", "sensors given 2 times"),
+     ("fields=", "fields= is empty"), ("sensors=-1", "-1 is no sensor id"), ("sensors=left/999", "999 is no sensor id")],
 )
 def test_websocket_rejects_bad_parameters(client, query, message):
     with client.websocket_connect(f"ws://localhost/ws?{query}") as ws:

@@ -17,6 +17,7 @@ from fastapi.requests import HTTPConnection
 from fastapi.responses import Response
 
 from ..fanout.encoding import DEFAULT_FIELDS, FIELDS
+from ..readings import MAX_SENSOR_ID
 
 if TYPE_CHECKING:
     from ..board import Board
@@ -116,9 +117,12 @@ def parse_sensors(text: str | None) -> frozenset | None:
     for part in text.split(","):
         board, _, sid = part.strip().rpartition("/")
         try:
-            wanted.add((board, int(sid)) if board else int(sid))
+            number = int(sid)
         except ValueError:
             raise ValueError(f"sensors={text!r} must be a comma-separated list of ids or board/id addresses") from None
+        if not 0 <= number <= MAX_SENSOR_ID:
+            raise ValueError(f"sensors={text!r}: {number} is no sensor id (ids are 0..{MAX_SENSOR_ID})")
+        wanted.add((board, number) if board else number)
     return frozenset(wanted)
 
 

@@ -36,8 +36,22 @@ MAX_STREAM_CLIENTS = 64
 router = APIRouter()
 
 
+STREAM_PARAMS = ("sensors", "fields", "encoding", "max_rate", "batch_ms")
+
+
 def subscription(params: QueryParams) -> Subscriber:
-    """The client's subscription from its query; ValueError names a bad parameter."""
+    """The client's subscription from its query; ValueError names a bad
+    parameter: an unknown one (a typo, ``max_rte=100``, gave the full rate),
+    one given twice (the last was taken) or empty (the default was)."""
+    unknown = sorted(set(params) - set(STREAM_PARAMS))
+    if unknown:
+        raise ValueError(f"unknown parameter {unknown[0]!r}; known: {', '.join(STREAM_PARAMS)}")
+    for name in STREAM_PARAMS:
+        given = params.getlist(name)
+        if len(given) > 1:
+            raise ValueError(f"{name} given {len(given)} times: give it once ({name}=0,1 lists several sensors)")
+        if given == [""]:
+            raise ValueError(f"{name}= is empty: leave it out for its default")
     encoding = params.get("encoding", "json")
     if encoding not in ("json", "binary"):
         raise ValueError(f"encoding={encoding!r} must be 'json' or 'binary'")
