@@ -1,0 +1,145 @@
+"""A quad's common-mode drift, followed as a grid's is (drift.py), on its Z.
+
+Temperature moves the four electrodes' C0 alike, exactly as a normal force
+moves their ΔC/C0, and a quad has no unloaded neighbours to compare with:
+untracked, 0.5 % ΔC/C0 a minute read 0.15 N after a minute. What tells the
+two apart is what tells a plate from drift on a grid, speed (drift.py: a
+temperature moves C0 by at most MAX_RATE_PER_S, 1 % a minute; a press, even
+a robot's slow 0.2 N/s, moves Z by 0.7 % a second), and level: a held load
+stands further from the estimate's last agreed value than drift at that
+bound could have moved it. So each quad has a DriftTracker fed its Z (the
+mean ΔC/C0 of its four electrodes) as the "quiet median", a frame being a
+reference only with all four electrodes plausible and its shear quiet (X
+and Y within the tracker's band: a temperature change moves no shear, a
+contact with shear is a load whatever its Z). Z is one noisy value where a
+grid's median is quiet, so the tracker's noise is NOISE_SIGMAS of Z's.
+
+Creep (paper 001 §5.2): PDMS under a held press keeps compressing, a few
+per cent of the load's ΔC/C0 over tens of seconds, as slowly as drift, and
+gives it back after the release. It belongs to the load, not to C0: taken
+up, it would read as a negative offset once the press lets go (Fz 0,
+``normal_out_of_range``). A press stands beyond the reach the whole time it
+is held (1 N is 3.4 % ΔC/C0, the reach 1 % after a minute), so the estimate
+stays frozen under it and takes up only what drift did meanwhile, after the
+release, within the reach. A load lighter than the reach (~0.3 N after a
+minute held) is taken for drift once the reach covers it, as a grid's plate
+is (flagged ``drift_suspect`` from 10 s frozen until then).
+
+What the tracker cannot know is in σ (``Steps.sigma``, ΔC/C0, through the
+normal curve's slope into Fz): frozen, the drift it could not see, the bound
+times the time frozen; held at the bound behind a level that moves faster
+(a drift past the bound), the gap between them, and ``drift_suspect`` once
+that gap is beyond the band. ``drift_suspect`` otherwise as on a grid: after
+10 s frozen, or a drift beyond 1 % ΔC/C0. Only the full level tracks, as
+for grids.
+
+The trackers are stepped frame by frame (the frozen time is per frame) on
+their own rows, so a quad's drift does not depend on how its frames were
+batched, and advanced only by ``keep``: a batch that raises has moved none.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .drift import DriftTracker
+from .level0 import quad_axes
+
+NOISE_SIGMAS = 3.0  # a single Z stands this far from its average by noise alone (0.3 % of frames)
+
+
+@dataclass
+class Steps:
+    """Per row: the drift (ΔC/C0), its σ and whether it is drift-suspect; the trackers' states to keep."""
+
+    drift: np.ndarray
+    sigma: np.ndarray
+    suspect: np.ndarray
+    kept: list
+
+
+@dataclass
+class QuadTracker:
+    """A quad's DriftTracker and whether a load is on (module docstring):
+    ``ema``, Z's exponential average over the tracker's tau_s (NaN: none
+    yet), at unwrapped time ``at``; ``base``, the estimate when the load came on."""
+
+    drift: DriftTracker
+    loaded: bool = False
+    base: float = 0.0
+    ema: float = math.nan
+    at: float = 0.0
+
+    def state(self) -> tuple:
+        return self.drift.state(), self.loaded, self.base, self.ema, self.at
+
+    def restore(self, state: tuple) -> None:
+        drift, self.loaded, self.base, self.ema, self.at = state
+        self.drift.restore(drift)
+
+    def step(self, t: float, ok: bool, z: float) -> tuple[float, bool, float]:
+        """One frame: (drift, drift-suspect, σ of the drift), all ΔC/C0."""
+        own = self.drift
+        tolerance = own.band * own.noise
+        rise = z - self.ema  # NaN before the first Z, or without one: compares False
+        if not self.loaded and rise > tolerance:  # faster than any drift: a load came on
+            self.loaded, self.base = True, own.drift
+        elif self.loaded and (rise < -tolerance or z - self.base <= tolerance):  # let go (or back down slowly)
+            self.loaded = False
+        ((drift, suspect),) = own.follow([t], [ok and not self.loaded], [z])
+        _, average, _, _, _, _, last, frozen_since, offset = own.state()
+        now = last + offset
+        if z == z:
+            if self.ema == self.ema and abs(rise) <= tolerance:
+                self.ema += (z - self.ema) * (min(max(now - self.at, 0.0), own.tau_s) / own.tau_s)
+            else:  # restarted at a jump, as the tracker's averages: they would lag it long
+                self.ema = z
+            self.at = now
+        if frozen_since is not None:  # the drift it could not see meanwhile, at the bound
+            return drift, suspect, own.max_rate_per_s * (now - frozen_since)
+        gap = abs(average - drift)  # held at the bound behind a level that moves faster
+        return drift, suspect or gap > tolerance, gap
+
+
+def tracker(processor, zero: np.ndarray, noise: float) -> QuadTracker:
+    """The quad's tracker on its current zero (a new tare starts one afresh)."""
+    held = processor.drift
+    if held is None or held[0] is not zero:
+        held = processor.drift = (zero, QuadTracker(DriftTracker(noise=NOISE_SIGMAS * float(noise))))
+    return held[1]
+
+
+def steps(states: list, counts: list[int], capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray,
+          t_s: list[float], stale: np.ndarray | None) -> Steps:
+    """The drift of each row of quads' readings ``capacitance`` (R, 4) pF,
+    ``counts[k]`` rows of ``states[k]`` at board times ``t_s`` (R,) s,
+    against ``baseline`` (R, 4) with Z's noise ``noise`` (R,); ``stale``
+    (R, 4) or None (quad_batch.stale_runs). Changes nothing."""
+    relative = capacitance / baseline - 1.0
+    x, y, z = np.moveaxis(quad_axes(relative), -1, 0)
+    band = np.array([state.processor.plausible for state in states])
+    low, high = (np.repeat(band[:, i], counts)[:, None] for i in (0, 1))
+    plausible = np.all((relative >= low) & (relative <= high), axis=1)  # NaN compares False
+    if stale is not None:
+        plausible &= ~stale.any(axis=1)
+    quiet = (np.abs(x) <= 4.0 * NOISE_SIGMAS * noise) & (np.abs(y) <= 4.0 * NOISE_SIGMAS * noise)
+    ok, z = (plausible & quiet).tolist(), z.tolist()
+    found = np.zeros((len(z), 3))
+    kept, start = [], 0
+    for state, count in zip(states, counts):
+        own = tracker(state.processor, state.baseline.value, noise[start])
+        before = own.state()
+        for i in range(start, start + count):
+            found[i] = own.step(t_s[i], ok[i], z[i])
+        kept.append((own, own.state()))
+        own.restore(before)
+        start += count
+    return Steps(found[:, 0], found[:, 2], found[:, 1] != 0.0, kept)
+
+
+def keep(kept: list) -> None:
+    """Advance the trackers to what ``steps`` found."""
+    for own, state in kept:
+        own.restore(state)
