@@ -2,40 +2,46 @@
 
 Temperature moves the four electrodes' C0 alike, exactly as a normal force
 moves their ΔC/C0, and a quad has no unloaded neighbours to compare with:
-untracked, 0.5 % ΔC/C0 a minute read 0.15 N after a minute. What tells the
-two apart is what tells a plate from drift on a grid, speed (drift.py: a
-temperature moves C0 by at most MAX_RATE_PER_S, 1 % a minute; a press, even
-a robot's slow 0.2 N/s, moves Z by 0.7 % a second), and level: a held load
-stands further from the estimate's last agreed value than drift at that
-bound could have moved it. So each quad has a DriftTracker fed its Z (the
-mean ΔC/C0 of its four electrodes) as the "quiet median", a frame being a
-reference only with all four electrodes plausible and its shear quiet (X
-and Y within the tracker's band: a temperature change moves no shear, a
-contact with shear is a load whatever its Z). Z is one noisy value where a
-grid's median is quiet, so the tracker's noise is NOISE_SIGMAS of Z's.
+untracked, 0.5 % ΔC/C0 a minute read 0.15 N after a minute. What tells them
+apart is what tells a grid's plate from drift (drift.py): speed — temperature
+moves C0 by ~1 % a minute at most (MAX_RATE_PER_S), a press, even a robot's
+slow 0.2 N/s, moves Z by 0.7 % a second — and level: a held press stands
+further from the estimate's last agreed value than drift could have moved
+it. Each quad has a DriftTracker fed its Z (the four electrodes' mean
+ΔC/C0) as the "quiet median"; a frame is a reference only with all four
+electrodes plausible and fresh and its shear quiet (X and Y within the band:
+temperature moves no shear; a contact with shear is a load whatever its Z).
+Z is one noisy value where a grid's median is quiet, so the tracker's noise
+is NOISE_SIGMAS of Z's. Its reach grows at REACH_RATE_PER_S, twice the bound,
+as the grid's bound is twice the 0.5 %/min it tracks: a ±1 % sine over
+5 min peaks at 1.26 %/min, and past the reach the estimate stays frozen
+until the level's mean speed since it last agreed falls under it again.
 
-Creep (paper 001 §5.2): PDMS under a held press keeps compressing, a few
-per cent of the load's ΔC/C0 over tens of seconds, as slowly as drift, and
-gives it back after the release. It belongs to the load, not to C0: taken
-up, it would read as a negative offset once the press lets go (Fz 0,
-``normal_out_of_range``). A press stands beyond the reach the whole time it
-is held (1 N is 3.4 % ΔC/C0, the reach 1 % after a minute), so the estimate
-stays frozen under it and takes up only what drift did meanwhile, after the
-release, within the reach. A load lighter than the reach (~0.3 N after a
-minute held) is taken for drift once the reach covers it, as a grid's plate
-is (flagged ``drift_suspect`` from 10 s frozen until then).
+A load is latched from a rise of Z faster than any drift (beyond the band
+above its 0.2 s average) until a fall as fast (its release) or until Z is
+back within the band of the estimate it had then: while latched, no frame
+is a reference. Without it a load lighter than the reach (0.2 N is 0.7 %
+ΔC/C0, covered after ~20 s) was taken up while held and read, after its
+release, as a negative offset (Fz 0, ``normal_out_of_range``) until the
+reach covered it again. Creep (paper 001 §5.2) is the same case: PDMS under a
+held press keeps compressing, a few per cent of the load's ΔC/C0 over tens
+of seconds, as slowly as drift, and gives it back after the release; it
+belongs to the load, not to C0, so nothing of it is taken up under the
+load. After the release the estimate resumes (1 s on: drift.py) and takes
+up what drift did meanwhile, and what creep has not yet given back, which
+it then follows down.
 
-What the tracker cannot know is in σ (``Steps.sigma``, ΔC/C0, through the
-normal curve's slope into Fz): frozen, the drift it could not see, the bound
-times the time frozen; held at the bound behind a level that moves faster
-(a drift past the bound), the gap between them, and ``drift_suspect`` once
+What the tracker cannot know is in σ (``Steps.sigma``, ΔC/C0, into Fz
+through the normal curve's slope): frozen, the drift it could not see, the
+bound MAX_RATE_PER_S times the time frozen; following at its reach behind a
+level that moves faster, the gap between them, and ``drift_suspect`` once
 that gap is beyond the band. ``drift_suspect`` otherwise as on a grid: after
-10 s frozen, or a drift beyond 1 % ΔC/C0. Only the full level tracks, as
-for grids.
+10 s frozen, or with a drift beyond 1 % ΔC/C0. Only the full level tracks,
+as for grids.
 
-The trackers are stepped frame by frame (the frozen time is per frame) on
-their own rows, so a quad's drift does not depend on how its frames were
-batched, and advanced only by ``keep``: a batch that raises has moved none.
+The trackers step frame by frame (the frozen time is per frame) on their own
+rows, so a quad's drift does not depend on how its frames were batched, and
+move only by ``keep``: a batch that raises has moved none.
 """
 from __future__ import annotations
 
@@ -44,10 +50,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .drift import DriftTracker
+from .drift import MAX_RATE_PER_S, DriftTracker
 from .level0 import quad_axes
 
 NOISE_SIGMAS = 3.0  # a single Z stands this far from its average by noise alone (0.3 % of frames)
+REACH_RATE_PER_S = 2 * MAX_RATE_PER_S  # what the estimate may follow: twice the fastest drift it is for (docstring)
 
 
 @dataclass
@@ -98,7 +105,7 @@ class QuadTracker:
                 self.ema = z
             self.at = now
         if frozen_since is not None:  # the drift it could not see meanwhile, at the bound
-            return drift, suspect, own.max_rate_per_s * (now - frozen_since)
+            return drift, suspect, MAX_RATE_PER_S * (now - frozen_since)
         gap = abs(average - drift)  # held at the bound behind a level that moves faster
         return drift, suspect or gap > tolerance, gap
 
@@ -107,7 +114,7 @@ def tracker(processor, zero: np.ndarray, noise: float) -> QuadTracker:
     """The quad's tracker on its current zero (a new tare starts one afresh)."""
     held = processor.drift
     if held is None or held[0] is not zero:
-        held = processor.drift = (zero, QuadTracker(DriftTracker(noise=NOISE_SIGMAS * float(noise))))
+        held = processor.drift = (zero, QuadTracker(DriftTracker(noise=NOISE_SIGMAS * float(noise), max_rate_per_s=REACH_RATE_PER_S)))
     return held[1]
 
 
