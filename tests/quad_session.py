@@ -46,8 +46,8 @@ def press(start_s: float, ramp_s: float, hold_s: float, fz_n: float, fx_n: float
     return force
 
 
-def presses(until_s: float, seed: int = 0) -> list:
-    """Presses of 1–8 N held 2–20 s, 3–10 s apart, from 5 s until ``until_s``: ramps of 0.2 s, every
+def presses(until_s: float, seed: int = 0, hold_s: tuple = (2.0, 20.0)) -> list:
+    """Presses of 1–8 N held ``hold_s`` (2–20 s), 3–10 s apart, from 5 s until ``until_s``: ramps of 0.2 s, every
     fourth brought on and off at a robot's slow 0.2 N/s (up to 3 N, 15 s each way), every third with a
     shear of a third of its normal force."""
     rng = np.random.default_rng(seed)
@@ -55,7 +55,7 @@ def presses(until_s: float, seed: int = 0) -> list:
     while True:
         k = len(out)
         fz = rng.uniform(1.0, 3.0 if k % 4 == 3 else 8.0)
-        ramp, hold = (fz / 0.2 if k % 4 == 3 else 0.2), rng.uniform(2.0, 20.0)
+        ramp, hold = (fz / 0.2 if k % 4 == 3 else 0.2), rng.uniform(*hold_s)
         if start + 2 * ramp + hold > until_s:
             return out
         out.append(press(start, ramp, hold, fz, fz / 3 if k % 3 == 2 else 0.0))
@@ -101,18 +101,19 @@ def session(seconds: float, loads, drift=lambda t: 0.0 * t, creep: bool = False,
     return t, f, counts
 
 
-def feed(t: np.ndarray, counts: np.ndarray, reconstructor: Reconstructor | None = None) -> dict:
-    """{sensor: (forces (N, 3), σ (N, 3), flags list)} of every scan, through a Pipeline at the full level."""
-    pipeline = Pipeline(reconstructor or Reconstructor(level="full"), map_clock=False)
+def feed(t: np.ndarray, counts: np.ndarray, read_scans: int = READ_SCANS) -> dict:
+    """{sensor: (forces (N, 3), σ (N, 3), flags list)} of every scan, through a Pipeline at the full level,
+    ``read_scans`` scans a read."""
+    pipeline = Pipeline(Reconstructor(level="full"), map_clock=False)
     quads = len(counts)
     info = {"board": "quad-drift", "sensors": [{"id": q, "kind": "quad"} for q in range(quads)]}
     frames = {q: [] for q in range(quads)}
     for frame in pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(info)), 0.0):
         frames[frame.sensor.id].append(frame)
     t_us = np.round(t * 1e6).astype(np.int64).tolist()
-    for start in range(0, len(t), READ_SCANS):
+    for start in range(0, len(t), read_scans):
         data = b"".join(encode_frame(FrameType.QUAD, q, k, t_us[k], counts[q, k].tobytes())
-                        for k in range(start, min(start + READ_SCANS, len(t))) for q in range(quads))
+                        for k in range(start, min(start + read_scans, len(t))) for q in range(quads))
         for frame in pipeline.feed(data, t[start]):
             frames[frame.sensor.id].append(frame)
     return {q: (np.array([f.forces_N for f in fs], dtype=float),
