@@ -32,12 +32,15 @@ up what drift did meanwhile, and what creep has not yet given back, which
 it then follows down.
 
 What the tracker cannot know is in σ (``Steps.sigma``, ΔC/C0, into Fz
-through the normal curve's slope): frozen, the drift it could not see, the
-bound MAX_RATE_PER_S times the time frozen; following at its reach behind a
-level that moves faster, the gap between them, and ``drift_suspect`` once
-that gap is beyond the band. ``drift_suspect`` otherwise as on a grid: after
-10 s frozen, or with a drift beyond 1 % ΔC/C0. Only the full level tracks,
-as for grids.
+through the normal curve's slope): the drift that may have gone unseen since
+an unloaded Z last stood within the band of the estimate, the bound
+MAX_RATE_PER_S times that time (counted from the last such frame, not from
+the freeze: between loads 0.6 s apart the tracker never settles, yet each
+gap shows the level where the estimate is); following at its reach behind a
+level that moves faster, at least the gap between them. ``drift_suspect``
+as on a grid, on that same clock: 10 s unseen, a drift beyond 1 % ΔC/C0, or
+the estimate behind the level by more than the band. Only the full level
+tracks, as for grids.
 
 The trackers step frame by frame (the frozen time is per frame) on their own
 rows, so a quad's drift does not depend on how its frames were batched, and
@@ -69,21 +72,24 @@ class Steps:
 
 @dataclass
 class QuadTracker:
-    """A quad's DriftTracker and whether a load is on (module docstring):
-    ``ema``, Z's exponential average over the tracker's tau_s (NaN: none
-    yet), at unwrapped time ``at``; ``base``, the estimate when the load came on."""
+    """A quad's DriftTracker and what it knows besides (module docstring):
+    whether a load is on, ``base`` the estimate when it came on; ``ema``, Z's
+    exponential average over the tracker's tau_s (NaN: none yet) at
+    unwrapped time ``at``; ``seen``, when an unloaded Z last stood within the
+    band of the estimate (None: not yet)."""
 
     drift: DriftTracker
     loaded: bool = False
     base: float = 0.0
     ema: float = math.nan
     at: float = 0.0
+    seen: float | None = None
 
     def state(self) -> tuple:
-        return self.drift.state(), self.loaded, self.base, self.ema, self.at
+        return self.drift.state(), self.loaded, self.base, self.ema, self.at, self.seen
 
     def restore(self, state: tuple) -> None:
-        drift, self.loaded, self.base, self.ema, self.at = state
+        drift, self.loaded, self.base, self.ema, self.at, self.seen = state
         self.drift.restore(drift)
 
     def step(self, t: float, ok: bool, z: float) -> tuple[float, bool, float]:
@@ -95,8 +101,9 @@ class QuadTracker:
             self.loaded, self.base = True, own.drift
         elif self.loaded and (rise < -tolerance or z - self.base <= tolerance):  # let go (or back down slowly)
             self.loaded = False
-        ((drift, suspect),) = own.follow([t], [ok and not self.loaded], [z])
-        _, average, _, _, _, _, last, frozen_since, offset = own.state()
+        reference = ok and not self.loaded
+        own.follow([t], [reference], [z])
+        drift, average, _, _, _, _, last, frozen_since, offset = own.state()
         now = last + offset
         if z == z:
             if self.ema == self.ema and abs(rise) <= tolerance:
@@ -104,10 +111,11 @@ class QuadTracker:
             else:  # restarted at a jump, as the tracker's averages: they would lag it long
                 self.ema = z
             self.at = now
-        if frozen_since is not None:  # the drift it could not see meanwhile, at the bound
-            return drift, suspect, MAX_RATE_PER_S * (now - frozen_since)
-        gap = abs(average - drift)  # held at the bound behind a level that moves faster
-        return drift, suspect or gap > tolerance, gap
+        gap = 0.0 if frozen_since is not None else abs(average - drift)  # held at its reach behind the level
+        if self.seen is None or (reference and abs(z - drift) <= tolerance and gap <= tolerance):
+            self.seen = now  # the estimate stands where the unloaded level is: nothing unseen since
+        suspect = now - self.seen >= own.suspect_after_s or abs(drift) > own.max_drift or gap > tolerance
+        return drift, suspect, max(gap, MAX_RATE_PER_S * (now - self.seen))  # what it cannot have seen since
 
 
 def tracker(processor, zero: np.ndarray, noise: float) -> QuadTracker:
