@@ -154,6 +154,24 @@ def steps(states: list, counts: list[int], capacitance: np.ndarray, baseline: np
     return Steps(found[:, 0], found[:, 2], found[:, 1] != 0.0, kept)
 
 
+def where(processor, zero: np.ndarray) -> list | None:
+    """The quad's tracker state on ``zero`` as JSON values (a non-finite
+    float as its name), what a recording begun now stores for its replay
+    to go on from; None without one."""
+    held = processor.drift
+    if held is None or held[0] is not zero:
+        return None
+    drift, *rest = held[1].state()
+    return [v if v is None or isinstance(v, bool) or math.isfinite(v) else str(v) for v in (*drift, *rest)]
+
+
+def resume(processor, baseline, values: list) -> None:
+    """Go on from ``where``'s ``values`` on the quad's preset zero ``baseline``."""
+    values = [float(v) if isinstance(v, str) else v for v in values]
+    own = tracker(processor, baseline.value, processor.noise(baseline.value, baseline.std))
+    own.restore((tuple(values[:-5]), *values[-5:]))
+
+
 def keep(kept: list) -> None:
     """Advance the trackers to what ``steps`` found."""
     for own, state in kept:
