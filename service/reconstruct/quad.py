@@ -55,6 +55,8 @@ class QuadProcessor:
     # (last reading (4,) pF, its electrodes' run lengths (4,)) that the next frames continue (stuck.py).
     # Written in place only: a QuadPlan's stacked arrays hold them as rows (quad_batch.py).
     runs: tuple | None = field(default=None, repr=False, compare=False)
+    # (the zero it is tracked on, its DriftTracker): the common-mode drift (quad_drift.py), the full level's.
+    drift: tuple | None = field(default=None, repr=False, compare=False)
     # Processors with equal keys give the same result on the same input, so
     # their sensors' frames can go through one call.
     batch_key: tuple = field(init=False, repr=False, compare=False)
@@ -100,9 +102,10 @@ class QuadProcessor:
         self.runs = (np.array(last_pF, dtype=float), np.array(runs, dtype=np.int64))
 
     def sigma(self, forces: np.ndarray, noise: np.ndarray | float,
-              sensitivity: np.ndarray | float = 1.0) -> np.ndarray:
+              sensitivity: np.ndarray | float = 1.0, drift: np.ndarray | None = None) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
-        combination noise through the curve's slope at that force, the
+        combination noise through the curve's slope at that force (Z's with
+        ``drift`` (N,), the drift estimate's own σ in ΔC/C0: quad_drift.py), the
         force times its slope's relative error, what the calibration's fit
         left unexplained (``model_sigma_N``), and FATIGUE_SIGMA_SHARE of
         the fatigue compensation (``sensitivity``, scalar or (N,), as
@@ -122,6 +125,8 @@ class QuadProcessor:
                 shear_slope = shear_slope * (1.0 - model.coupling * model.normal_response(fz))
             slopes = np.concatenate([shear_slope, c1 + 2.0 * c2 * fz], axis=1)
             reading = noise / np.maximum(slopes, 1e-9)
+            if drift is not None:
+                reading[:, 2] = np.hypot(reading[:, 2], drift / np.maximum(slopes[:, 2], 1e-9))
         variance = reading * reading + (forces * self._se) ** 2
         if self._model_variance is not None:
             variance += self._model_variance

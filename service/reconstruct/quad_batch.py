@@ -23,6 +23,7 @@ import numpy as np
 
 from ..protocol import FLAG_SATURATED
 from ..readings import Reading
+from . import quad_drift
 from .level0 import clipped
 from .fatigue import update_many
 from .force_frame import ForceFrame
@@ -128,6 +129,24 @@ def keep_runs(kept: list) -> None:
         prior[...] = runs
 
 
+def drifted(level: str, states: list, counts: list[int], readings: list[Reading], capacitance: np.ndarray,
+            baseline: np.ndarray, noise: np.ndarray, stale) -> tuple[np.ndarray, quad_drift.Steps | None]:
+    """(each row's baseline (R, 4) scaled by its drift, the drift's steps) at
+    the full level (quad_drift.py), changing nothing; (``baseline``, None) below it."""
+    if level != "full":
+        return baseline, None
+    found = quad_drift.steps(states, counts, capacitance, baseline, noise, [r.t_us * 1e-6 for r in readings], stale)
+    return baseline * (1.0 + found.drift[:, None]), found
+
+
+def with_suspect(quad_flags: list[list[str]], forces: np.ndarray, found: quad_drift.Steps | None) -> list[list[str]]:
+    """``drift_suspect`` added to the frames with forces that ``found`` says are."""
+    if found is not None and np.count_nonzero(found.suspect):
+        for i in np.flatnonzero(found.suspect & (forces[:, 2] == forces[:, 2])).tolist():
+            quad_flags[i].append("drift_suspect")
+    return quad_flags
+
+
 def _frames(level: str, states: list, readings: list[Reading], forces: np.ndarray, sigma: np.ndarray,
             quad_flags: list[list[str]], counts: list[int] | None = None) -> list[ForceFrame]:
     """The ForceFrames of ``readings``, ``counts[k]`` of them (default one) of ``states[k]``."""
@@ -157,14 +176,20 @@ class QuadBatches:
         processor = states[0].processor
         capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), states, counts)
         stale, kept = stale_runs(states, capacitance, counts)
-        if len(readings) != len(members):
+        several = len(readings) != len(members)
+        if several:
             baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
+        baseline, found = drifted(self.level, states, counts, readings, capacitance, baseline, noise, stale)
+        if several:
             forces, quad_flags, sensitivity = _with_fatigue(processor, states, counts, capacitance, baseline, noise,
                                                             sensitivity, stale)
         else:
             forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-        sigma = processor.sigma(forces, noise, sensitivity)
+        sigma = processor.sigma(forces, noise, sensitivity, None if found is None else found.sigma)
+        quad_flags = with_suspect(quad_flags, forces, found)
         keep_runs(kept)
+        if found is not None:
+            quad_drift.keep(found.kept)
         update_many([state.cycles for state in states], forces[:, 2:3], counts)
         return _frames(self.level, states, readings, forces, sigma, quad_flags, counts)
 
@@ -180,7 +205,8 @@ class QuadBatches:
 class _Batch:
     """One model's quads of the planned read: their places in it and their constants."""
 
-    def __init__(self, positions: list[int], states: list) -> None:
+    def __init__(self, level: str, positions: list[int], states: list) -> None:
+        self.level = level
         self.positions = positions
         self.states = states
         self.processor = states[0].processor
@@ -223,7 +249,7 @@ class QuadPlan:
         # a calibration, a load cycle counted) makes the plan miss, and the general path runs.
         self._basis = [(state.baseline.value, state.processor, state.calibration, state.cycles,
                         int(state.cycles.counts[0])) for state in states]
-        self.batches = [_Batch(positions, members) for positions, members in batches]
+        self.batches = [_Batch(level, positions, members) for positions, members in batches]
         self._single = len(self.batches) == 1 and self.batches[0].positions == list(range(len(states)))
 
     def fits(self, items: list[tuple[object, Reading]]) -> bool:
@@ -264,24 +290,29 @@ class QuadPlan:
 
     @staticmethod
     def _computed(batch: _Batch, readings: list[Reading], scans: int) -> tuple:
-        """(forces, quad flags, σ, runs to keep) of a batch's readings, changing nothing."""
+        """(forces, quad flags, σ, runs and drift to keep) of a batch's readings, changing nothing."""
         baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
         processor = batch.processor
-        capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), batch.states,
-                                      [scans] * len(batch.states))
+        counts = [scans] * len(batch.states)
+        capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), batch.states, counts)
         stale, kept = batch.stale(capacitance, scans)
         if scans > 1:
             baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
-            forces, quad_flags, sensitivity = _with_fatigue(processor, batch.states, [scans] * len(batch.states),
-                                                            capacitance, baseline, noise, sensitivity, stale)
+        baseline, found = drifted(batch.level, batch.states, counts, readings, capacitance, baseline, noise, stale)
+        if scans > 1:
+            forces, quad_flags, sensitivity = _with_fatigue(processor, batch.states, counts, capacitance, baseline,
+                                                            noise, sensitivity, stale)
         else:
             forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-        return forces, quad_flags, processor.sigma(forces, noise, sensitivity), kept
+        sigma = processor.sigma(forces, noise, sensitivity, None if found is None else found.sigma)
+        return forces, with_suspect(quad_flags, forces, found), sigma, (kept, found)
 
     def _apply(self, batch: _Batch, readings: list[Reading], result: tuple, scans: int) -> list[ForceFrame]:
         """Keep the batch's runs, count its load cycles and make its frames."""
-        forces, quad_flags, sigma, kept = result
+        forces, quad_flags, sigma, (kept, found) = result
         keep_runs(kept)
+        if found is not None:
+            quad_drift.keep(found.kept)
         counts = [scans] * len(batch.states) if scans > 1 else None
         update_many(batch.cycles, forces[:, 2:3], counts or batch.ones)
         return _frames(self.level, batch.states, readings, forces, sigma, quad_flags, counts)

@@ -25,6 +25,7 @@ from .grid import GridProcessor
 from .identity import Replacements, identity, named
 from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
+from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration, builtin, from_document
 
 log = logging.getLogger(__name__)
@@ -218,14 +219,17 @@ class SensorStates:
                     state.processor.restore_stale_runs(_array(zero["stale_last_pF"]), zero["stale_runs"])
                 if zero.get("cycles") is not None and state.cycles is not None:
                     state.cycles.resume(zero)
+                if zero.get("drift") is not None and isinstance(state.processor, QuadProcessor):
+                    resume(state.processor, state.baseline, zero["drift"])
             self._sensors[info.id] = state
         return state
 
     def baselines(self) -> list[dict]:
         """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
-        where its stale-channel count stands: stale_last_pF, stale_runs, and
-        its load-cycle count: cycles, cycles_seen, cycles_armed} (NaN as
-        None), what a recording begun now stores for its replay."""
+        where its stale-channel count stands: stale_last_pF, stale_runs, its
+        load-cycle count: cycles, cycles_seen, cycles_armed, and a quad's
+        drift tracker: drift} (NaN as None), what a recording begun now
+        stores for its replay."""
         out = []
         for sid, state in sorted(self._sensors.items()):
             if state.baseline.ready:
@@ -236,6 +240,9 @@ class SensorStates:
                     zero |= {"stale_last_pF": _listed(runs[0]), "stale_runs": runs[1].tolist()}
                 if state.cycles is not None:
                     zero |= state.cycles.where()
+                drift = where(state.processor, state.baseline.value) if isinstance(state.processor, QuadProcessor) else None
+                if drift is not None:
+                    zero["drift"] = drift
                 out.append(zero)
         return out
 
