@@ -93,18 +93,21 @@ T_WRAP_S = 2**32 * 1e-6
 MAX_WRAP_STEP_S = 1.0  # a step back this close to the wrap is the wrap (scans come at least once a second)
 MIN_REFERENCE_TAXELS = 3  # valid taxels a frame needs for its median to ignore a one-taxel press (docstring)
 MAX_RATE_PER_S = 0.01 / 60  # the fastest a common-mode drift moves ΔC/C0 (docstring)
+MEDIAN_VARIANCE = math.pi / 2  # a median of m values of noise σ varies by (π/2)·σ²/m
+GAP_SIGMAS = 6.0  # the speed test's margin over its gap's noise (docstring)
 
 
 def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per frame of (N, n) ΔC/C0: the median of the quiet taxels (within
-    ``band`` — (n,) or (N, n) — of the frame's median), and whether they are
-    enough (at least half the valid ones, of at least MIN_REFERENCE_TAXELS;
-    the median means nothing where not). Both (N,). Rows are independent,
-    so frames of several sensors can go through one call. (np.nanmedian
-    goes through masked arrays and costs ~100 µs a row.)"""
+    ``band`` — (n,) or (N, n) — of the frame's median), and how many they
+    are where enough (at least half the valid ones, of at least
+    MIN_REFERENCE_TAXELS; 0 where not: the median means nothing there).
+    Both (N,). Rows are independent, so frames of several sensors can go
+    through one call. (np.nanmedian goes through masked arrays and costs
+    ~100 µs a row.)"""
     if len(relative) == 1:  # one frame: a third of the numpy calls
-        median, enough = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
-        return np.array([median]), np.array([enough])
+        median, quiet = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
+        return np.array([median]), np.array([quiet])
     rows = np.arange(len(relative))
     ordered = np.sort(relative, axis=1)  # NaN sorts last
     n = relative.shape[1]
@@ -118,20 +121,20 @@ def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, n
     count = np.count_nonzero(quiet, axis=1)
     ordered = np.sort(np.where(quiet, relative, np.inf), axis=1)
     medians = (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2]) / 2
-    return medians, (count * 2 >= valid) & (valid >= MIN_REFERENCE_TAXELS)  # so count ≥ 2
+    return medians, np.where((count * 2 >= valid) & (valid >= MIN_REFERENCE_TAXELS), count, 0)  # so count ≥ 2
 
 
-def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, bool]:
+def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, int]:
     ordered = np.sort(row)  # NaN sorts last
     valid = np.count_nonzero(ordered == ordered)
     if valid < MIN_REFERENCE_TAXELS:
-        return float("nan"), False
+        return float("nan"), 0
     centre = (ordered[(valid - 1) // 2] + ordered[valid // 2]) / 2
     quiet = np.sort(row[np.abs(row - centre) < band])  # NaN compares False, silently
     n = quiet.size
     if n * 2 < valid:  # valid ≥ 3: none quiet is not enough either
-        return float("nan"), False
-    return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), True
+        return float("nan"), 0
+    return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), n
 
 
 @dataclass
@@ -147,6 +150,8 @@ class DriftTracker:
     _average: float = 0.0  # the quiet median's exponential average
     _slow: float = 0.0  # its average over tau_slow_s: the two part by the median's speed
     _since: float | None = -math.inf  # when the averages last started (unwrapped); None: at the next quiet frame
+    _variances: tuple = (0.0, 0.0, 0.0)  # of _average, _slow and their covariance, in noise² (the tare's level: none)
+    _load: float = 0.0  # what a load reached through a fast change adds to the quiet median (docstring)
     _anchor: float = 0.0  # the estimate when it last agreed with the median
     _anchor_t: float | None = None  # then, unwrapped; None: from the next frame on
     _last_t: float | None = None  # the last frame's board time as sent (s)
@@ -155,37 +160,38 @@ class DriftTracker:
 
     def reset(self) -> None:
         self.drift, self._average, self._slow, self._since = 0.0, 0.0, 0.0, -math.inf
-        self._anchor, self._anchor_t = 0.0, None
+        self._variances, self._load, self._anchor, self._anchor_t = (0.0, 0.0, 0.0), 0.0, 0.0, None
         self._last_t, self._frozen_since, self._offset = None, None, 0.0
 
     def state(self) -> tuple:
         """What ``follow`` advances, for ``restore``."""
-        return (self.drift, self._average, self._slow, self._since, self._anchor, self._anchor_t,
-                self._last_t, self._frozen_since, self._offset)
+        return (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
+                self._anchor_t, self._last_t, self._frozen_since, self._offset)
 
     def restore(self, state: tuple) -> None:
-        (self.drift, self._average, self._slow, self._since, self._anchor, self._anchor_t,
-         self._last_t, self._frozen_since, self._offset) = state
+        (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
+         self._anchor_t, self._last_t, self._frozen_since, self._offset) = state
 
-    def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
+    def follow(self, t_s: list[float], quiet: list[int], medians: list[float]) -> list[tuple[float, bool]]:
         """Advance through frames at times ``t_s`` given their quiet medians
-        and whether those were enough (``quiet_medians``, as lists: the
-        recurrence is scalar, and a live read holds a frame or two per
-        sensor); return each frame's drift and whether it is drift-suspect.
-        The median's exponential averages are advanced to each board time
-        ``t`` by dt = t − last (clipped to [0, tau_s]); a settled median
-        within reach is followed, any other frame freezes the estimate
-        (module docstring). One loop with locals, as an offline replay steps
-        every frame of a log through it."""
+        and how many taxels those were (0: not enough; ``quiet_medians``, as
+        lists: the recurrence is scalar, and a live read holds a frame or
+        two per sensor); return each frame's drift and whether it is
+        drift-suspect. The median's exponential averages are advanced to
+        each board time ``t`` by dt = t − last (clipped to [0, tau_s]); a
+        settled median within reach is followed, any other frame freezes the
+        estimate (module docstring). One loop with locals, as an offline
+        replay steps every frame of a log through it."""
         tau, slow_tau, suspect_after, max_drift, rate = (self.tau_s, self.tau_slow_s, self.suspect_after_s,
                                                          self.max_drift, self.max_rate_per_s)
         noise, tolerance = self.noise, self.band * self.noise
-        steady = rate * (slow_tau - tau) + noise / 4  # the averages' gap under drift at the bound, with noise's
+        bound_gap, gap_scale = rate * (slow_tau - tau), GAP_SIGMAS * noise  # the averages' gap under drift at the bound
         drift, average, slow, since = self.drift, self._average, self._slow, self._since
+        (v_fast, v_slow, v_both), load = self._variances, self._load
         anchor, anchor_t = self._anchor, self._anchor_t
         last, frozen_since, offset = self._last_t, self._frozen_since, self._offset
         out = []
-        for t, ok, median in zip(t_s, enough, medians):
+        for t, count, median in zip(t_s, quiet, medians):
             if last is not None and t < last:  # the clock wrapped, or the board restarted (module docstring)
                 offset += T_WRAP_S if t + T_WRAP_S - last <= MAX_WRAP_STEP_S else last - t
             # min/max spelled as comparisons (the same values, -0.0 and NaN alike): a call each cost per frame
@@ -197,29 +203,49 @@ class DriftTracker:
             if anchor_t is None:  # the first frame since the tare, whose zero is the level
                 anchor_t = now
             reach = rate * (now - anchor_t)
-            if not ok:  # the averages would go stale: restarted at the next quiet frame
+            if not count:  # the averages would go stale: restarted at the next quiet frame
                 since = None
             elif since is None or abs(median - average) > tolerance:  # or the level jumped: they would lag long
                 average = slow = median
+                v_fast = v_slow = v_both = MEDIAN_VARIANCE / count  # one median's, in both
                 since = now
             else:
-                average += (median - average) * (dt / tau)
-                slow += (median - slow) * (dt / slow_tau)
-            if (ok and now - since >= 2 * slow_tau and abs(median - average) <= noise and abs(average - slow) <= steady
-                    and abs(average - anchor) <= tolerance + reach):
-                low, high = anchor - reach, anchor + reach  # no faster than drift moves
-                drift = low if low > average else average
-                drift = high if high < drift else drift
-                if abs(median - drift) <= noise:  # caught up (the average may be settling still)
-                    anchor, anchor_t = drift, now
-                frozen_since = None
+                a, b = dt / tau, dt / slow_tau
+                average += (median - average) * a
+                slow += (median - slow) * b
+                spread = MEDIAN_VARIANCE / count
+                v_fast = (1 - a) * (1 - a) * v_fast + a * a * spread
+                v_slow = (1 - b) * (1 - b) * v_slow + b * b * spread
+                v_both = (1 - a) * (1 - b) * v_both + a * b * spread
+            gap = v_fast + v_slow - 2 * v_both
+            if (count and now - since >= 2 * slow_tau and abs(median - average) <= noise
+                    and abs(average - slow) <= bound_gap + gap_scale * (gap if gap > 0.0 else 0.0) ** 0.5):
+                within, lifted = tolerance + reach, average - anchor
+                if abs(lifted - load) < abs(lifted) and abs(lifted - load) <= within:  # the held load still on
+                    level = average - load
+                elif abs(lifted) <= within:  # no load (or it was lifted): the level is the drift
+                    level, load = average, 0.0
+                elif lifted > 0.0:  # a load reached through a fast change: what moves under it from here is drift
+                    level, load = drift, average - drift
+                else:  # further down than drift could go: frozen until the reach covers it
+                    level = None
+                if level is None:
+                    frozen_since = now if frozen_since is None else frozen_since
+                else:
+                    low, high = anchor - reach, anchor + reach  # no faster than drift moves
+                    drift = low if low > level else level
+                    drift = high if high < drift else drift
+                    if abs(median - load - drift) <= noise:  # caught up (the average may be settling still)
+                        anchor, anchor_t = drift, now
+                    frozen_since = None if load == 0.0 else now if frozen_since is None else frozen_since
             elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
             # A frame whose own quiet median is the held estimate shows no drift since the freeze (module docstring)
-            confirmed = ok and abs(median - drift) <= noise
+            confirmed = count and abs(median - drift) <= noise
             out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after and not confirmed)
                         or abs(drift) > max_drift))
         self.drift, self._average, self._slow, self._since = drift, average, slow, since
+        self._variances, self._load = (v_fast, v_slow, v_both), load
         self._anchor, self._anchor_t = anchor, anchor_t
         self._last_t, self._frozen_since, self._offset = last, frozen_since, offset
         return out
