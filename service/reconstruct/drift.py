@@ -29,10 +29,15 @@ slower still; a load moves the level within a touch. So:
   average (a press or a release under way: drift moves it by rate × tau_s,
   ~0), and one moving faster than the bound: its average further from its
   slower average (``tau_slow_s``) than drift at the bound sets them apart,
-  plus a quarter of a taxel's noise (what is left of the median's noise
-  there). The lag alone let a ramp under noise/tau_s by, 6 %/min at 2 fF
-  in 10 pF; this sees one over the bound plus noise/4 in 0.3 s, 2 %/min.
-  The estimate freezes and absorbs none of it.
+  plus GAP_SIGMAS times that gap's own noise. A median of m quiet taxels
+  varies by (π/2)σ²/m, and the gap carries a share of it, followed frame by
+  frame through the two averages' variances and covariance: 0.036 of the
+  median's σ at 500 Hz, 0.0056 of a taxel's over 64 taxels. The σ/4 this replaced was
+  ~40 times that: it let ramps by up to 1 %/min + σ/1.2 s (6 %/min at
+  σ = 1e-3, where 3–5 %/min plates were followed at the bound 6–12 s). Now
+  1 %/min + 6 gap σ: 1.14 %/min at σ = 2e-4, 1.7 %/min at σ = 1e-3, a
+  3 %/min ramp seen in 0.5–0.7 s; a drift at the bound came within 2.3 gap
+  σ of it at most over 20 s. The estimate freezes and absorbs none of it.
 
 The averages stop on a frame with too few quiet taxels and restart at the
 next one's median (or at a median a band of noise off: they would lag a
@@ -45,24 +50,44 @@ the freeze: 0.17 % ΔC/C0 of the plate taken for drift, its last 6.6 N read
 A ramp is seen a few tenths of a second after it starts; until then the
 estimate may follow it at the bound (~1 % of a 0.5 N plate).
 
-Once the load is lifted and the median has settled (~1 s), it is within reach
-again, a drift meanwhile included, and the estimate takes it (anchored
-again once within a taxel's noise of the median). A drift under a held
-plate is unseen and reads on its force; a plate held until the reach
-covers it is taken for drift then, as it could be: 0.6 N/taxel (ΔC/C0 ≈
-0.7 %) after ~40 s, 5 N after ~6 min. Frames are flagged
-``drift_suspect`` once the estimate has been frozen ``suspect_after_s``,
-or while the drift exceeds ``max_drift`` — but not a frame whose own quiet
-median (enough quiet taxels) is within a taxel's noise of the held
-estimate: it shows no drift since the freeze. After a plate's release the
-slow average still carries the ramp's lag (rate × (tau_slow_s − tau_s):
-6.7e-4 for 0.6 N/taxel lifted over 3 s) and holds the estimate frozen ~1 s
-more; each of those frames was flagged, its median back within 2e-5 of the
-estimate (3 N plates: 492–666 frames at 500 Hz). A drift under the plate
-leaves the median off the estimate after the release (0.5 %/min over a
-20 s hold: 8σ), flagged until taken up; a release whose median crosses the
-estimate on its way to a drifted level goes unflagged for the frames it
-spends within that noise (1 N lifted over 1 s: 17 frames).
+A level that settles out of reach above the estimate got there faster
+than temperature moves C0: a load, however long it is held. What it adds
+over the estimate is kept (``_load``); the settled median is then read as
+estimate + load, and what moves it slowly from there is drift under the
+load, taken at the bound (a drift of 0.5 %/min under 0.3 N/taxel: read
+0.325 N all through a 30 s hold). The reach grown over a freeze used to
+cover a held plate: 0.3 N/taxel (ΔC/C0 ≈ 0.34 %) was taken for drift
+after ~15 s, read 0.015 N for the rest of a 30 s hold and out of range for
+18 s after its release. Of the two readings of a settled median, the load
+still on or none (lifted), the one nearer the anchor within reach is
+taken; neither, above the estimate: a new load; below it by more than
+drift could go: frozen until the reach covers it (no load lowers C: a drift
+past the bound, or the lifting of a load the estimate followed). Once the
+load is lifted and the median has settled (~1 s), it is within reach again,
+a drift meanwhile included, and the estimate takes it (anchored again once
+within a taxel's noise of the median). A drift under a plate that leaves
+too few taxels quiet is unseen and reads on its force.
+
+A real step of C0 is read the same way. Warmer (a sensor moved onto a warm
+surface, C0 up 0.3 % in 0.5 s): a load of 0.27 N/taxel for good, every
+frame ``drift_suspect`` from 10 s after it until the sensor is tared
+again. Colder: its taxels read below zero, out_of_range (/health: tare it
+again), until the reach takes the step (0.3 %: ~16 s).
+
+Frames are flagged ``drift_suspect`` once the estimate has been frozen
+``suspect_after_s`` (a held load's frames are frozen: what drifts under it
+cannot be told from its creep), or while the drift exceeds ``max_drift`` —
+but not a frame whose own quiet median (enough quiet taxels) is within a
+taxel's noise of the held estimate: it shows no drift since the freeze.
+After a plate's release the slow average still carries the ramp's lag (rate
+× (tau_slow_s − tau_s): 6.7e-4 for 0.6 N/taxel lifted over 3 s) and holds
+the estimate frozen ~1 s more; each of those frames was flagged, its median
+back within 2e-5 of the estimate (3 N plates: 492–666 frames at 500 Hz). A
+drift under the plate leaves the median off the estimate after the release
+(0.5 %/min over a 20 s hold: 8σ), flagged until taken up; a release whose
+median crosses the estimate on its way to a drifted level goes unflagged
+for the frames it spends within that noise (1 N lifted over 1 s: 17
+frames).
 
 A frame needs MIN_REFERENCE_TAXELS valid taxels to be a reference at all:
 one pressed taxel is left out only where the frame's median lies on an
@@ -185,7 +210,9 @@ class DriftTracker:
         tau, slow_tau, suspect_after, max_drift, rate = (self.tau_s, self.tau_slow_s, self.suspect_after_s,
                                                          self.max_drift, self.max_rate_per_s)
         noise, tolerance = self.noise, self.band * self.noise
-        bound_gap, gap_scale = rate * (slow_tau - tau), GAP_SIGMAS * noise  # the averages' gap under drift at the bound
+        bound_gap = rate * (slow_tau - tau)  # the averages' gap under drift at the bound
+        gap_scale = (GAP_SIGMAS * noise) ** 2  # times the gap's variance in noise²: the allowance's square
+        period = None
         drift, average, slow, since = self.drift, self._average, self._slow, self._since
         (v_fast, v_slow, v_both), load = self._variances, self._load
         anchor, anchor_t = self._anchor, self._anchor_t
@@ -210,16 +237,18 @@ class DriftTracker:
                 v_fast = v_slow = v_both = MEDIAN_VARIANCE / count  # one median's, in both
                 since = now
             else:
-                a, b = dt / tau, dt / slow_tau
+                if dt != period:  # the recurrence's weights, once per frame period
+                    period, a, b = dt, dt / tau, dt / slow_tau
+                    keep = ((1 - a) * (1 - a), (1 - b) * (1 - b), (1 - a) * (1 - b))
+                    add = (a * a * MEDIAN_VARIANCE, b * b * MEDIAN_VARIANCE, a * b * MEDIAN_VARIANCE)
                 average += (median - average) * a
                 slow += (median - slow) * b
-                spread = MEDIAN_VARIANCE / count
-                v_fast = (1 - a) * (1 - a) * v_fast + a * a * spread
-                v_slow = (1 - b) * (1 - b) * v_slow + b * b * spread
-                v_both = (1 - a) * (1 - b) * v_both + a * b * spread
-            gap = v_fast + v_slow - 2 * v_both
+                v_fast = keep[0] * v_fast + add[0] / count
+                v_slow = keep[1] * v_slow + add[1] / count
+                v_both = keep[2] * v_both + add[2] / count
+            excess = abs(average - slow) - bound_gap
             if (count and now - since >= 2 * slow_tau and abs(median - average) <= noise
-                    and abs(average - slow) <= bound_gap + gap_scale * (gap if gap > 0.0 else 0.0) ** 0.5):
+                    and (excess <= 0.0 or excess * excess <= gap_scale * (v_fast + v_slow - 2 * v_both))):
                 within, lifted = tolerance + reach, average - anchor
                 if abs(lifted - load) < abs(lifted) and abs(lifted - load) <= within:  # the held load still on
                     level = average - load
