@@ -96,3 +96,18 @@ def test_a_warm_step_reads_as_a_load_and_is_flagged():
     assert np.abs(read - step / (1 + step) / K_PER_N).max() < 0.1 * step / K_PER_N
     assert not any(f.flags for f in at(frames, 1.0, 13.0))
     assert all("drift_suspect" in f.flags for f in at(frames, 14.0, 20.0))
+
+
+def test_a_plate_lifted_slower_than_drift_leaves_no_load_behind():
+    """0.3 N/taxel held 5 s, then lifted over 30 s (0.68 %/min of ΔC/C0,
+    under the bound): its level moves as a drift under it would, and the
+    estimate follows it down; back at the level it had unloaded (within
+    4σ) it is unloaded again, the load forgotten: 0 within 2σ, unflagged.
+    (Read against the held load alone, it stayed 0.3 N/taxel on the
+    unloaded grid for good.)"""
+    lifted = START + 1.0 + 5.0 + 30.0
+    force = lambda s: 0.3 * np.clip(np.minimum(s - START, (lifted - s) / 30.0), 0.0, 1.0)  # noqa: E731
+    t, truth, frames = session(lifted + 4.0, force, np.arange(64))
+    read, sigma = mean_read(at(frames, lifted + 1.5, lifted + 4.0))
+    assert np.abs(read).max() <= 2 * sigma.min()
+    assert not any(f.flags for f in at(frames, lifted + 1.5, lifted + 4.0))

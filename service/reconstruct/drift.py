@@ -177,8 +177,10 @@ class DriftTracker:
     _since: float | None = -math.inf  # when the averages last started (unwrapped); None: at the next quiet frame
     _variances: tuple = (0.0, 0.0, 0.0)  # of _average, _slow and their covariance, in noise² (the tare's level: none)
     _load: float = 0.0  # what a load reached through a fast change adds to the quiet median (docstring)
-    _anchor: float = 0.0  # the estimate when it last agreed with the median
+    _anchor: float = 0.0  # the estimate when it last agreed with the median (less a held load)
     _anchor_t: float | None = None  # then, unwrapped; None: from the next frame on
+    _free: float = 0.0  # the estimate when it last agreed with an unloaded median
+    _free_t: float | None = None  # then, unwrapped; None: from the next frame on
     _last_t: float | None = None  # the last frame's board time as sent (s)
     _frozen_since: float | None = None  # unwrapped (board time + _offset)
     _offset: float = 0.0  # unwrapped − sent: 0 until the clock wraps or the board restarts
@@ -186,16 +188,17 @@ class DriftTracker:
     def reset(self) -> None:
         self.drift, self._average, self._slow, self._since = 0.0, 0.0, 0.0, -math.inf
         self._variances, self._load, self._anchor, self._anchor_t = (0.0, 0.0, 0.0), 0.0, 0.0, None
+        self._free, self._free_t = 0.0, None
         self._last_t, self._frozen_since, self._offset = None, None, 0.0
 
     def state(self) -> tuple:
         """What ``follow`` advances, for ``restore``."""
         return (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
-                self._anchor_t, self._last_t, self._frozen_since, self._offset)
+                self._anchor_t, self._free, self._free_t, self._last_t, self._frozen_since, self._offset)
 
     def restore(self, state: tuple) -> None:
         (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
-         self._anchor_t, self._last_t, self._frozen_since, self._offset) = state
+         self._anchor_t, self._free, self._free_t, self._last_t, self._frozen_since, self._offset) = state
 
     def follow(self, t_s: list[float], quiet: list[int], medians: list[float]) -> list[tuple[float, bool]]:
         """Advance through frames at times ``t_s`` given their quiet medians
@@ -215,7 +218,7 @@ class DriftTracker:
         period = None
         drift, average, slow, since = self.drift, self._average, self._slow, self._since
         (v_fast, v_slow, v_both), load = self._variances, self._load
-        anchor, anchor_t = self._anchor, self._anchor_t
+        anchor, anchor_t, free, free_t = self._anchor, self._anchor_t, self._free, self._free_t
         last, frozen_since, offset = self._last_t, self._frozen_since, self._offset
         out = []
         for t, count, median in zip(t_s, quiet, medians):
@@ -228,7 +231,7 @@ class DriftTracker:
             last = t
             now = t + offset
             if anchor_t is None:  # the first frame since the tare, whose zero is the level
-                anchor_t = now
+                anchor_t = free_t = now
             reach = rate * (now - anchor_t)
             if not count:  # the averages would go stale: restarted at the next quiet frame
                 since = None
@@ -249,24 +252,26 @@ class DriftTracker:
             excess = abs(average - slow) - bound_gap
             if (count and now - since >= 2 * slow_tau and abs(median - average) <= noise
                     and (excess <= 0.0 or excess * excess <= gap_scale * (v_fast + v_slow - 2 * v_both))):
-                within, lifted = tolerance + reach, average - anchor
-                if abs(lifted - load) < abs(lifted) and abs(lifted - load) <= within:  # the held load still on
-                    level = average - load
-                elif abs(lifted) <= within:  # no load (or it was lifted): the level is the drift
-                    level, load = average, 0.0
-                elif lifted > 0.0:  # a load reached through a fast change: what moves under it from here is drift
-                    level, load = drift, average - drift
-                else:  # further down than drift could go: frozen until the reach covers it
-                    level = None
-                if level is None:
+                lifted, held = average - free, average - load - anchor  # no load; the held one still on
+                reach_free = rate * (now - free_t)
+                if abs(lifted) <= tolerance + reach_free and (not load or abs(lifted) <= abs(held) + tolerance):
+                    load, low, high = 0.0, free - reach_free, free + reach_free  # none (or lifted): the drift
+                elif load and abs(held) <= tolerance + reach:  # the held load: what moves under it is drift
+                    low, high = anchor - reach, anchor + reach
+                elif average > drift + tolerance + reach:  # reached through a fast change: a load, held from here
+                    load, low, high = average - drift, drift, drift
+                else:  # further down than drift could go (no load lowers C): frozen until the reach covers it
+                    low = None
+                if low is None:
                     frozen_since = now if frozen_since is None else frozen_since
-                else:
-                    low, high = anchor - reach, anchor + reach  # no faster than drift moves
-                    drift = low if low > level else level
+                else:  # no faster than drift moves
+                    drift = low if low > average - load else average - load
                     drift = high if high < drift else drift
                     if abs(median - load - drift) <= noise:  # caught up (the average may be settling still)
                         anchor, anchor_t = drift, now
-                    frozen_since = None if load == 0.0 else now if frozen_since is None else frozen_since
+                        if not load:
+                            free, free_t = drift, now
+                    frozen_since = None if not load else now if frozen_since is None else frozen_since
             elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
             # A frame whose own quiet median is the held estimate shows no drift since the freeze (module docstring)
@@ -275,6 +280,6 @@ class DriftTracker:
                         or abs(drift) > max_drift))
         self.drift, self._average, self._slow, self._since = drift, average, slow, since
         self._variances, self._load = (v_fast, v_slow, v_both), load
-        self._anchor, self._anchor_t = anchor, anchor_t
+        self._anchor, self._anchor_t, self._free, self._free_t = anchor, anchor_t, free, free_t
         self._last_t, self._frozen_since, self._offset = last, frozen_since, offset
         return out
