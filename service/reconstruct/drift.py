@@ -50,23 +50,29 @@ the freeze: 0.17 % ΔC/C0 of the plate taken for drift, its last 6.6 N read
 A ramp is seen a few tenths of a second after it starts; until then the
 estimate may follow it at the bound (~1 % of a 0.5 N plate).
 
-A level that settles out of reach above the estimate got there faster
-than temperature moves C0: a load, however long it is held. What it adds
-over the estimate is kept (``_load``); the settled median is then read as
+A level that settles out of reach above the estimate got there faster than
+temperature moves C0: a load, however long it is held. What it adds over
+the estimate is kept (``_load``); the settled median is then read as
 estimate + load, and what moves it slowly from there is drift under the
 load, taken at the bound (a drift of 0.5 %/min under 0.3 N/taxel: read
 0.325 N all through a 30 s hold). The reach grown over a freeze used to
-cover a held plate: 0.3 N/taxel (ΔC/C0 ≈ 0.34 %) was taken for drift
-after ~15 s, read 0.015 N for the rest of a 30 s hold and out of range for
-18 s after its release. Of the two readings of a settled median, the load
-still on or none (lifted), the one nearer the anchor within reach is
-taken; neither, above the estimate: a new load; below it by more than
-drift could go: frozen until the reach covers it (no load lowers C: a drift
-past the bound, or the lifting of a load the estimate followed). Once the
-load is lifted and the median has settled (~1 s), it is within reach again,
-a drift meanwhile included, and the estimate takes it (anchored again once
-within a taxel's noise of the median). A drift under a plate that leaves
-too few taxels quiet is unseen and reads on its force.
+cover a held plate: 0.3 N/taxel (ΔC/C0 ≈ 0.34 %) was taken for drift after
+~15 s, read 0.015 N for the rest of a 30 s hold and out of range for 18 s
+after its release. A settled median is unloaded (the load lifted, a drift
+meanwhile included) when it is within the reach of where the estimate last
+agreed with an unloaded median (``_free``: the reach grown since then) and
+no further than 4σ more from it than from the held load's reading; else the
+held load still on, within reach; else, above the estimate, a new load;
+else, further down than drift could go, frozen until the reach covers it
+(no load lowers C: a drift past the bound). The unloaded reading is
+measured from ``_free`` because a load lifted slower than the bound moves
+the level as drift would: followed down as drift under the load, 0.3 N
+lifted over 30 s left 0.3 N/taxel on the unloaded grid for good; now it
+reads 0.3 N while it goes, and 0 once the level is back within 4σ of the
+unloaded one. Once the load is lifted and the median has settled (~1 s),
+the estimate takes it (anchored again once within a taxel's noise of the
+median). A drift under a plate that leaves too few taxels quiet is unseen
+and reads on its force.
 
 A real step of C0 is read the same way. Warmer (a sensor moved onto a warm
 surface, C0 up 0.3 % in 0.5 s): a load of 0.27 N/taxel for good, every
