@@ -61,21 +61,23 @@ def capacitance(force_n: np.ndarray, drift: np.ndarray, seed: int, noise_pf: flo
 
 
 def session(seconds: float, force, covered: np.ndarray, drift_per_s: float = 0.0, seed: int = 1,
-            noise_pf: float = NOISE_PF):
+            noise_pf: float = NOISE_PF, drift=None, reconstructor: Reconstructor | None = None):
     """(t (N,), truth (N, 64) N, frames) of ``seconds`` at RATE_HZ through the
     Pipeline at the full level: ``force(t)`` on the ``covered`` taxels, C0
     drifting linearly by ``drift_per_s`` ΔC/C0 a second (from the first
-    frame), ``noise_pf`` of noise; the first frames tare."""
+    frame) or by ``drift(t)`` if given, ``noise_pf`` of noise; the first
+    frames tare. ``reconstructor``: one to inspect afterwards (a new one if None)."""
     t = np.arange(int(seconds * RATE_HZ)) / RATE_HZ
     truth = np.zeros((len(t), 64))
     truth[:, covered] = force(t)[:, None]
-    attofarads = np.rint(capacitance(truth, drift_per_s * t, seed, noise_pf) * 1e6).astype("<u4")
+    common = drift_per_s * t if drift is None else drift(t)
+    attofarads = np.rint(capacitance(truth, common, seed, noise_pf) * 1e6).astype("<u4")
     info = {"board": "plate-gen", "fw": "1.0.0", "rate_hz": RATE_HZ,
             "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}]}
     data = [encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(info))]
     data += [encode_frame(FrameType.GRID, 0, k, int(round(s * 1e6)) + 500, row.tobytes())
              for k, (s, row) in enumerate(zip(t, attofarads))]
-    pipeline = Pipeline(Reconstructor(level="full"), clock=lambda: 0.0)
+    pipeline = Pipeline(reconstructor or Reconstructor(level="full"), clock=lambda: 0.0)
     frames = []
     for i in range(0, len(data), 50):  # reads of 50 scans, as a port delivers them
         frames += pipeline.feed(b"".join(data[i:i + 50]), 0.0)

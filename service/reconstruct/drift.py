@@ -29,10 +29,15 @@ slower still; a load moves the level within a touch. So:
   average (a press or a release under way: drift moves it by rate × tau_s,
   ~0), and one moving faster than the bound: its average further from its
   slower average (``tau_slow_s``) than drift at the bound sets them apart,
-  plus a quarter of a taxel's noise (what is left of the median's noise
-  there). The lag alone let a ramp under noise/tau_s by, 6 %/min at 2 fF
-  in 10 pF; this sees one over the bound plus noise/4 in 0.3 s, 2 %/min.
-  The estimate freezes and absorbs none of it.
+  plus GAP_SIGMAS times that gap's own noise. A median of m quiet taxels
+  varies by (π/2)σ²/m, and the gap carries a share of it, followed frame by
+  frame through the two averages' variances and covariance: 0.036 of the
+  median's σ at 500 Hz, 0.0056 of a taxel's over 64 taxels. The σ/4 this replaced was
+  ~40 times that: it let ramps by up to 1 %/min + σ/1.2 s (6 %/min at
+  σ = 1e-3, where 3–5 %/min plates were followed at the bound 6–12 s). Now
+  1 %/min + 6 gap σ: 1.14 %/min at σ = 2e-4, 1.7 %/min at σ = 1e-3, a
+  3 %/min ramp seen in 0.5–0.7 s; a drift at the bound came within 2.3 gap
+  σ of it at most over 20 s. The estimate freezes and absorbs none of it.
 
 The averages stop on a frame with too few quiet taxels and restart at the
 next one's median (or at a median a band of noise off: they would lag a
@@ -45,24 +50,50 @@ the freeze: 0.17 % ΔC/C0 of the plate taken for drift, its last 6.6 N read
 A ramp is seen a few tenths of a second after it starts; until then the
 estimate may follow it at the bound (~1 % of a 0.5 N plate).
 
-Once the load is lifted and the median has settled (~1 s), it is within reach
-again, a drift meanwhile included, and the estimate takes it (anchored
-again once within a taxel's noise of the median). A drift under a held
-plate is unseen and reads on its force; a plate held until the reach
-covers it is taken for drift then, as it could be: 0.6 N/taxel (ΔC/C0 ≈
-0.7 %) after ~40 s, 5 N after ~6 min. Frames are flagged
-``drift_suspect`` once the estimate has been frozen ``suspect_after_s``,
-or while the drift exceeds ``max_drift`` — but not a frame whose own quiet
-median (enough quiet taxels) is within a taxel's noise of the held
-estimate: it shows no drift since the freeze. After a plate's release the
-slow average still carries the ramp's lag (rate × (tau_slow_s − tau_s):
-6.7e-4 for 0.6 N/taxel lifted over 3 s) and holds the estimate frozen ~1 s
-more; each of those frames was flagged, its median back within 2e-5 of the
-estimate (3 N plates: 492–666 frames at 500 Hz). A drift under the plate
-leaves the median off the estimate after the release (0.5 %/min over a
-20 s hold: 8σ), flagged until taken up; a release whose median crosses the
-estimate on its way to a drifted level goes unflagged for the frames it
-spends within that noise (1 N lifted over 1 s: 17 frames).
+A level that settles out of reach above the estimate got there faster than
+temperature moves C0: a load, however long it is held. What it adds over
+the estimate is kept (``_load``); the settled median is then read as
+estimate + load, and what moves it slowly from there is drift under the
+load, taken at the bound (a drift of 0.5 %/min under 0.3 N/taxel: read
+0.325 N all through a 30 s hold). The reach grown over a freeze used to
+cover a held plate: 0.3 N/taxel (ΔC/C0 ≈ 0.34 %) was taken for drift after
+~15 s, read 0.015 N for the rest of a 30 s hold and out of range for 18 s
+after its release. A settled median is unloaded (the load lifted, a drift
+meanwhile included) when it is within the reach of where the estimate last
+agreed with an unloaded median (``_free``: the reach grown since then) and
+no further than 4σ more from it than from the held load's reading; else the
+held load still on, within reach; else, above the estimate, a new load;
+else, further down than drift could go, frozen until the reach covers it
+(no load lowers C: a drift past the bound). The unloaded reading is
+measured from ``_free`` because a load lifted slower than the bound moves
+the level as drift would: followed down as drift under the load, 0.3 N
+lifted over 30 s left 0.3 N/taxel on the unloaded grid for good; now it
+reads 0.3 N while it goes, and 0 once the level is back within 4σ of the
+unloaded one. Once the load is lifted and the median has settled (~1 s),
+the estimate takes it (anchored again once within a taxel's noise of the
+median). A drift under a plate that leaves too few taxels quiet is unseen
+and reads on its force.
+
+A real step of C0 is read the same way. Warmer (a sensor moved onto a warm
+surface, C0 up 0.3 % in 0.5 s): a load of 0.27 N/taxel for good, every
+frame ``drift_suspect`` from 10 s after it until the sensor is tared
+again. Colder: its taxels read below zero, out_of_range (/health: tare it
+again), until the reach takes the step (0.3 %: ~16 s).
+
+Frames are flagged ``drift_suspect`` once the estimate has been frozen
+``suspect_after_s`` (a held load's frames are frozen: what drifts under it
+cannot be told from its creep), or while the drift exceeds ``max_drift`` —
+but not a frame whose own quiet median (enough quiet taxels) is within a
+taxel's noise of the held estimate: it shows no drift since the freeze.
+After a plate's release the slow average still carries the ramp's lag (rate
+× (tau_slow_s − tau_s): 6.7e-4 for 0.6 N/taxel lifted over 3 s) and holds
+the estimate frozen ~1 s more; each of those frames was flagged, its median
+back within 2e-5 of the estimate (3 N plates: 492–666 frames at 500 Hz). A
+drift under the plate leaves the median off the estimate after the release
+(0.5 %/min over a 20 s hold: 8σ), flagged until taken up; a release whose
+median crosses the estimate on its way to a drifted level goes unflagged
+for the frames it spends within that noise (1 N lifted over 1 s: 17
+frames).
 
 A frame needs MIN_REFERENCE_TAXELS valid taxels to be a reference at all:
 one pressed taxel is left out only where the frame's median lies on an
@@ -93,18 +124,21 @@ T_WRAP_S = 2**32 * 1e-6
 MAX_WRAP_STEP_S = 1.0  # a step back this close to the wrap is the wrap (scans come at least once a second)
 MIN_REFERENCE_TAXELS = 3  # valid taxels a frame needs for its median to ignore a one-taxel press (docstring)
 MAX_RATE_PER_S = 0.01 / 60  # the fastest a common-mode drift moves ΔC/C0 (docstring)
+MEDIAN_VARIANCE = math.pi / 2  # a median of m values of noise σ varies by (π/2)·σ²/m
+GAP_SIGMAS = 6.0  # the speed test's margin over its gap's noise (docstring)
 
 
 def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per frame of (N, n) ΔC/C0: the median of the quiet taxels (within
-    ``band`` — (n,) or (N, n) — of the frame's median), and whether they are
-    enough (at least half the valid ones, of at least MIN_REFERENCE_TAXELS;
-    the median means nothing where not). Both (N,). Rows are independent,
-    so frames of several sensors can go through one call. (np.nanmedian
-    goes through masked arrays and costs ~100 µs a row.)"""
+    ``band`` — (n,) or (N, n) — of the frame's median), and how many they
+    are where enough (at least half the valid ones, of at least
+    MIN_REFERENCE_TAXELS; 0 where not: the median means nothing there).
+    Both (N,). Rows are independent, so frames of several sensors can go
+    through one call. (np.nanmedian goes through masked arrays and costs
+    ~100 µs a row.)"""
     if len(relative) == 1:  # one frame: a third of the numpy calls
-        median, enough = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
-        return np.array([median]), np.array([enough])
+        median, quiet = _quiet_median(relative[0], band if band.ndim == 1 else band[0])
+        return np.array([median]), np.array([quiet])
     rows = np.arange(len(relative))
     ordered = np.sort(relative, axis=1)  # NaN sorts last
     n = relative.shape[1]
@@ -118,20 +152,20 @@ def quiet_medians(relative: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, n
     count = np.count_nonzero(quiet, axis=1)
     ordered = np.sort(np.where(quiet, relative, np.inf), axis=1)
     medians = (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2]) / 2
-    return medians, (count * 2 >= valid) & (valid >= MIN_REFERENCE_TAXELS)  # so count ≥ 2
+    return medians, np.where((count * 2 >= valid) & (valid >= MIN_REFERENCE_TAXELS), count, 0)  # so count ≥ 2
 
 
-def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, bool]:
+def _quiet_median(row: np.ndarray, band: np.ndarray) -> tuple[float, int]:
     ordered = np.sort(row)  # NaN sorts last
     valid = np.count_nonzero(ordered == ordered)
     if valid < MIN_REFERENCE_TAXELS:
-        return float("nan"), False
+        return float("nan"), 0
     centre = (ordered[(valid - 1) // 2] + ordered[valid // 2]) / 2
     quiet = np.sort(row[np.abs(row - centre) < band])  # NaN compares False, silently
     n = quiet.size
     if n * 2 < valid:  # valid ≥ 3: none quiet is not enough either
-        return float("nan"), False
-    return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), True
+        return float("nan"), 0
+    return float((quiet[(n - 1) // 2] + quiet[n // 2]) / 2), n
 
 
 @dataclass
@@ -147,45 +181,53 @@ class DriftTracker:
     _average: float = 0.0  # the quiet median's exponential average
     _slow: float = 0.0  # its average over tau_slow_s: the two part by the median's speed
     _since: float | None = -math.inf  # when the averages last started (unwrapped); None: at the next quiet frame
-    _anchor: float = 0.0  # the estimate when it last agreed with the median
+    _variances: tuple = (0.0, 0.0, 0.0)  # of _average, _slow and their covariance, in noise² (the tare's level: none)
+    _load: float = 0.0  # what a load reached through a fast change adds to the quiet median (docstring)
+    _anchor: float = 0.0  # the estimate when it last agreed with the median (less a held load)
     _anchor_t: float | None = None  # then, unwrapped; None: from the next frame on
+    _free: float = 0.0  # the estimate when it last agreed with an unloaded median
+    _free_t: float | None = None  # then, unwrapped; None: from the next frame on
     _last_t: float | None = None  # the last frame's board time as sent (s)
     _frozen_since: float | None = None  # unwrapped (board time + _offset)
     _offset: float = 0.0  # unwrapped − sent: 0 until the clock wraps or the board restarts
 
     def reset(self) -> None:
         self.drift, self._average, self._slow, self._since = 0.0, 0.0, 0.0, -math.inf
-        self._anchor, self._anchor_t = 0.0, None
+        self._variances, self._load, self._anchor, self._anchor_t = (0.0, 0.0, 0.0), 0.0, 0.0, None
+        self._free, self._free_t = 0.0, None
         self._last_t, self._frozen_since, self._offset = None, None, 0.0
 
     def state(self) -> tuple:
         """What ``follow`` advances, for ``restore``."""
-        return (self.drift, self._average, self._slow, self._since, self._anchor, self._anchor_t,
-                self._last_t, self._frozen_since, self._offset)
+        return (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
+                self._anchor_t, self._free, self._free_t, self._last_t, self._frozen_since, self._offset)
 
     def restore(self, state: tuple) -> None:
-        (self.drift, self._average, self._slow, self._since, self._anchor, self._anchor_t,
-         self._last_t, self._frozen_since, self._offset) = state
+        (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
+         self._anchor_t, self._free, self._free_t, self._last_t, self._frozen_since, self._offset) = state
 
-    def follow(self, t_s: list[float], enough: list[bool], medians: list[float]) -> list[tuple[float, bool]]:
+    def follow(self, t_s: list[float], quiet: list[int], medians: list[float]) -> list[tuple[float, bool]]:
         """Advance through frames at times ``t_s`` given their quiet medians
-        and whether those were enough (``quiet_medians``, as lists: the
-        recurrence is scalar, and a live read holds a frame or two per
-        sensor); return each frame's drift and whether it is drift-suspect.
-        The median's exponential averages are advanced to each board time
-        ``t`` by dt = t − last (clipped to [0, tau_s]); a settled median
-        within reach is followed, any other frame freezes the estimate
-        (module docstring). One loop with locals, as an offline replay steps
-        every frame of a log through it."""
+        and how many taxels those were (0: not enough; ``quiet_medians``, as
+        lists: the recurrence is scalar, and a live read holds a frame or
+        two per sensor); return each frame's drift and whether it is
+        drift-suspect. The median's exponential averages are advanced to
+        each board time ``t`` by dt = t − last (clipped to [0, tau_s]); a
+        settled median within reach is followed, any other frame freezes the
+        estimate (module docstring). One loop with locals, as an offline
+        replay steps every frame of a log through it."""
         tau, slow_tau, suspect_after, max_drift, rate = (self.tau_s, self.tau_slow_s, self.suspect_after_s,
                                                          self.max_drift, self.max_rate_per_s)
         noise, tolerance = self.noise, self.band * self.noise
-        steady = rate * (slow_tau - tau) + noise / 4  # the averages' gap under drift at the bound, with noise's
+        bound_gap = rate * (slow_tau - tau)  # the averages' gap under drift at the bound
+        gap_scale = (GAP_SIGMAS * noise) ** 2  # times the gap's variance in noise²: the allowance's square
+        period = None
         drift, average, slow, since = self.drift, self._average, self._slow, self._since
-        anchor, anchor_t = self._anchor, self._anchor_t
+        (v_fast, v_slow, v_both), load = self._variances, self._load
+        anchor, anchor_t, free, free_t = self._anchor, self._anchor_t, self._free, self._free_t
         last, frozen_since, offset = self._last_t, self._frozen_since, self._offset
         out = []
-        for t, ok, median in zip(t_s, enough, medians):
+        for t, count, median in zip(t_s, quiet, medians):
             if last is not None and t < last:  # the clock wrapped, or the board restarted (module docstring)
                 offset += T_WRAP_S if t + T_WRAP_S - last <= MAX_WRAP_STEP_S else last - t
             # min/max spelled as comparisons (the same values, -0.0 and NaN alike): a call each cost per frame
@@ -195,31 +237,55 @@ class DriftTracker:
             last = t
             now = t + offset
             if anchor_t is None:  # the first frame since the tare, whose zero is the level
-                anchor_t = now
+                anchor_t = free_t = now
             reach = rate * (now - anchor_t)
-            if not ok:  # the averages would go stale: restarted at the next quiet frame
+            if not count:  # the averages would go stale: restarted at the next quiet frame
                 since = None
             elif since is None or abs(median - average) > tolerance:  # or the level jumped: they would lag long
                 average = slow = median
+                v_fast = v_slow = v_both = MEDIAN_VARIANCE / count  # one median's, in both
                 since = now
             else:
-                average += (median - average) * (dt / tau)
-                slow += (median - slow) * (dt / slow_tau)
-            if (ok and now - since >= 2 * slow_tau and abs(median - average) <= noise and abs(average - slow) <= steady
-                    and abs(average - anchor) <= tolerance + reach):
-                low, high = anchor - reach, anchor + reach  # no faster than drift moves
-                drift = low if low > average else average
-                drift = high if high < drift else drift
-                if abs(median - drift) <= noise:  # caught up (the average may be settling still)
-                    anchor, anchor_t = drift, now
-                frozen_since = None
+                if dt != period:  # the recurrence's weights, once per frame period
+                    period, a, b = dt, dt / tau, dt / slow_tau
+                    keep = ((1 - a) * (1 - a), (1 - b) * (1 - b), (1 - a) * (1 - b))
+                    add = (a * a * MEDIAN_VARIANCE, b * b * MEDIAN_VARIANCE, a * b * MEDIAN_VARIANCE)
+                average += (median - average) * a
+                slow += (median - slow) * b
+                v_fast = keep[0] * v_fast + add[0] / count
+                v_slow = keep[1] * v_slow + add[1] / count
+                v_both = keep[2] * v_both + add[2] / count
+            excess = abs(average - slow) - bound_gap
+            if (count and now - since >= 2 * slow_tau and abs(median - average) <= noise
+                    and (excess <= 0.0 or excess * excess <= gap_scale * (v_fast + v_slow - 2 * v_both))):
+                lifted, held = average - free, average - load - anchor  # no load; the held one still on
+                reach_free = rate * (now - free_t)
+                if abs(lifted) <= tolerance + reach_free and (not load or abs(lifted) <= abs(held) + tolerance):
+                    load, low, high = 0.0, free - reach_free, free + reach_free  # none (or lifted): the drift
+                elif load and abs(held) <= tolerance + reach:  # the held load: what moves under it is drift
+                    low, high = anchor - reach, anchor + reach
+                elif average > drift + tolerance + reach:  # reached through a fast change: a load, held from here
+                    load, low, high = average - drift, drift, drift
+                else:  # further down than drift could go (no load lowers C): frozen until the reach covers it
+                    low = None
+                if low is None:
+                    frozen_since = now if frozen_since is None else frozen_since
+                else:  # no faster than drift moves
+                    drift = low if low > average - load else average - load
+                    drift = high if high < drift else drift
+                    if abs(median - load - drift) <= noise:  # caught up (the average may be settling still)
+                        anchor, anchor_t = drift, now
+                        if not load:
+                            free, free_t = drift, now
+                    frozen_since = None if not load else now if frozen_since is None else frozen_since
             elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
             # A frame whose own quiet median is the held estimate shows no drift since the freeze (module docstring)
-            confirmed = ok and abs(median - drift) <= noise
+            confirmed = count and abs(median - drift) <= noise
             out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after and not confirmed)
                         or abs(drift) > max_drift))
         self.drift, self._average, self._slow, self._since = drift, average, slow, since
-        self._anchor, self._anchor_t = anchor, anchor_t
+        self._variances, self._load = (v_fast, v_slow, v_both), load
+        self._anchor, self._anchor_t, self._free, self._free_t = anchor, anchor_t, free, free_t
         self._last_t, self._frozen_since, self._offset = last, frozen_since, offset
         return out

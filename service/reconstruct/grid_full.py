@@ -92,8 +92,8 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     clipped = _clipped(pieces, capacitance.shape)
     flags, stale = _reading_flags(pieces, rows, capacitance, clipped)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags, stale)
-    medians, enough = quiet_medians(ratio - 1.0, band)
-    drift, suspect = _drift(pieces, rows, t_s, enough, medians)
+    medians, quiet = quiet_medians(ratio - 1.0, band)
+    drift, suspect = _drift(pieces, rows, t_s, quiet, medians)
     scale = 1.0 + drift[:, None]
     relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
     for (p, job, _), r, (_, n, *_) in zip(pieces, rows, params):
@@ -118,14 +118,14 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]
 
 
-def _drift(pieces: list[Piece], rows: list[slice], t_s: np.ndarray, enough: np.ndarray,
+def _drift(pieces: list[Piece], rows: list[slice], t_s: np.ndarray, quiet: np.ndarray,
            medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(drift, drift-suspect) (R,) of the stacked rows, each sensor's tracker
-    stepped through its own rows."""
-    t_s, enough, medians = t_s.tolist(), enough.tolist(), medians.tolist()
+    stepped through its own rows (``quiet``: how many taxels each median is of, 0: too few)."""
+    t_s, quiet, medians = t_s.tolist(), quiet.tolist(), medians.tolist()
     steps = []
     for (p, _, _), r in zip(pieces, rows):
-        steps += p.drift.follow(t_s[r], enough[r], medians[r])
+        steps += p.drift.follow(t_s[r], quiet[r], medians[r])
     steps = np.array(steps, dtype=float).reshape(-1, 2)
     return steps[:, 0], steps[:, 1] != 0.0
 

@@ -102,8 +102,9 @@ class QuadTracker:
         elif self.loaded and (rise < -tolerance or z - self.base <= tolerance):  # let go (or back down slowly)
             self.loaded = False
         reference = ok and not self.loaded
-        own.follow([t], [reference], [z])
-        drift, average, _, _, _, _, last, frozen_since, offset = own.state()
+        own.follow([t], [1 if reference else 0], [z])  # one value, not a median of many: its variance in full
+        state = own.state()
+        (drift, average), (last, frozen_since, offset) = state[:2], state[-3:]
         now = last + offset
         if z == z:
             if self.ema == self.ema and abs(rise) <= tolerance:
