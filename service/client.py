@@ -44,12 +44,15 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
+from collections import deque
 from collections.abc import Iterator
 
 import orjson
 
 from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 
+DEFAULT_MAX_LAG_S = 0.25  # subscribe: frames further behind the newest arrived are skipped
+LAGGING_QUEUE = 1024  # messages read ahead when trimming by lag: up to ~10 MB of a loop that stalled
 SHAPES_RETRY_S = 1.0  # GET /sensors again for a grid whose records changed size at most this often
 
 
@@ -69,6 +72,22 @@ def _retry_after(error: urllib.error.HTTPError) -> float | None:
         return max(0.0, float(error.headers.get("Retry-After")))
     except (TypeError, ValueError):
         return None
+
+
+def _skip_lagging(pending: deque[dict], max_lag_s: float) -> int:
+    """Drop the frames at the front of ``pending`` whose stamp lies more than
+    ``max_lag_s`` before the newest's (a frame without one is kept); how many."""
+    newest = pending[-1]["header"].get("stamp") if pending else None
+    skipped = 0
+    if newest is None or newest != newest:
+        return 0
+    while len(pending) > 1:
+        stamp = pending[0]["header"].get("stamp")
+        if stamp is None or not newest - stamp > max_lag_s:
+            break
+        pending.popleft()
+        skipped += 1
+    return skipped
 
 
 def _none_if_nan(value) -> float | None:
@@ -213,12 +232,19 @@ class TactileClient:
         return frame
 
     def subscribe(self, sensors: list[int | str] | None = None, fields: list[str] | None = None, max_rate: float | None = None,
-                  batch_ms: float | None = None, binary: bool = False, timeout: float = 5.0) -> Iterator[dict]:
+                  batch_ms: float | None = None, binary: bool = False, timeout: float = 5.0,
+                  max_lag_s: float | None = DEFAULT_MAX_LAG_S) -> Iterator[dict]:
         """Frames as they arrive, in the one frame shape (module docstring).
         A controller must not wait forever on a silent stream: TactileError
         when no message comes within ``timeout`` s, and when the stream ends
         (the service stopped, the network failed). ``sensors``: ids and
-        "board/id" addresses."""
+        "board/id" addresses. A loop slower than the stream is given the
+        frames at most ``max_lag_s`` older (by ``stamp``) than the newest
+        that has arrived, the older ones skipped and counted in ``dropped``
+        (a message holds up to 32 frames and 16 wait in the socket's queue:
+        a loop reading one frame a second got them all, in order, a minute
+        old); None: every frame, for a logger (the service then drops for it
+        once its own queue is full, also counted)."""
         from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
 
         query = {"encoding": "binary" if binary else "json"}
@@ -234,29 +260,44 @@ class TactileClient:
         url = self.base_url.replace("http", "ws", 1) + "/ws?" + urllib.parse.urlencode(query)
         if binary:
             self.sensors()  # rows and cols, which binary records do not carry
-        ws = self._connect(url)
+        # Trimming by lag needs what has arrived read off the socket meanwhile (websockets' reader thread stops at
+        # max_queue messages, and the socket's and the service's queues then hold seconds of frames behind them).
+        ws = self._connect(url, max_queue=16 if max_lag_s is None else LAGGING_QUEUE)
         told = len(self.notices)
+        pending: deque[dict] = deque()
+
+        def receive(wait: float) -> str | bytes | None:
+            try:
+                return ws.recv(timeout=wait)
+            except TimeoutError:
+                if wait == 0:
+                    return None
+                said = f" (the service said: {'; '.join(self.notices[told:])})" if self.notices[told:] else ""
+                raise TactileError(f"no message from {url} within {timeout} s{said}") from None
+            except ConnectionClosedOK as exc:
+                raise TactileError(f"stream {url} closed by the service ({exc})") from None
+            except ConnectionClosed as exc:
+                raise TactileError(f"stream {url} lost: {exc}") from None
+
         with ws:
             while True:
-                try:
-                    message = ws.recv(timeout=timeout)
-                except TimeoutError:
-                    said = f" (the service said: {'; '.join(self.notices[told:])})" if self.notices[told:] else ""
-                    raise TactileError(f"no message from {url} within {timeout} s{said}") from None
-                except ConnectionClosedOK as exc:
-                    raise TactileError(f"stream {url} closed by the service ({exc})") from None
-                except ConnectionClosed as exc:
-                    raise TactileError(f"stream {url} lost: {exc}") from None
-                yield from self._frames_in(message, url, wanted)
+                if not pending:
+                    pending.extend(self._frames_in(receive(timeout), url, wanted))
+                if max_lag_s is not None:  # what else has come meanwhile, so that the oldest can be told old
+                    while (message := receive(0)) is not None:
+                        pending.extend(self._frames_in(message, url, wanted))
+                    self.dropped += _skip_lagging(pending, max_lag_s)
+                if pending:
+                    yield pending.popleft()
 
-    def _connect(self, url: str):
+    def _connect(self, url: str, max_queue: int = 16):
         """The stream's WebSocket, open; TactileError naming why not."""
         from websockets.exceptions import InvalidHandshake, InvalidURI
         from websockets.sync.client import connect
 
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
         try:
-            return connect(url, max_size=None, open_timeout=self.timeout, additional_headers=headers)
+            return connect(url, max_size=None, open_timeout=self.timeout, additional_headers=headers, max_queue=max_queue)
         except ConnectionRefusedError:
             raise TactileError(f"stream {url}: connection refused (is tactile serve running there?)") from None
         except TimeoutError:

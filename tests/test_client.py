@@ -266,3 +266,28 @@ def test_a_retry_after_a_429_gets_what_is_left_of_the_timeout_not_a_new_one():
     finally:
         server.shutdown()
         server.server_close()
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_a_loop_slower_than_the_stream_gets_recent_frames_and_counts_the_skipped(served, binary):
+    """A controller reading one frame every 0.3 s: each frame it gets is
+    within max_lag_s of the newest arrived (by stamp, so within ~0.3 s of
+    now here); the skipped are counted in ``dropped``. It got every frame in
+    order, each message's 32 merged frames one by one: 60 s in, a minute old
+    (a tester's). With max_lag_s=None (a logger) the frames come in order
+    and fall behind."""
+    def ages(max_lag_s):
+        client = TactileClient(served[0])
+        stream = client.subscribe(sensors=[1], binary=binary, max_lag_s=max_lag_s)
+        out, seqs = [], []
+        for frame in itertools.islice(stream, 8):
+            out.append(time.time() - frame["header"]["stamp"])
+            seqs.append(frame["header"]["seq"])
+            time.sleep(0.3)
+        stream.close()
+        return out, seqs, client.dropped
+
+    recent, seqs, dropped = ages(0.25)
+    assert max(recent[2:]) < 0.6 and dropped > 500 and min(np.diff(seqs)[1:]) > 100
+    behind, seqs, _ = ages(None)
+    assert behind[-1] > 1.5 and list(np.diff(seqs)) == [1] * 7

@@ -15,10 +15,15 @@
   established stream is never taken, and half-open connections cannot keep
   a controller that reconnects out. uvicorn's ``limit_concurrency`` answers
   503 only once a request has arrived whole, so it bounds neither.
+* A WebSocket's kernel send buffer is WS_SEND_BUFFER: left to grow (Linux
+  autotunes it to 4 MB), it held a minute of a slow client's frames, which
+  then arrived in order, a minute old, while the hub's own bounded queue
+  (fanout/hub.py) dropped for it without the client ever seeing a gap.
 """
 from __future__ import annotations
 
 import resource
+import socket
 import weakref
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -28,6 +33,7 @@ BACKLOG = 128  # connections one accept burst takes before any is looked at (uvi
 OWN_FILES = 128  # serial ports, registry, recordings, zenoh's sockets, the interpreter's: about 30 with one board
 SELECT_LIMIT = 1024  # pyserial waits on a port with select(), which fails on a descriptor past 1023
 MIN_CONNECTIONS = 16
+WS_SEND_BUFFER = 32 << 10  # bytes (the kernel doubles it): ~50 JSON grid frames, ~0.1 s of a quad's
 
 # Per server (its uvicorn ServerState): its connections waiting for a request, oldest first.
 _WAITING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -75,6 +81,11 @@ class BoundedH11(H11Protocol):
 
     def handle_websocket_upgrade(self, event) -> None:
         self._stop_waiting()  # the transport is the WebSocket's from now on
+        sock = self.transport.get_extra_info("socket")
+        if sock is not None:
+            # uvloop's PseudoSocket ignores setsockopt: set it on a duplicate of its descriptor (the same socket).
+            with socket.fromfd(sock.fileno(), sock.family, sock.type) as same:
+                same.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, WS_SEND_BUFFER)
         super().handle_websocket_upgrade(event)
 
     def connection_lost(self, exc) -> None:
