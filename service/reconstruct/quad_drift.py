@@ -163,14 +163,28 @@ def where(processor, zero: np.ndarray) -> list | None:
     if held is None or held[0] is not zero:
         return None
     drift, *rest = held[1].state()
-    return [v if v is None or isinstance(v, bool) or math.isfinite(v) else str(v) for v in (*drift, *rest)]
+    return [_json(v) for v in (*drift, *rest)]
 
 
 def resume(processor, baseline, values: list) -> None:
     """Go on from ``where``'s ``values`` on the quad's preset zero ``baseline``."""
-    values = [float(v) if isinstance(v, str) else v for v in values]
+    values = [_value(v) for v in values]
     own = tracker(processor, baseline.value, processor.noise(baseline.value, baseline.std))
     own.restore((tuple(values[:-5]), *values[-5:]))
+
+
+def _json(value):
+    """A state value as JSON: a tuple as a list, a non-finite float as its name."""
+    if isinstance(value, tuple):
+        return [_json(v) for v in value]
+    return value if value is None or isinstance(value, bool) or math.isfinite(value) else str(value)
+
+
+def _value(value):
+    """``_json``'s inverse."""
+    if isinstance(value, list):
+        return tuple(_value(v) for v in value)
+    return float(value) if isinstance(value, str) else value
 
 
 def keep(kept: list) -> None:

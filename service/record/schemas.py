@@ -70,7 +70,7 @@ BASELINES = {
             "cycles_seen": {"type": "integer", "description": "frames the cycle counter had seen (every 4th is judged)"},
             "cycles_armed": {"type": "array", "items": {"type": "boolean"},
                              "description": "outputs loaded above 1 N, a cycle pending"},
-            "drift": {"type": "array", "items": {"type": ["number", "string", "boolean", "null"]},
+            "drift": {"type": "array", "items": {"type": ["number", "string", "boolean", "null", "array"]},
                       "description": "a quad's common-mode drift tracker where it stood (quad_drift.py; a "
                                      "non-finite number as its name)"}}}},
     },
