@@ -3,10 +3,17 @@ holds a board's frames and then delivers the backlog faster than real time,
 board clock and sequence continuous, leaves every scan on its true host time,
 monotonic; a host clock step or a board restart still re-anchors the map as
 soon as before, and a frame the map cannot place is flagged ``suspect``."""
+import struct
+
 import numpy as np
 import pytest
 
+from firmware_sim.board import BoardConfig
+from firmware_sim.delivery import deliveries
+from firmware_sim.sensors import SimQuad
 from service.clock_map import ClockMap
+from service.fanout.encoding import decode_binary, to_binary
+from service.pipeline import Pipeline
 from tests.clock_stream import reads, run, run_flagged
 
 STALLS = {  # stalls: (at s, held s, drained at × real time); bound: the error allowed from 3 s on
@@ -99,3 +106,38 @@ def test_a_backlog_drained_slower_than_the_drain_bound_is_taken_for_a_step():
 def test_drain_s_must_be_below_step_s():
     with pytest.raises(ValueError, match="0.05, 0.05"):
         ClockMap(drain_s=0.05)
+
+
+def pipeline_frames(retime):
+    """A simulated board (+100 ppm, 500 Hz, 5 ms jitter) through the service's
+    Pipeline, each read received at 1000 s + ``retime(its time)``."""
+    config = BoardConfig(sensors=[SimQuad(1)], rate_hz=500, scene="idle", seed=1, clock_ppm=100.0,
+                         clock_offset_us=0, jitter_ms=5.0)
+    pipeline = Pipeline(clock=lambda: 0.0)
+    frames = []
+    pipeline.listeners.append(frames.extend)
+    for t_recv, data in deliveries(config, 12.0):
+        pipeline.feed(data, 1000.0 + retime(t_recv))
+    true = 1000.0 + np.array([f.t_us for f in frames]) * 1e-6 / (1 + 100e-6)
+    return frames, true, pipeline
+
+
+def test_through_the_pipeline_a_stall_keeps_the_scan_stamps_and_a_step_is_flagged():
+    # Held 1.3 s from 5 s, then delivered at 1.5x real time: the tester's lag_repro.
+    frames, true, _ = pipeline_frames(lambda t: max(t, 6.3 + (t - 5.0) / 1.5) if t >= 5.0 else t)
+    stamps = np.array([f.t_host_scan for f in frames])
+    after = true > 1002.0
+    assert np.abs(stamps - true)[after].max() < 0.5e-3  # main: 1.1 s
+    assert np.all(np.diff(stamps[after]) > 0)
+    flagged = np.array(["clock_suspect" in f.flags for f in frames])
+    late = np.array([f.t_host for f in frames]) - true
+    assert 0 < flagged.sum() <= 150 and np.all(late[flagged] > 0.05)  # 0.3 s of a 500 Hz backlog at most
+    # The host clock stepped 1 s on at 6 s: off until re-anchored, and flagged.
+    frames, true, pipeline = pipeline_frames(lambda t: t + 1.0 if t >= 6.0 else t)
+    received_after = np.array([f.t_host for f in frames]) >= 1007.0
+    error = np.abs(np.array([f.t_host_scan for f in frames]) - (true + np.where(received_after, 1.0, 0.0)))
+    off = error > 10e-3
+    assert 0 < off.sum() and all("clock_suspect" in frames[i].flags for i in np.flatnonzero(off))
+    record = decode_binary(struct.pack("<H", 1) + to_binary(frames[np.flatnonzero(off)[0]]))[0]
+    assert "clock_suspect" in record["flags"]
+    assert pipeline.clock.status()["restarts"] == 1 and error[true > 1009.0].max() < 0.5e-3
