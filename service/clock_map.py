@@ -31,22 +31,15 @@ Until ``lock_s`` of board time is seen the map is the naive one: receive time
 minus the least delay seen (with the previous run's rate, when there was one).
 A restart — ``restart()``, the board clock stepping back by more than
 ``restart_jump_s``, a frame arriving ``step_s`` before its envelope says it
-was scanned, ``step_bins`` bins in a row whose every read is late by more
-than ``step_s`` and whose lateness does not shrink, or ``gap_s`` without a
-frame (the wrap count is then unknown) — starts a new run and keeps the last
-locked rate as the prior.
-
-Late is not a new clock. A link or reader that stalls and then delivers its
-backlog faster than real time (board clock and sequence continuous) makes
-reads late by the stall, then less late read by read until the backlog is
-gone; a host clock stepped forward (or a board clock stepped back) makes them
-late by a constant. So a late bin whose lateness fell ``drain_s`` below the
-first of its streak starts the streak again: the scans keep the envelope's
-line, which is the board's crystal through any delivery delay. Late bins are
-left out of the fit (they lie far above the envelope and say nothing about
-it). While a read is late by more than ``step_s`` and its episode has not
-shrunk, the map cannot tell a stall from a clock step: ``suspect`` is set for
-that read (its scans may be off by up to ``late_s``).
+was scanned, ``step_bins`` bins in a row late by more than ``step_s`` and not
+shrinking, or ``gap_s`` without a frame (the wrap count is then unknown) —
+starts a new run and keeps the last locked rate as the prior. Late is not a
+new clock: a stalled link or reader that then hands on its backlog faster than
+real time makes reads late, then less and less; a host clock stepped on (a
+board clock stepped back), late by a constant. So a late bin ``drain_s`` less
+late than the first of its streak starts the streak again, and late bins stay
+out of the fit. A read late by more than ``step_s`` before its streak was seen
+to shrink is ``suspect``: a stall (scans right) or a step (off by ``late_s``)?
 """
 from __future__ import annotations
 
@@ -73,10 +66,7 @@ class ClockMap:
     lock_s : board seconds of data before the fitted line replaces the naive map
     step_s, step_bins, restart_jump_s, gap_s : when to start a new run (module docstring)
     drain_s : lateness a streak of late bins must lose to be a draining backlog, not a clock step
-
-    After each read, ``late_s`` is how late it arrived against the map and
-    ``suspect`` whether the map cannot tell a delivery stall (its scans right)
-    from a clock step (its scans off by up to ``late_s``).
+    late_s, suspect (attributes) : of the last read (module docstring)
     """
 
     def __init__(self, window_s: float = 30.0, *, bin_s: float = 0.1, refit_s: float = 0.25, lock_s: float = 1.0,
@@ -106,8 +96,7 @@ class ClockMap:
         self._c, self._m, self._locked = math.inf, self._prior, False
         self._naive = math.inf  # least y − prior·x: the naive map's c
         self._bin, self._bin_x, self._bin_y, self._bin_res = -1, 0.0, 0.0, math.inf
-        self._late_bins, self._late_ref, self._draining = 0, 0.0, False
-        self.late_s, self.suspect = 0.0, False
+        self._late_bins, self._late_ref, self._draining, self.late_s, self.suspect = 0, 0.0, False, 0.0, False
         self._bx, self._by, self._nb = np.empty(self._bin_cap), np.empty(self._bin_cap), 0
         self._rx, self._ry, self._nr = np.empty(self._read_cap), np.empty(self._read_cap), 0
         self._next_refit = -math.inf
@@ -165,7 +154,7 @@ class ClockMap:
         if self._late_bins >= self.step_bins:  # late by a constant for a while: the clock stepped back
             self._begin(newest, t_recv)
             self._add(0.0, 0.0)
-            late = 0.0
+            late = 0.0  # this read starts the new run
         self.late_s, self.suspect = late, late > self.step_s and not self._draining
         if t_recv >= self._next_refit:
             self._refit(t_recv)
@@ -203,10 +192,11 @@ class ClockMap:
             self._bx[i], self._by[i] = self._bin_x, self._bin_y
             self._nb += 1
             self._late_bins, self._draining = 0, False
-        elif self._late_bins and late < self._late_ref - self.drain_s:  # shrinking: a backlog draining
+        elif not self._late_bins:
+            self._late_bins, self._late_ref = 1, late
+        elif late < self._late_ref - self.drain_s:  # shrinking: a backlog draining, not a clock step
             self._late_bins, self._late_ref, self._draining = 1, late, True
         else:
-            self._late_ref = self._late_ref if self._late_bins else late
             self._late_bins += 1
 
     def _window(self, xs: np.ndarray, ys: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -217,9 +207,8 @@ class ClockMap:
 
     def _fit_points(self) -> tuple[np.ndarray, np.ndarray]:
         xs, ys = self._window(self._bx, self._by, self._nb)
-        if self._bin_res > self.step_s:  # the open bin is late (see _close_bin)
-            return xs, ys
-        return np.append(xs, self._bin_x), np.append(ys, self._bin_y)
+        late = self._bin_res > self.step_s  # the open bin is late: out of the fit, as when closed
+        return (xs, ys) if late else (np.append(xs, self._bin_x), np.append(ys, self._bin_y))
 
     def _refit(self, t_recv: float) -> None:
         self._next_refit = t_recv + self.refit_s
@@ -249,8 +238,7 @@ class ClockMap:
         samples : reads in the window; window_s : board seconds they span
         locked : the fitted line is in use (else the naive map)
         restarts : runs started again (by restart() or a detected clock step)
-        late_ms : how late the newest read arrived against the map
-        suspect : a stall or a clock step? (``suspect``); the uncertainty then includes late_ms
+        late_ms, suspect : of the last read (module docstring); if suspect, the uncertainty includes late_ms
         """
         xs, ys = self._window(self._rx, self._ry, self._nr)
         doc = {"rate_error_ppm": (1.0 / (1.0 + self._m) - 1.0) * 1e6, "offset_uncertainty_ms": None,
