@@ -31,9 +31,15 @@ Until ``lock_s`` of board time is seen the map is the naive one: receive time
 minus the least delay seen (with the previous run's rate, when there was one).
 A restart — ``restart()``, the board clock stepping back by more than
 ``restart_jump_s``, a frame arriving ``step_s`` before its envelope says it
-was scanned, every read of ``step_bins`` bins in a row late by more than
-``step_s``, or ``gap_s`` without a frame (the wrap count is then unknown) —
-starts a new run and keeps the last locked rate as the prior.
+was scanned, ``step_bins`` bins in a row late by more than ``step_s`` and not
+shrinking, or ``gap_s`` without a frame (the wrap count is then unknown) —
+starts a new run and keeps the last locked rate as the prior. Late is not a
+new clock: a stalled link or reader that then hands on its backlog faster than
+real time makes reads late, then less and less; a host clock stepped on (a
+board clock stepped back), late by a constant. So a late bin ``drain_s`` less
+late than the first of its streak starts the streak again, and late bins stay
+out of the fit. A read late by more than ``step_s`` before its streak was seen
+to shrink is ``suspect``: a stall (scans right) or a step (off by ``late_s``)?
 """
 from __future__ import annotations
 
@@ -59,16 +65,22 @@ class ClockMap:
     refit_s : host seconds between refits
     lock_s : board seconds of data before the fitted line replaces the naive map
     step_s, step_bins, restart_jump_s, gap_s : when to start a new run (module docstring)
+    drain_s : lateness a streak of late bins must lose to be a draining backlog, not a clock step
+    late_s, suspect (attributes) : of the last read (module docstring)
     """
 
     def __init__(self, window_s: float = 30.0, *, bin_s: float = 0.1, refit_s: float = 0.25, lock_s: float = 1.0,
-                 step_s: float = 0.05, step_bins: int = 5, restart_jump_s: float = 1.0, gap_s: float = 600.0) -> None:
+                 step_s: float = 0.05, step_bins: int = 5, restart_jump_s: float = 1.0, gap_s: float = 600.0,
+                 drain_s: float = 0.02) -> None:
         if not 0 < bin_s < lock_s <= window_s:
             raise ValueError(f"need 0 < bin_s < lock_s <= window_s, got {bin_s}, {lock_s}, {window_s}")
         if refit_s <= 0 or step_s <= 0 or step_bins < 1 or restart_jump_s <= 0 or not 0 < gap_s < _HALF * 1e-6:
-            raise ValueError("refit_s, step_s, step_bins, restart_jump_s must be positive; gap_s within (0, 2147 s)")
+            raise ValueError(f"refit_s, step_s, step_bins, restart_jump_s must be positive, gap_s within (0, 2147 s); "
+                             f"got {refit_s}, {step_s}, {step_bins}, {restart_jump_s}, {gap_s}")
+        if not 0 < drain_s < step_s:
+            raise ValueError(f"need 0 < drain_s < step_s, got {drain_s}, {step_s}")
         self.window_s, self.bin_s, self.refit_s, self.lock_s = window_s, bin_s, refit_s, lock_s
-        self.step_s, self.step_bins, self.gap_s = step_s, step_bins, gap_s
+        self.step_s, self.step_bins, self.gap_s, self.drain_s = step_s, step_bins, gap_s, drain_s
         self._jump_us = int(restart_jump_s * 1e6)
         self._bin_cap = int(math.ceil(window_s / bin_s)) + 2
         self._read_cap = 1 << 15  # reads kept for status(): 30 s at 1 kHz
@@ -84,7 +96,7 @@ class ClockMap:
         self._c, self._m, self._locked = math.inf, self._prior, False
         self._naive = math.inf  # least y − prior·x: the naive map's c
         self._bin, self._bin_x, self._bin_y, self._bin_res = -1, 0.0, 0.0, math.inf
-        self._late_bins = 0
+        self._late_bins, self._late_ref, self._draining, self.late_s, self.suspect = 0, 0.0, False, 0.0, False
         self._bx, self._by, self._nb = np.empty(self._bin_cap), np.empty(self._bin_cap), 0
         self._rx, self._ry, self._nr = np.empty(self._read_cap), np.empty(self._read_cap), 0
         self._next_refit = -math.inf
@@ -133,14 +145,17 @@ class ClockMap:
         x_us = self._x_us + self._step_us(newest)
         x = x_us * 1e-6
         y = (t_recv - self._r0) - x
-        if self._c < math.inf and y - (self._c + self._m * x) < -self.step_s:  # before its scan: the clock stepped on
+        late = y - (self._c + self._m * x) if self._c < math.inf else 0.0
+        if late < -self.step_s:  # before its scan: the clock stepped on
             self._begin(newest, t_recv)
-            x_us, x, y = 0, 0.0, 0.0
+            x_us, x, y, late = 0, 0.0, 0.0, 0.0
         self._raw, self._x_us, self._t_last = newest, x_us, t_recv
         self._add(x, y)
-        if self._late_bins >= self.step_bins:  # every read late for a while: the clock stepped back
+        if self._late_bins >= self.step_bins:  # late by a constant for a while: the clock stepped back
             self._begin(newest, t_recv)
             self._add(0.0, 0.0)
+            late = 0.0  # this read starts the new run
+        self.late_s, self.suspect = late, late > self.step_s and not self._draining
         if t_recv >= self._next_refit:
             self._refit(t_recv)
         return (1.0 + self._m) * 1e-6, self._r0 + self._c + (1.0 + self._m) * (self._x_us * 1e-6)
@@ -171,10 +186,18 @@ class ClockMap:
         self._bin_res = min(self._bin_res, y - (self._c + self._m * x))
 
     def _close_bin(self) -> None:
-        i = self._nb % self._bin_cap
-        self._bx[i], self._by[i] = self._bin_x, self._bin_y
-        self._nb += 1
-        self._late_bins = self._late_bins + 1 if self._bin_res > self.step_s else 0
+        late = self._bin_res
+        if late <= self.step_s:
+            i = self._nb % self._bin_cap
+            self._bx[i], self._by[i] = self._bin_x, self._bin_y
+            self._nb += 1
+            self._late_bins, self._draining = 0, False
+        elif not self._late_bins:
+            self._late_bins, self._late_ref = 1, late
+        elif late < self._late_ref - self.drain_s:  # shrinking: a backlog draining, not a clock step
+            self._late_bins, self._late_ref, self._draining = 1, late, True
+        else:
+            self._late_bins += 1
 
     def _window(self, xs: np.ndarray, ys: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
         """The ring's points within the window ending at the newest frame."""
@@ -184,7 +207,8 @@ class ClockMap:
 
     def _fit_points(self) -> tuple[np.ndarray, np.ndarray]:
         xs, ys = self._window(self._bx, self._by, self._nb)
-        return np.append(xs, self._bin_x), np.append(ys, self._bin_y)
+        late = self._bin_res > self.step_s  # the open bin is late: out of the fit, as when closed
+        return (xs, ys) if late else (np.append(xs, self._bin_x), np.append(ys, self._bin_y))
 
     def _refit(self, t_recv: float) -> None:
         self._next_refit = t_recv + self.refit_s
@@ -214,17 +238,19 @@ class ClockMap:
         samples : reads in the window; window_s : board seconds they span
         locked : the fitted line is in use (else the naive map)
         restarts : runs started again (by restart() or a detected clock step)
+        late_ms, suspect : of the last read (module docstring); if suspect, the uncertainty includes late_ms
         """
         xs, ys = self._window(self._rx, self._ry, self._nr)
         doc = {"rate_error_ppm": (1.0 / (1.0 + self._m) - 1.0) * 1e6, "offset_uncertainty_ms": None,
                "jitter_ms": None, "samples": int(xs.size), "window_s": 0.0, "locked": self._locked,
-               "restarts": self.restarts}
+               "restarts": self.restarts, "late_ms": self.late_s * 1e3, "suspect": self.suspect}
         if xs.size == 0:
             return doc
         res = ys - (self._c + self._m * xs)
         span = float(xs.max() - xs.min())
         jitter = float(np.percentile(res, 99) - res.min())
-        doc.update(jitter_ms=jitter * 1e3, window_s=span, offset_uncertainty_ms=self._uncertainty(xs, res, span, jitter) * 1e3)
+        uncertainty = self._uncertainty(xs, res, span, jitter) + (self.late_s if self.suspect else 0.0)
+        doc.update(jitter_ms=jitter * 1e3, window_s=span, offset_uncertainty_ms=uncertainty * 1e3)
         return doc
 
     def _uncertainty(self, xs: np.ndarray, res: np.ndarray, span: float, jitter: float) -> float:

@@ -109,7 +109,8 @@ class Interpreter:
         not one per frame — at 1 kHz the per-call cost is what a frame
         costs. Each reading's ``capacitance_pF`` is a row of its group's array.
         ``clock`` (clock_map.ClockMap): the frames are one read received at
-        ``t_host``, and each reading gets its scan's host time from it."""
+        ``t_host``, and each reading gets its scan's host time from it, flagged
+        ``clock_suspect`` when the map cannot tell a stall from a clock step."""
         accepted: list[tuple[SensorInfo, Frame]] = []
         groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
         sensors, fits, since = self.sensors, self._fits, self.sent_since_restart
@@ -139,12 +140,14 @@ class Interpreter:
             restart = restart or board_restart
         if not accepted:
             return []
+        suspect = False
         if clock is None:
             scans = [math.nan] * len(accepted)
         else:
             if restart:
                 clock.restart()
             scans = clock.scan_times([frame[4] for _, frame in accepted], t_host)
+            suspect = clock.suspect
         out: list[Reading | None] = [None] * len(accepted)
         for size, indices in groups.items():
             raw = np.frombuffer(b"".join([accepted[i][1][5] for i in indices]), dtype="<u4")
@@ -158,7 +161,7 @@ class Interpreter:
                 shorted = (raw == SHORT_SENTINEL).any(axis=1).tolist()
             for i, row, o, s in zip(indices, capacitance, opened, shorted):
                 info, (_, _, flags, seq, t_us, _, gap, board_restart) = accepted[i]
-                out[i] = Reading(info, seq, t_us, t_host, flags, gap, row, o, s, board_restart, scans[i])
+                out[i] = Reading(info, seq, t_us, t_host, flags, gap, row, o, s, board_restart, scans[i], suspect)
         return out
 
     def _log_board_error(self, text: str) -> None:

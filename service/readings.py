@@ -70,9 +70,11 @@ class Reading:
     shorted_channel: bool
     board_restart: bool = False
     t_host_scan: float = math.nan  # the scan's time on the host clock (clock_map.py); NaN: not mapped
+    clock_suspect: bool = False  # t_host_scan may be off by the read's lateness (ClockMap.suspect)
 
     def frame_flags(self) -> list[str]:
-        if not (self.board_flags or self.gap or self.board_restart or self.open_channel or self.shorted_channel):
+        if not (self.board_flags or self.gap or self.board_restart or self.open_channel or self.shorted_channel
+                or self.clock_suspect):
             return []  # the usual frame: once per frame at 1 kHz, so the common case is one test
         flags = []
         if self.board_flags & FLAG_SATURATED:
@@ -87,4 +89,6 @@ class Reading:
             flags.append("open_channel")
         if self.shorted_channel:
             flags.append("shorted_channel")
+        if self.clock_suspect:
+            flags.append("clock_suspect")
         return flags
