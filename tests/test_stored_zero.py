@@ -172,3 +172,20 @@ def test_a_replay_and_a_simulated_board_never_read_a_stored_zero(loaded_before):
     assert CalibrationBook(registry).load_zero(board, SensorInfo(0, "grid", 8, 8), "builtin-table1") is not None
     assert CalibrationBook(registry, replaying=True).load_zero(board, SensorInfo(0, "grid", 8, 8), "builtin-table1") is None
     assert TactileService("sim://", calibrations=CalibrationBook(registry)).pipeline.reconstructor.load_zero is None
+
+
+@pytest.mark.parametrize("age_s, kept", [(20.0, [0, 1, 2, 3]), (40.0, []), (119.0, []), (121.0, None)])
+def test_a_quad_05_percent_above_its_stored_zero_is_loaded_only_while_drift_cannot_explain_it(age_s, kept):
+    """Quad electrodes 0.5 % above the stored zero, both means of 100 readings at 0.5 fF: the noise margin is
+    4·hypot(0.05, 0.05) fF = 0.28 fF (0.013 % of 2.2 pF), drift at 1 %/min adds age/6000, so the 0.5 % excess
+    is a load up to 29.2 s after the save and drift since; at 121 s the zero is not used at all."""
+    from service.reconstruct.stored_zero import StoredZero, judged
+
+    now = 1.8e9
+    stored = StoredZero(QUAD_C0_PF, np.full(4, 5e-4), 100, now - age_s)
+    report = judged(stored, QUAD_C0_PF * 1.005, np.full(4, 5e-4), 100, now)
+    assert report["age_s"] == age_s
+    if kept is None:
+        assert report["not_used"].startswith("saved 121 s ago") and not report["kept"].any()
+    else:
+        assert report["not_used"] is None and np.flatnonzero(report["kept"]).tolist() == kept

@@ -90,7 +90,10 @@ def judged(stored: StoredZero, mean_pF: np.ndarray, std_pF: np.ndarray, frames: 
     kept, below, zero = judge(stored.zero_pF, np.isfinite(stored.zero_pF), mean_pF, std_pF, frames,
                               lambda reference: LOADED_SIGMAS * noise + drift * reference, max_drift=drift)
     if below.any():  # loaded_tare.judge's mismatch: cooler than the bound allows, or another sensor's zero
-        return {**report, "not_used": f"channels {np.flatnonzero(below).tolist()} read below it"}
+        channels = np.flatnonzero(below).tolist()
+        return {**report, "not_used": f"{len(channels)} channels read below it ({', '.join(map(str, channels[:8]))}"
+                                      f"{', …' if len(channels) > 8 else ''}): another sensor's zero, or one cooler "
+                                      "than drift since explains"}
     return {**report, "kept": kept, "zero_pF": zero}
 
 
