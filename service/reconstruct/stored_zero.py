@@ -11,12 +11,12 @@ channels above it by more than their noise (LOADED_SIGMAS σ of the two
 means) plus what drift at the tracked bound (1 % ΔC/C0 a minute,
 docs/reconstruction.md) could have added since it was saved keep the stored
 zero and are flagged ``loaded_at_tare`` (the zero is only as good as that
-bound: a tare unloaded gives a fresh one), the rest tare as usual. A grid's
-zero is saved with the drift tracked on it (the level its free taxels read
-at), and at the tare first moved by the free taxels' common level, by no
-more than drift at the bound since (loaded_tare.common_c0: temperature
-moves every taxel alike, so a plate over the whole array is not taken for
-it); a quad has no free electrodes to tell temperature by (fewer than
+bound: a tare unloaded gives a fresh one), the rest tare as usual. The
+zero is saved with the drift tracked on it (drift.py; a quad's:
+quad_drift.py), and at the tare a grid's is first moved by the free
+taxels' common level, by no more than drift at the bound since
+(loaded_tare.common_c0: temperature moves every taxel alike, so a plate
+over the whole array is not taken for it); a quad has no free electrodes to tell temperature by (fewer than
 COMMON_MIN_TAXELS), its four are judged as they are. Channels *below* it,
 as many as loaded_tare.judge takes for a mismatch (2, or 5 % of a grid's),
 say it is not this sensor's zero as it is now (another sensor without a
@@ -140,8 +140,7 @@ class StoredZeros:
             baseline = state.baseline
             if not (baseline.ready and state.tare_judged and not baseline.zeroless and named(state.info)):
                 continue
-            drift = state.processor.drift.drift if isinstance(state.processor, GridProcessor) else 0.0
-            out[sid] = (state.info, state.calibration.id, row(baseline.value * (1.0 + drift), baseline.std,
+            out[sid] = (state.info, state.calibration.id, row(baseline.value * (1.0 + _drift(state)), baseline.std,
                                                                baseline.frames))
         return out
 
@@ -149,6 +148,16 @@ class StoredZeros:
         """The stored zero's part in the sensor's first tare: {age_s, kept, not_used}; None when there was none."""
         state = self._sensors.get(sensor_id)
         return None if state is None else state.zero_kept
+
+
+def _drift(state) -> float:
+    """The common-mode drift (ΔC/C0) tracked on the sensor's zero: a grid's
+    (drift.py), a quad's (quad_drift.py: its tracker, if on this zero); 0 below the full level."""
+    processor = state.processor
+    if isinstance(processor, GridProcessor):
+        return processor.drift.drift
+    held = getattr(processor, "drift", None)
+    return held[1].drift.drift if held is not None and held[0] is state.baseline.value else 0.0
 
 
 def row(value_pF: np.ndarray, std_pF: np.ndarray, frames: int, now: float | None = None) -> dict:
