@@ -14,6 +14,7 @@ its address (identity.py) is made anew the same way, as first seen.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -53,6 +54,7 @@ class SensorState:
     stored_zero: StoredZero | None = None  # the zero kept before the service started, for its first tare
     zero_kept: dict | None = None  # what that tare made of it (stored_zero.py)
     judged_once: bool = False  # a tare of it was judged: the stored zero's turn is over
+    tared_at: float = 0.0  # Unix time the last tare was judged: an untracked zero's age (stored_zero.py)
 
 
 class SensorStates(StoredZeros):
@@ -364,6 +366,7 @@ class SensorStates(StoredZeros):
         """Once a tare is complete: loaded channels get the stored zero (the first after the service
         started), else a grid's the calibration's C0."""
         state.tare_judged = state.judged_once = True
+        state.tared_at = time.time()
         state.below_c0 = []
         stored, state.stored_zero = state.stored_zero, None
         if not state.judge_tare or (stored is not None and self._judge_stored(state, stored)):

@@ -13,10 +13,12 @@ docs/reconstruction.md) could have added since it was saved keep the stored
 zero and are flagged ``loaded_at_tare`` (the zero is only as good as that
 bound: a tare unloaded gives a fresh one), the rest tare as usual. The
 zero is saved with the drift tracked on it (drift.py; a quad's:
-quad_drift.py), and at the tare a grid's is first moved by the free
-taxels' common level, by no more than drift at the bound since
-(loaded_tare.common_c0: temperature moves every taxel alike, so a plate
-over the whole array is not taken for it); a quad has no free electrodes to tell temperature by (fewer than
+quad_drift.py); one on which none is tracked (below the full level) is as
+old as its tare, and saved as made then. At the tare a grid's is first
+moved by the free taxels' common level, by no more than drift at the bound
+since (loaded_tare.common_c0: temperature moves every taxel alike, so a
+plate over the whole array is not taken for it); a quad has no free
+electrodes to tell temperature by (fewer than
 COMMON_MIN_TAXELS), its four are judged as they are. Channels *below* it,
 as many as loaded_tare.judge takes for a mismatch (2, or 5 % of a grid's),
 say it is not this sensor's zero as it is now (another sensor without a
@@ -37,6 +39,7 @@ from typing import Callable
 import numpy as np
 
 from ..readings import SensorInfo
+from .drift import MIN_REFERENCE_TAXELS
 from .grid import GridProcessor
 from .identity import named
 from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, mean_noise, judge
@@ -103,6 +106,7 @@ class StoredZeros:
     first tare, the zeros to keep."""
 
     _sensors: dict
+    level: str
     load_zero: Callable[[SensorInfo, str], dict | None] | None = None  # the registry's row for (sensor, calibration)
 
     def _stored_zero(self, info: SensorInfo, calibration_id: str) -> StoredZero | None:
@@ -134,14 +138,16 @@ class StoredZeros:
 
     def zeros_to_keep(self) -> dict[int, tuple[SensorInfo, str, dict]]:
         """{sensor: (info, calibration id, the zero in force as the registry keeps it)} of each named sensor
-        whose tare is complete and judged; a grid's with the drift tracked on it (the level its free taxels read)."""
-        out = {}
+        whose tare is complete and judged, with the drift tracked on it; where none is tracked (below the full
+        level, a grid of fewer than 3 taxels) the zero is as old as its tare, and saved as made then."""
+        out, now = {}, time.time()
         for sid, state in list(self._sensors.items()):
             baseline = state.baseline
             if not (baseline.ready and state.tare_judged and not baseline.zeroless and named(state.info)):
                 continue
+            tracked = self.level == "full" and state.info.channels >= MIN_REFERENCE_TAXELS
             out[sid] = (state.info, state.calibration.id, row(baseline.value * (1.0 + _drift(state)), baseline.std,
-                                                               baseline.frames))
+                                                               baseline.frames, now if tracked else state.tared_at))
         return out
 
     def zero_kept(self, sensor_id: int) -> dict | None:
