@@ -73,7 +73,8 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
     """Which calibration sensor ``sid`` uses: its id, whether it is a
     built-in (the papers', not measured on this sensor), when it was made
     and its age, when it was activated in the registry, why the sensor's own
-    could not be used, and the taxels loaded at the last tare."""
+    could not be used, the taxels loaded at the last tare, and what the
+    first tare made of the zero stored before the service started."""
     reconstructor = pipeline.reconstructor
     calibration = reconstructor.calibration(sid)
     if calibration is None:
@@ -90,6 +91,7 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
                                                                                             calibration.id),
         "problem": reconstructor.calibration_problems.get(sid),
         "loaded_at_tare": reconstructor.loaded_at_tare(sid),
+        "stored_zero": reconstructor.zero_kept(sid),
         "below_c0": reconstructor.below_c0(sid),
     }
 
@@ -114,6 +116,12 @@ class Board:
         self.keeps_cycles = not self.source.startswith(("sim://", "replay://"))
         if self.source.startswith("sim://"):
             self.pipeline.reconstructor.load_cycles = None
+        load_zero = getattr(calibrations, "load_zero", None)
+        if self.keeps_cycles and load_zero is not None:  # a replay's zeros are its recording's (reconstruct/stored_zero.py)
+            def board_of(info):
+                return self.pipeline.interpreter.board if info.board_info is None else info.board_info
+
+            self.pipeline.reconstructor.load_zero = lambda info, cid: load_zero(board_of(info), info, cid)
         if self.source.startswith("replay://"):
             self._schedule_recorded_changes()
 
@@ -156,6 +164,7 @@ class Board:
         if self.readout is not None:
             self.readout.stop()
         self.save_cycles()
+        self.save_zeros()
 
     def save_cycles(self) -> None:
         """Keep every sensor's load-cycle counts in the registry (a failure is logged, never raised)."""
@@ -170,6 +179,19 @@ class Board:
             self.calibrations.save_cycles(self.pipeline.interpreter.board, counts)
         except Exception as exc:  # noqa: BLE001 — counts are kept again at the next period
             log.warning("load-cycle counts of board %s not kept: %s", self.name, exc)
+
+    def save_zeros(self) -> None:
+        """Keep every sensor's zero in force in the registry, its first tare's
+        judge after a restart (stored_zero.py; a failure is logged, never raised)."""
+        if not self.keeps_cycles:
+            return
+        current = self.pipeline.interpreter.sensors  # as save_cycles: the sensors the board describes now
+        zeros = [entry for sid, entry in self.pipeline.reconstructor.zeros_to_keep().items()
+                 if current.get(sid) == entry[0]]
+        try:
+            self.calibrations.save_zeros(self.pipeline.interpreter.board, zeros)
+        except Exception as exc:  # noqa: BLE001 — kept again at the next period
+            log.warning("zeros of board %s not kept: %s", self.name, exc)
 
     def set_calibration(self, info, upload: dict) -> dict:
         """Validate an upload (ValueError naming the field), store it in the

@@ -78,7 +78,8 @@ FAULTS = {
     "no_reading": ("no reading (an open or shorted channel: null)", DEAD_CHANNEL),
     "out_of_range": ("an implausible reading (null)", DEAD_CHANNEL),
     "stale": ("a stale reading (its converter repeats one count: null)", DEAD_CHANNEL),
-    "loaded_at_tare": ("been loaded when tared (its zero is the calibration's C0)",
+    "loaded_at_tare": ("been loaded when tared (its zero is the calibration's C0, or the one it had before the "
+                       "service restarted)",
                        "lift the load and tare it again (POST /sensors/{board}/{sid}/tare)"),
 }
 

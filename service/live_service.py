@@ -31,7 +31,7 @@ from .sources import DEFAULT_SOURCE
 
 log = logging.getLogger(__name__)
 
-CYCLES_SAVE_S = 10.0  # a crash loses at most this much of the load-cycle counts
+CYCLES_SAVE_S = 10.0  # a crash loses at most this much of the load-cycle counts, and zeros this much older
 RECORDING_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,122}\.mcap")
 
 
@@ -169,6 +169,7 @@ class TactileService:
     def save_cycles(self) -> None:
         for board in self._boards:
             board.save_cycles()
+            board.save_zeros()
 
     def _keep_cycles(self) -> None:
         """Every CYCLES_SAVE_S, off the event loop (a registry write takes milliseconds)."""

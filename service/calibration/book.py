@@ -22,7 +22,9 @@ Load-cycle counts (reconstruct/fatigue.py) come the same way: a
 recording's counts at its start for the sensor's identity (never the
 registry's, in a replay), else the
 registry's for the sensor and the calibration in use; a live service saves
-them back (``save_cycles``).
+them back (``save_cycles``). Each sensor's last zero likewise
+(``load_zero``, ``save_zeros``: reconstruct/stored_zero.py), the registry's
+alone: never in a replay.
 
 A registry that cannot be read is reported (``problems``) and skipped: a
 sensor's data never stops for its calibration. Lookups open the registry
@@ -194,6 +196,23 @@ class CalibrationBook:
         entries = [(sensor_identity(info.board_info or board, info)["key"], cid, values) for info, cid, values in counts]
         with Registry(self.registry_path) as registry:
             registry.save_cycles(entries)
+
+    def load_zero(self, board: dict, info: SensorInfo, calibration_id: str) -> dict | None:
+        """The zero the registry keeps for the sensor under this calibration
+        (registry.zero); None without one, and always in a replay (its zeros are its recording's)."""
+        if not self.use_registry or self.replaying:
+            return None
+        with Registry(self.registry_path) as registry:
+            return registry.zero(sensor_identity(board, info)["key"], calibration_id)
+
+    def save_zeros(self, board: dict, zeros: list) -> None:
+        """``zeros``: [(info, calibration id, zero)] (Reconstructor.zeros_to_keep()'s values); kept in the
+        registry (a live service's, not a replay's), each sensor under the identity its INFO gave it."""
+        if not self.use_registry or self.replaying or not zeros:
+            return
+        entries = [(sensor_identity(info.board_info or board, info)["key"], cid, zero) for info, cid, zero in zeros]
+        with Registry(self.registry_path) as registry:
+            registry.save_zeros(entries)
 
     def store(self, document: dict) -> str:
         """Store and activate ``document`` (an upload through the API); its id."""

@@ -7,8 +7,9 @@ id: export → import gives it back, and a document whose id does not match
 its content is refused. Rows are never updated nor deleted (triggers refuse
 it); ``activate`` only moves the sensor's pointer. Each write is one
 transaction (SQLite, WAL journal): a crash leaves the previous state, never
-half a calibration. Load-cycle counts (reconstruct/fatigue.py) are the one
-mutable table: per sensor and calibration, so a recalibration starts anew.
+half a calibration. Load-cycle counts (reconstruct/fatigue.py) and each
+sensor's last zero (reconstruct/stored_zero.py) are the mutable tables: per
+sensor and calibration, so a recalibration starts anew.
 
 A sensor is identified as protocol.md says: its own ``serial`` when INFO
 carries one, else the board's serial (or name) and the sensor's id. An 8x8
@@ -47,6 +48,9 @@ CREATE TABLE IF NOT EXISTS active (
 CREATE TABLE IF NOT EXISTS cycles (
     sensor_key TEXT NOT NULL, calibration_id TEXT NOT NULL, counts TEXT NOT NULL, updated TEXT NOT NULL,
     PRIMARY KEY (sensor_key, calibration_id));
+CREATE TABLE IF NOT EXISTS zeros (
+    sensor_key TEXT NOT NULL, calibration_id TEXT NOT NULL, zero_pF TEXT NOT NULL, std_pF TEXT NOT NULL,
+    frames INTEGER NOT NULL, saved REAL NOT NULL, PRIMARY KEY (sensor_key, calibration_id));
 CREATE TRIGGER IF NOT EXISTS calibrations_immutable BEFORE UPDATE ON calibrations
     BEGIN SELECT RAISE(ABORT, 'calibrations are immutable'); END;
 CREATE TRIGGER IF NOT EXISTS calibrations_kept BEFORE DELETE ON calibrations
@@ -186,6 +190,24 @@ class Registry:
                 "INSERT INTO cycles VALUES (?, ?, ?, strftime('%Y-%m-%dT%H:%M:%SZ', 'now')) "
                 "ON CONFLICT (sensor_key, calibration_id) DO UPDATE SET counts = excluded.counts, "
                 "updated = excluded.updated", [(key, cid, json.dumps(counts)) for key, cid, counts in entries])
+
+    def zero(self, sensor_key: str, cid: str) -> dict | None:
+        """The sensor's last zero under calibration ``cid``: {zero_pF, std_pF
+        (per channel, None where it had none), frames (its tare window),
+        saved (Unix time)}; None when none was kept."""
+        row = self._db.execute("SELECT zero_pF, std_pF, frames, saved FROM zeros WHERE sensor_key = ? AND "
+                               "calibration_id = ?", (sensor_key, cid)).fetchone()
+        return None if row is None else {"zero_pF": json.loads(row[0]), "std_pF": json.loads(row[1]),
+                                         "frames": row[2], "saved": row[3]}
+
+    def save_zeros(self, entries: list[tuple[str, str, dict]]) -> None:
+        """(sensor key, calibration id, zero as ``zero`` gives it) of several sensors, in one transaction."""
+        with self._transaction():
+            self._db.executemany(
+                "INSERT INTO zeros VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT (sensor_key, calibration_id) DO UPDATE SET "
+                "zero_pF = excluded.zero_pF, std_pF = excluded.std_pF, frames = excluded.frames, saved = excluded.saved",
+                [(key, cid, json.dumps(z["zero_pF"]), json.dumps(z["std_pF"]), int(z["frames"]), float(z["saved"]))
+                 for key, cid, z in entries])
 
     def export(self, cid: str, path: str | Path) -> str:
         document = self.get(cid)

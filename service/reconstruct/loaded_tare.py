@@ -31,6 +31,8 @@ judged ones) no taxel is judged loaded: ``judge`` says why.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .baseline import NOISE_FLOOR_PF
@@ -44,18 +46,28 @@ COMMON_QUANTILE = 0.25
 COMMON_MAX_DRIFT = 0.02  # a few degrees' worth; a larger common shift is a mismatch, not temperature
 
 
-def _sigma(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
-    noise = np.fmax(np.nan_to_num(std_pF, nan=NOISE_FLOOR_PF), NOISE_FLOOR_PF) / np.sqrt(max(frames, 1))
-    return np.hypot(noise, C0_DRIFT_RELATIVE * c0_pF)
+def mean_noise(std_pF: np.ndarray, frames: int) -> np.ndarray:
+    """The σ of a mean of ``frames`` readings of spread ``std_pF`` (at least the noise floor)."""
+    return np.fmax(np.nan_to_num(std_pF, nan=NOISE_FLOOR_PF), NOISE_FLOOR_PF) / np.sqrt(max(frames, 1))
 
 
-def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, sigma_pF: np.ndarray) -> np.ndarray:
+def c0_margin(c0_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> np.ndarray:
+    """How far an unloaded tare's mean may stand from the calibration's C0:
+    LOADED_SIGMAS combined σ, the mean's noise and C0's drift allowance."""
+    return LOADED_SIGMAS * np.hypot(mean_noise(std_pF, frames), C0_DRIFT_RELATIVE * c0_pF)
+
+
+Margin = Callable[[np.ndarray], np.ndarray]  # reference (n,) pF → how far an unloaded mean may stand from it
+
+
+def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, margin_pF: np.ndarray,
+              max_drift: float = COMMON_MAX_DRIFT) -> np.ndarray:
     """The calibration's C0 (n,) moved by the sensor's common-mode drift
     since (temperature moves every taxel alike, a grip raises some): the
     lower quartile of mean/C0 over the measured taxels (up to three
     quarters of them gripped leave it on a free one), then the median of
-    those within LOADED_SIGMAS σ (``sigma_pF`` (n,)) of it — the free
-    taxels, unbiased —, within ±COMMON_MAX_DRIFT. Unmoved unless at least
+    those within ``margin_pF`` (n,) of it — the free taxels, unbiased —,
+    within ±``max_drift``. Unmoved unless at least
     COMMON_MIN_TAXELS, and a quarter of the measured, agree on that level:
     a partial calibration or a small grid (a grip could be most of them),
     or another sensor's C0 (no common level: its taxels are then judged
@@ -66,25 +78,30 @@ def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, sigm
     if np.count_nonzero(usable) < COMMON_MIN_TAXELS:
         return c0_pF
     first = float(np.quantile(ratio[usable], COMMON_QUANTILE, method="lower"))  # a taxel's own ratio
-    free = usable & (np.abs(ratio - first) <= LOADED_SIGMAS * sigma_pF / c0_pF)
+    free = usable & (np.abs(ratio - first) <= margin_pF / c0_pF)
     if np.count_nonzero(free) < max(COMMON_MIN_TAXELS, COMMON_QUANTILE * np.count_nonzero(usable)):
         return c0_pF  # the taxels agree on no common level (another sensor's C0): judged as they are
     factor = float(np.median(ratio[free]))
-    return c0_pF * min(max(factor, 1.0 - COMMON_MAX_DRIFT), 1.0 + COMMON_MAX_DRIFT)
+    return c0_pF * min(max(factor, 1.0 - max_drift), 1.0 + max_drift)
 
 
 def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
-          frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          frames: int, margin: Margin | None = None,
+          max_drift: float = COMMON_MAX_DRIFT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(loaded (n,) bool, mismatch (n,) bool, C0 (n,) pF): ``loaded_taxels``
     against the calibration's C0 moved by the common-mode drift
     (``common_c0``: the zero a loaded taxel takes); or, when the taxels
     below it by as much show it is not this sensor's (module docstring),
-    none loaded and those taxels as mismatch (none otherwise)."""
-    c0_pF = common_c0(c0_pF, measured, mean_pF, _sigma(c0_pF, std_pF, frames))
-    sigma = _sigma(c0_pF, std_pF, frames)
+    none loaded and those taxels as mismatch (none otherwise). ``margin``:
+    how far an unloaded mean may stand from a reference (default
+    ``c0_margin``), ``max_drift``: how far the common level may have moved
+    (a stored zero's, by its age: stored_zero.py)."""
+    margin = margin or (lambda reference: c0_margin(reference, std_pF, frames))
+    c0_pF = common_c0(c0_pF, measured, mean_pF, margin(c0_pF), max_drift)
+    limit = margin(c0_pF)
     with np.errstate(invalid="ignore"):
-        below = measured & (c0_pF - mean_pF > LOADED_SIGMAS * sigma)
-        loaded = measured & (mean_pF - c0_pF > LOADED_SIGMAS * sigma)
+        below = measured & (c0_pF - mean_pF > limit)
+        loaded = measured & (mean_pF - c0_pF > limit)
     if np.count_nonzero(below) >= max(MISMATCH_TAXELS, MISMATCH_SHARE * np.count_nonzero(measured)):
         return np.zeros_like(loaded), below, c0_pF
     return loaded, np.zeros_like(below), c0_pF

@@ -151,11 +151,13 @@ def _frames(level: str, states: list, readings: list[Reading], forces: np.ndarra
             quad_flags: list[list[str]], counts: list[int] | None = None) -> list[ForceFrame]:
     """The ForceFrames of ``readings``, ``counts[k]`` of them (default one) of ``states[k]``."""
     calibrations = [state.calibration.id for state in states]
+    loaded = [["loaded_at_tare"] if state.loaded is not None and state.loaded.any() else [] for state in states]
     if counts is not None:
         calibrations = [c for c, n in zip(calibrations, counts) for _ in range(n)]
-    return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, r.frame_flags() + q, level, None, c, s,
-                       r.t_host_scan)
-            for r, f, s, q, c in zip(readings, forces, sigma, quad_flags, calibrations)]
+        loaded = [flag for flag, n in zip(loaded, counts) for _ in range(n)]
+    return [ForceFrame(r.sensor, r.seq, r.t_us, r.t_host, f, r.capacitance_pF, r.frame_flags() + q + a, level, None, c,
+                       s, r.t_host_scan)
+            for r, f, s, q, c, a in zip(readings, forces, sigma, quad_flags, calibrations, loaded)]
 
 
 class QuadBatches:

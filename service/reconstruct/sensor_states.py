@@ -6,12 +6,15 @@ else ``resolve``'s — the registry, a recording, ``--calibration`` chosen
 above this layer — else the built-in one), the processor built on it
 (calibration_upload.py), its tare window and its load-cycle counter with the
 counts kept for that calibration (fatigue.py). A finished tare is judged
-against the calibration's C0 (loaded_tare.py). Another sensor described at
+against the sensor's zero stored before the service started, the first
+after it (stored_zero.py), else against the calibration's C0
+(loaded_tare.py). Another sensor described at
 its address (identity.py) is made anew the same way, as first seen.
 """
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -27,6 +30,7 @@ from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
 from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration, builtin, from_document
+from .stored_zero import StoredZero, StoredZeros
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +51,13 @@ class SensorState:
     cycles: CycleCounter | None = None  # load cycles per taxel (a quad: of Fz), fatigue.py
     sensitivity_for: tuple | None = None  # (cycles, model, factor): a quad's fatigue factor, kept until the count moves
     below_c0: list = field(default_factory=list)  # taxels below the calibration's C0 at the last tare (loaded_tare.py)
+    stored_zero: StoredZero | None = None  # the zero kept before the service started, for its first tare
+    zero_kept: dict | None = None  # what that tare made of it (stored_zero.py)
+    judged_once: bool = False  # a tare of it was judged: the stored zero's turn is over
+    tared_at: float = 0.0  # Unix time the last tare was judged: an untracked zero's age (stored_zero.py)
 
 
-class SensorStates:
+class SensorStates(StoredZeros):
     """The per-sensor half of the Reconstructor (module docstring)."""
 
     def __init__(self, level: str, mounting: str, tare_frames: int, resolve: Resolver | None) -> None:
@@ -194,6 +202,8 @@ class SensorStates:
         state = self._sensors.get(info.id)
         if state is not None and state.info is not info and state.info == info:
             self._described_again(state, info)
+            if not state.judged_once:  # the INFO may name it only now: its stored zero is known by its name
+                state.stored_zero = self._stored_zero(info, state.calibration.id)
         if state is None or state.info is not info:
             # A sensor that left for another address (a swap) takes its counter along: not kept as one that left.
             leaving = None if state is None or self._live_elsewhere(state.info) else state.cycles
@@ -208,6 +218,7 @@ class SensorStates:
                                                own_level(info, self.mounting, calibration), info.kind == "quad"),
                                  processor_for(info, self.level, self.mounting, calibration), calibration)
             state.cycles = self._cycles(info, calibration)
+            state.stored_zero = self._stored_zero(info, calibration.id)
             state.judge_tare = self._first_judge.pop(info.id, True)
             zero = self._preset.pop(info.id, None)
             if zero is not None and len(zero["baseline_pF"]) == info.channels:
@@ -352,11 +363,16 @@ class SensorStates:
         return [] if state is None or state.loaded is None else np.flatnonzero(state.loaded).tolist()
 
     def _judge_tare(self, state: SensorState) -> None:
-        """Once a grid's tare is complete: loaded taxels get the calibration's C0."""
-        state.tare_judged = True
+        """Once a tare is complete: loaded channels get the stored zero (the first after the service
+        started), else a grid's the calibration's C0."""
+        state.tare_judged = state.judged_once = True
+        state.tared_at = time.time()
         state.below_c0 = []
+        stored, state.stored_zero = state.stored_zero, None
+        if not state.judge_tare or (stored is not None and self._judge_stored(state, stored)):
+            return
         calibration = state.calibration
-        if not state.judge_tare or calibration.measured is None or not calibration.measured.any():
+        if calibration.measured is None or not calibration.measured.any():
             return
         baseline = state.baseline
         loaded, mismatch, c0 = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std,

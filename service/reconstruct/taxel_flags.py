@@ -22,7 +22,7 @@ TAXEL_FLAG_NAMES = {
     CROSSTALK_CORRECTED: "crosstalk_corrected",
     DRIFT_SUSPECT: "drift_suspect",
     STALE: "stale",
-    LOADED_AT_TARE: "loaded_at_tare",  # zero from the calibration's C0 (loaded_tare.py)
+    LOADED_AT_TARE: "loaded_at_tare",  # zero from the calibration's C0 (loaded_tare.py) or the stored one (stored_zero.py)
 }
 
 # The names of every combination of taxel flags, looked up per frame rather than built.

@@ -1,0 +1,180 @@
+"""A sensor's last zero, kept across service restarts: what its first tare is judged against.
+
+Auto-tare takes whatever is on a sensor as its zero, so a service restarted
+while a gripper holds an object made the grip the zero (taxel 27 read
+4.51 N before a restart, 0.000 N after, unflagged; a quad's Fz 0.90 N →
+0.00 N). The built-in calibration's C0 is nominal, so loaded_tare.py cannot
+tell. The live service keeps each sensor's zero in the registry (per
+identity and calibration, every 10 s and at stop: board.py) and, at the
+sensor's first tare after it starts, judges the tared means against it:
+channels above it by more than their noise (LOADED_SIGMAS σ of the two
+means) plus what drift at the tracked bound (1 % ΔC/C0 a minute,
+docs/reconstruction.md) could have added since it was saved keep the stored
+zero and are flagged ``loaded_at_tare`` (the zero is only as good as that
+bound: a tare unloaded gives a fresh one), the rest tare as usual. The
+zero is saved with the drift tracked on it (drift.py; a quad's:
+quad_drift.py); one on which none is tracked (below the full level) is as
+old as its tare, and saved as made then. At the tare a grid's is first
+moved by the free taxels' common level, by no more than drift at the bound
+since (loaded_tare.common_c0: temperature moves every taxel alike, so a
+plate over the whole array is not taken for it); a quad has no free
+electrodes to tell temperature by (fewer than
+COMMON_MIN_TAXELS), its four are judged as they are. Channels *below* it,
+as many as loaded_tare.judge takes for a mismatch (2, or 5 % of a grid's),
+say it is not this sensor's zero as it is now (another sensor without a
+serial at the address, or cooler than the bound allows): it is not used.
+Nor is one saved more than MAX_AGE_S ago: drift at the bound could then
+explain COMMON_MAX_DRIFT (2 % ΔC/C0, ~1.6 N on a table-1 taxel, 0.58 N of a
+quad's Fz), a larger shift than a temperature change is taken for anywhere
+else. Nor one from a clock later than now. A replay never reads one (its
+zeros are its recording's) nor keeps one, nor does a simulated board.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..readings import SensorInfo
+from .drift import MIN_REFERENCE_TAXELS
+from .grid import GridProcessor
+from .identity import named
+from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, mean_noise, judge
+
+DRIFT_PER_S = 0.01 / 60.0  # the tracked drift bound: 1 % ΔC/C0 per minute (docs/reconstruction.md)
+MAX_AGE_S = COMMON_MAX_DRIFT / DRIFT_PER_S  # 120 s
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StoredZero:
+    """A zero as the registry keeps it (registry.zero)."""
+
+    zero_pF: np.ndarray
+    std_pF: np.ndarray
+    frames: int
+    saved: float  # Unix time
+
+    @classmethod
+    def from_row(cls, row: dict | None, channels: int) -> StoredZero | None:
+        """The registry's row as a zero of ``channels`` channels; None without one or for another shape."""
+        if row is None or len(row["zero_pF"]) != channels or len(row["std_pF"]) != channels:
+            return None
+        return cls(_array(row["zero_pF"]), _array(row["std_pF"]), int(row["frames"]), float(row["saved"]))
+
+    def unusable(self, now: float) -> str | None:
+        """Why it cannot judge a tare at ``now`` (Unix time), None when it can."""
+        age = now - self.saved
+        if age < 0:
+            return f"saved {-age:.0f} s after now (the clock went back?)"
+        if age > MAX_AGE_S:
+            return (f"saved {age:.0f} s ago: drift at 1 %/min could have moved it {100 * DRIFT_PER_S * age:.1f} % "
+                    f"ΔC/C0, more than {100 * COMMON_MAX_DRIFT:g} % (older than {MAX_AGE_S:.0f} s)")
+        return None
+
+
+def judged(stored: StoredZero, mean_pF: np.ndarray, std_pF: np.ndarray, frames: int, now: float) -> dict:
+    """A finished tare's means (n,) pF, spread ``std_pF``, against the stored
+    zero: {age_s, kept (n,) bool (channels above it: their zero is
+    ``zero_pF``'s), zero_pF (n,): the stored zero moved by the common level
+    of a grid's free taxels (at most what drift at the bound explains),
+    not_used: why not (then nothing is kept)}."""
+    age = now - stored.saved
+    report = {"age_s": round(age, 1), "kept": np.zeros(mean_pF.shape, dtype=bool), "zero_pF": stored.zero_pF,
+              "not_used": stored.unusable(now)}
+    if report["not_used"]:
+        return report
+    noise = np.hypot(mean_noise(std_pF, frames), mean_noise(stored.std_pF, stored.frames))
+    drift = DRIFT_PER_S * age
+    kept, below, zero = judge(stored.zero_pF, np.isfinite(stored.zero_pF), mean_pF, std_pF, frames,
+                              lambda reference: LOADED_SIGMAS * noise + drift * reference, max_drift=drift)
+    if below.any():  # loaded_tare.judge's mismatch: cooler than the bound allows, or another sensor's zero
+        channels = np.flatnonzero(below).tolist()
+        return {**report, "not_used": f"{len(channels)} channels read below it ({', '.join(map(str, channels[:8]))}"
+                                      f"{', …' if len(channels) > 8 else ''}): another sensor's zero, or one cooler "
+                                      "than drift since explains"}
+    return {**report, "kept": kept, "zero_pF": zero}
+
+
+class StoredZeros:
+    """The stored-zero half of sensor_states.SensorStates (its base): the
+    lookup when a sensor is first seen or first named, the judgement of its
+    first tare, the zeros to keep."""
+
+    _sensors: dict
+    level: str
+    load_zero: Callable[[SensorInfo, str], dict | None] | None = None  # the registry's row for (sensor, calibration)
+
+    def _stored_zero(self, info: SensorInfo, calibration_id: str) -> StoredZero | None:
+        """The zero kept for a named sensor under this calibration (none, or unreadable: None, with a warning)."""
+        if self.load_zero is None or not named(info):
+            return None
+        try:
+            return StoredZero.from_row(self.load_zero(info, calibration_id), info.channels)
+        except Exception as exc:  # noqa: BLE001 — a lost zero is a warning: the sensor tares as before
+            log.warning("sensor %d: its stored zero cannot be read (%s); tared as if there were none", info.id, exc)
+            return None
+
+    def _judge_stored(self, state, stored: StoredZero) -> bool:
+        """A first tare against the stored zero: the channels above it keep it
+        (``loaded_at_tare``); whether it judged the tare (else the calibration's C0 does)."""
+        baseline = state.baseline
+        report = judged(stored, baseline.value, baseline.std, baseline.frames, time.time())
+        kept = report.pop("kept")
+        state.zero_kept = {**{k: v for k, v in report.items() if k != "zero_pF"}, "kept": np.flatnonzero(kept).tolist()}
+        if report["not_used"]:
+            log.warning("sensor %d: its stored zero is not used (%s)", state.info.id, report["not_used"])
+            return False
+        if kept.any():
+            baseline.substitute(kept, report["zero_pF"])
+            state.loaded = kept
+            log.warning("sensor %d: channels %s were loaded at the tare, against the zero stored %.1f s before; "
+                        "they keep it", state.info.id, state.zero_kept["kept"], report["age_s"])
+        return True
+
+    def zeros_to_keep(self) -> dict[int, tuple[SensorInfo, str, dict]]:
+        """{sensor: (info, calibration id, the zero in force as the registry keeps it)} of each named sensor
+        whose tare is complete and judged, with the drift tracked on it; where none is tracked (below the full
+        level, a grid of fewer than 3 taxels) the zero is as old as its tare, and saved as made then."""
+        out, now = {}, time.time()
+        for sid, state in list(self._sensors.items()):
+            baseline = state.baseline
+            if not (baseline.ready and state.tare_judged and not baseline.zeroless and named(state.info)):
+                continue
+            tracked = self.level == "full" and state.info.channels >= MIN_REFERENCE_TAXELS
+            out[sid] = (state.info, state.calibration.id, row(baseline.value * (1.0 + _drift(state)), baseline.std,
+                                                               baseline.frames, now if tracked else state.tared_at))
+        return out
+
+    def zero_kept(self, sensor_id: int) -> dict | None:
+        """The stored zero's part in the sensor's first tare: {age_s, kept, not_used}; None when there was none."""
+        state = self._sensors.get(sensor_id)
+        return None if state is None else state.zero_kept
+
+
+def _drift(state) -> float:
+    """The common-mode drift (ΔC/C0) tracked on the sensor's zero: a grid's
+    (drift.py), a quad's (quad_drift.py: its tracker, if on this zero); 0 below the full level."""
+    processor = state.processor
+    if isinstance(processor, GridProcessor):
+        return processor.drift.drift
+    held = getattr(processor, "drift", None)
+    return held[1].drift.drift if held is not None and held[0] is state.baseline.value else 0.0
+
+
+def row(value_pF: np.ndarray, std_pF: np.ndarray, frames: int, now: float | None = None) -> dict:
+    """A zero in force (n,) pF as the registry keeps it (NaN: None)."""
+    return {"zero_pF": _listed(value_pF), "std_pF": _listed(std_pF), "frames": int(frames),
+            "saved": time.time() if now is None else now}
+
+
+def _listed(values: np.ndarray) -> list[float | None]:
+    return [None if v != v else v for v in np.asarray(values, dtype=float).tolist()]
+
+
+def _array(values: list) -> np.ndarray:
+    return np.array([np.nan if v is None else v for v in values], dtype=float)
