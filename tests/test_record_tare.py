@@ -240,9 +240,10 @@ def test_a_recording_served_through_the_live_path_makes_its_tares_again(tmp_path
 
     def differing(served):
         assert served.keys() == live.keys()
+        # clock_suspect tells how the reads came (here 64 bytes each 2 ms: slower than the board), not the forces
         return [key for key, doc in live.items()
                 if doc.get("taxels_N", doc.get("fxyz_N")) != [None if v != v else v for v in served[key].forces_N.tolist()]
-                or doc["flags"] != served[key].flags]
+                or doc["flags"] != [f for f in served[key].flags if f != "clock_suspect"]]
 
     assert differing(served_forces(tmp_path / "run.mcap", read_size, merge=merge)) == []  # merged: reads cut at a tare
     assert len(differing(served_forces(tmp_path / "run.mcap", read_size, schedule=False, merge=merge))) > 500
