@@ -22,14 +22,16 @@ import numpy as np
 
 from ..readings import SensorInfo
 from .baseline import Baseline
-from .calibration_upload import own_level, processor_for, tare_window, upload_document
+from .calibration_upload import own_level, processor_for, tare_window
 from .fatigue import CycleCounter
 from .grid import GridProcessor
-from .identity import Replacements, identity, named
+from .identity import Replacements
 from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
 from .quad_drift import resume, where
-from .sensor_calibration import SensorCalibration, builtin, from_document
+from .sensor_calibration import SensorCalibration
+from .calibration_choice import CalibrationChoice
+from .cycle_counters import CycleCounters
 from .stored_zero import StoredZero, StoredZeros
 
 log = logging.getLogger(__name__)
@@ -57,7 +59,7 @@ class SensorState:
     tared_at: float = 0.0  # Unix time the last tare was judged: an untracked zero's age (stored_zero.py)
 
 
-class SensorStates(StoredZeros):
+class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
     """The per-sensor half of the Reconstructor (module docstring)."""
 
     def __init__(self, level: str, mounting: str, tare_frames: int, resolve: Resolver | None) -> None:
@@ -72,64 +74,6 @@ class SensorStates(StoredZeros):
         self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
         self._first_judge: dict[int, bool] = {}  # a forced tare recorded before the sensor's first frame (replay)
         self._preset: dict[int, dict] = {}  # zeros a recording began with, for sensors not seen yet (replay)
-
-    def _calibration_applied(self, sensor_id: int) -> None:
-        """A sensor's calibration was replaced (the Reconstructor gives a failing sensor another try)."""
-
-    def set_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> dict:
-        """Replace a sensor's calibration (an upload or a registry document,
-        calibration_upload.upload_document); ValueError names the bad field
-        and why (the API answers 422). The baseline is kept. Returns the
-        document applied, with its id."""
-        return self.apply_calibration(info, self.prepare_calibration(info, upload, sensor))
-
-    def prepare_calibration(self, info: SensorInfo, upload: dict, sensor: dict | None = None) -> tuple:
-        """The slow half of ``set_calibration`` (validation, the new
-        processor), which touches no state: it may run while frames are
-        being reconstructed."""
-        document = upload_document(info, upload, self.mounting, sensor)
-        calibration = from_document(document, info, self.mounting)
-        return calibration, processor_for(info, self.level, self.mounting, calibration), document
-
-    def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
-        """The quick half: swap the calibration and the sensor's processor in."""
-        calibration, processor, document = prepared
-        self._chosen[identity(info)] = calibration
-        state = self._sensors.get(info.id)
-        if state is not None and identity(state.info) == identity(info):  # not one still reconstructed as another
-            self._swap(state, calibration, processor)
-        return document
-
-    def _described_again(self, state: SensorState, info: SensorInfo) -> None:
-        """A new INFO describes the sensor as before (``info`` equal, not the
-        same object): later readings carry ``info``, so it is kept (they
-        skip the comparison); and the INFO may name the board, which a board
-        already streaming when the service connected had not before the
-        sensor's first frames: its calibration is looked up again and one
-        that differs is swapped in, the zero kept (one set through
-        ``set_calibration`` stays). At the first reading after the INFO,
-        live or in a replay however its reads are joined."""
-        before, state.info = identity(state.info), info
-        if before in self._chosen:  # the INFO only named the board: the sensor is the same
-            self._chosen[identity(info)] = self._chosen.pop(before)
-            return
-        if self.resolve is None:
-            return
-        calibration = self._calibration_for(info)
-        if calibration.id != state.calibration.id:
-            self._swap(state, calibration, processor_for(info, self.level, self.mounting, calibration))
-            log.info("sensor %d: calibration %s now that its board's INFO named it", info.id, calibration.id)
-
-    def _swap(self, state: SensorState, calibration: SensorCalibration, processor) -> None:
-        """``calibration`` and its ``processor`` in place of the sensor's, its zero kept."""
-        runs = state.processor.stale_runs
-        if runs is not None:  # a converter stuck before the new calibration is still stuck
-            processor.restore_stale_runs(*runs)
-        state.processor, state.calibration = processor, calibration
-        state.baseline.own_level = own_level(state.info, self.mounting, calibration)  # its C0 pattern from now on
-        state.cycles = self._cycles(state.info, calibration)  # counts belong to a calibration: a new one starts anew
-        state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
-        self._calibration_applied(state.info.id)
 
     def tare_glitches(self, sensor_id: int) -> dict[int, int]:
         """{channel: readings left out of its zero as glitches} of the current
@@ -171,32 +115,6 @@ class SensorStates(StoredZeros):
 
     def sensor_ids(self) -> list[int]:
         return sorted(self._sensors)
-
-    def calibration(self, sensor_id: int) -> SensorCalibration | None:
-        """The calibration sensor ``sensor_id`` is reconstructed with (None: not seen yet)."""
-        state = self._sensors.get(sensor_id)
-        return None if state is None else state.calibration
-
-    def _calibration_for(self, info: SensorInfo) -> SensorCalibration:
-        """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
-        A calibration that does not fit the sensor is set aside, with the
-        reason kept, never a reason to stop the sensor's data."""
-        key = identity(info)
-        if key not in self._chosen and named(info) and ("board", None, info.id) in self._chosen:
-            # set before any INFO named the address: the sensor first named there, as in _described_again
-            self._chosen[key] = self._chosen.pop(("board", None, info.id))
-        chosen = self._chosen.get(key)
-        if chosen is not None and chosen.kind == info.kind and (
-                chosen.grid is None or (chosen.grid.rows, chosen.grid.cols) == (info.rows, info.cols)):
-            return chosen
-        self.calibration_problems.pop(info.id, None)
-        try:
-            found = self.resolve(info) if self.resolve is not None else None
-        except Exception as exc:  # noqa: BLE001 — a registry or document problem: the built-in one, said so
-            self.calibration_problems[info.id] = f"{type(exc).__name__}: {exc}"
-            log.warning("sensor %d: its calibration cannot be used (%s); the built-in one is", info.id, exc)
-            found = None
-        return found if found is not None else builtin(info, self.mounting)
 
     def _state(self, info: SensorInfo) -> SensorState:
         state = self._sensors.get(info.id)
@@ -270,56 +188,6 @@ class SensorStates(StoredZeros):
         tares at its first frame, not from a zero the recording began with."""
         self._first_judge[sensor_id] = judge
         self._preset.pop(sensor_id, None)
-
-    def _cycles(self, info: SensorInfo, calibration: SensorCalibration) -> CycleCounter:
-        """The sensor's counter, from the counts kept for its calibration (none kept, or unreadable: 0); one
-        back at its address after another sensor was there goes on with its own (identity.py)."""
-        n = 1 if info.kind == "quad" else info.channels
-        moved = self._live_elsewhere(info)
-        if moved is not None and moved.calibration.id == calibration.id and moved.cycles is not None \
-                and moved.cycles.counts.shape == (n,):
-            return moved.cycles  # moved from another address (sensors swapped): its count goes on, one counter
-        back = self.replacements.returning(info, calibration.id)
-        if back is not None and back.counts.shape == (n,):
-            return back
-        try:
-            counts = self.load_cycles(info, calibration.id) if self.load_cycles is not None else None
-            counter = CycleCounter(n, counts)
-        except Exception as exc:  # noqa: BLE001 — lost counts are a warning, never lost data
-            log.warning("sensor %d: its load-cycle counts cannot be read (%s); counting from 0", info.id, exc)
-            counter = CycleCounter(n)
-        counter.at_start = counter.counts.tolist()  # what a recording stores, so its replay starts from the same
-        return counter
-
-    def _live_elsewhere(self, info: SensorInfo) -> SensorState | None:
-        """The state of the same sensor (a serial's identity) at another address, if any."""
-        key = identity(info)
-        return next((state for sid, state in self._sensors.items() if sid != info.id and identity(state.info) == key),
-                    None)
-
-    def cycle_counts(self) -> dict[int, tuple[SensorInfo, str, list[int]]]:
-        """{sensor: (info, calibration id, counts)} to keep (the registry)."""
-        return {sid: (state.info, state.calibration.id, state.cycles.counts.tolist())
-                for sid, state in list(self._sensors.items()) if state.cycles is not None}
-
-    def replaced(self, sensor_id: int) -> dict | None:
-        """How often another sensor took this address's place, the last time from which to which (identity.py)."""
-        return self.replacements.changes.get(sensor_id)
-
-    def cycles_at_start(self, sensor_id: int) -> list[int] | None:
-        state = self._sensors.get(sensor_id)
-        return None if state is None or state.cycles is None else state.cycles.at_start
-
-    def fatigue(self, sensor_id: int) -> dict | None:
-        """Load cycles (max and total over taxels) and the sensitivity factor in use."""
-        state = self._sensors.get(sensor_id)
-        if state is None or state.cycles is None:
-            return None
-        model = state.calibration.fatigue
-        counts = state.cycles.counts
-        factor = None if model is None else float(np.min(model.factor(counts)))
-        return {"cycles_max": int(counts.max()), "cycles_total": int(counts.sum()), "sensitivity_factor": factor,
-                "model": None if model is None else {"drop": model.drop, "tau_cycles": model.tau_cycles}}
 
     def tare(self, sensor_id: int | None = None, judge: bool = True) -> list[int]:
         """Restart the baseline of one sensor (or all); return the ids tared.
