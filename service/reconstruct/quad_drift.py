@@ -103,9 +103,8 @@ class QuadTracker:
             self.loaded = False
         reference = ok and not self.loaded
         own.follow([t], [1 if reference else 0], [z])  # one value, not a median of many: its variance in full
-        state = own.state()
-        (drift, average), (last, frozen_since, offset) = state[:2], state[-3:]
-        now = last + offset
+        drift, average, frozen_since = own.drift, own._average, own._frozen_since  # what follow left (its state)
+        now = own._last_t + own._offset
         if z == z:
             if self.ema == self.ema and abs(rise) <= tolerance:
                 self.ema += (z - self.ema) * (min(max(now - self.at, 0.0), own.tau_s) / own.tau_s)
@@ -142,16 +141,15 @@ def steps(states: list, counts: list[int], capacitance: np.ndarray, baseline: np
         plausible &= ~stale.any(axis=1)
     quiet = (np.abs(x) <= 4.0 * NOISE_SIGMAS * noise) & (np.abs(y) <= 4.0 * NOISE_SIGMAS * noise)
     ok, z = (plausible & quiet).tolist(), z.tolist()
-    found = np.zeros((len(z), 3))
-    kept, start = [], 0
+    found, kept, start = [], [], 0
     for state, count in zip(states, counts):
         own = tracker(state.processor, state.baseline.value, noise[start])
         before = own.state()
-        for i in range(start, start + count):
-            found[i] = own.step(t_s[i], ok[i], z[i])
+        found += [own.step(t_s[i], ok[i], z[i]) for i in range(start, start + count)]
         kept.append((own, own.state()))
         own.restore(before)
         start += count
+    found = np.array(found, dtype=float).reshape(-1, 3)
     return Steps(found[:, 0], found[:, 2], found[:, 1] != 0.0, kept)
 
 
