@@ -56,7 +56,6 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
             "below_zero": [] if history is None or stale else history.below_zero(),
-            "drift_suspect": history is not None and not stale and history.drift_suspect(),
             "faulty_channels": {} if history is None or stale else _faulty(pipeline.reconstructor, sid, history),
             "info_problem": pipeline.interpreter.undescribed.get(sid),
             **counters["sensors"].get(str(sid), {}),
@@ -137,9 +136,6 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [line for sid, s in sensors.items() if s.get("faulty_channels") for line in _fault_lines(sid, s)]
-    problems += [f"sensor {sid}: drift suspected in most of the last {BELOW_ZERO_S:g} s's frames: its zero may have "
-                 "moved (a temperature change), unseen under a load held past 10 s; unloaded and still flagged, tare "
-                 f"it (POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("drift_suspect")]
     problems += [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
                  "(its shape is taken from its frames)" for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems

@@ -146,12 +146,6 @@ class History:
         hits = np.flatnonzero(share >= BELOW_ZERO_SHARE).tolist()
         return hits if self._taxel_flags is not None else [2] * bool(hits)
 
-    def drift_suspect(self, seconds: float = BELOW_ZERO_S) -> bool:
-        """Whether more than FAULTY_SHARE of the frames ``recent_slots`` picks are ``drift_suspect``."""
-        slots = self.recent_slots(seconds)
-        flagged = sum("drift_suspect" in self._flags[i] for i in slots.tolist())
-        return bool(len(slots)) and flagged > FAULTY_SHARE * len(slots)
-
     def faulty(self, seconds: float = BELOW_ZERO_S, outside=None) -> dict[str, list[int]]:
         """Channels (row-major) that were ``no_reading``, ``out_of_range``
         with no force (not below zero: ``below_zero``), ``stale`` or
