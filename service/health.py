@@ -66,7 +66,8 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
 def _faulty(reconstructor, sid: int, history) -> dict[str, list[int]]:
     """History.faulty, without the channels the tare gave no zero (their own problem line says so)."""
     unzeroed = set(reconstructor.unzeroed(sid))
-    found = history.faulty(outside=lambda pF: reconstructor.implausible(sid, pF))
+    found = history.faulty(outside=lambda pF: reconstructor.implausible(sid, pF),
+                           kept=lambda: reconstructor.loaded_at_tare(sid))
     found = {flag: [c for c in channels if c not in unzeroed] for flag, channels in found.items()}
     return {flag: channels for flag, channels in found.items() if channels}
 

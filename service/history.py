@@ -146,7 +146,7 @@ class History:
         hits = np.flatnonzero(share >= BELOW_ZERO_SHARE).tolist()
         return hits if self._taxel_flags is not None else [2] * bool(hits)
 
-    def faulty(self, seconds: float = BELOW_ZERO_S, outside=None) -> dict[str, list[int]]:
+    def faulty(self, seconds: float = BELOW_ZERO_S, outside=None, kept=None) -> dict[str, list[int]]:
         """Channels (row-major) that were ``no_reading``, ``out_of_range``
         with no force (not below zero: ``below_zero``), ``stale`` or
         ``loaded_at_tare`` in more than FAULTY_SHARE of the frames
@@ -154,7 +154,8 @@ class History:
         its frame's: its electrodes are told by their readings — a sentinel
         (NaN) is no reading, a stale one repeats one count, and ``outside``
         (the median reading (4,) pF → electrodes outside their plausible
-        range) names those out of range."""
+        range) names those out of range, ``kept`` (() → electrodes) those
+        loaded at the tare."""
         slots = self.recent_slots(seconds)
         if not len(slots):
             return {}
@@ -168,13 +169,15 @@ class History:
             return {name: channels for name, channels in found.items() if channels}
         raw = self._raw[slots]
         found = {"no_reading": np.flatnonzero(np.count_nonzero(np.isnan(raw), axis=0) > FAULTY_SHARE * len(slots)).tolist()}
-        for name in ("out_of_range", "stale"):
+        for name in ("out_of_range", "stale", "loaded_at_tare"):
             flagged = np.array([name in self._flags[i] for i in slots.tolist()])
             if np.count_nonzero(flagged) <= FAULTY_SHARE * len(slots):
                 continue
             readings = raw[flagged]
             if name == "stale":  # one count all along; a sentinel is no reading, told above
                 found[name] = np.flatnonzero((np.ptp(readings, axis=0) == 0) & ~np.isnan(readings[0])).tolist()
+            elif name == "loaded_at_tare":
+                found[name] = [] if kept is None else kept()
             elif outside is not None:
                 found[name] = outside(np.median(readings, axis=0))
         return {name: channels for name, channels in found.items() if channels}

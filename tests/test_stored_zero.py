@@ -16,6 +16,7 @@ import pytest
 from service.board import BoardSpec
 from service.calibration.book import CalibrationBook
 from service.calibration.registry import Registry
+from service.health import health_report
 from service.live_service import TactileService
 from service.physics.paper_data import FIT34
 from service.protocol import BOARD_SENSOR_ID, FrameType, encode_frame
@@ -118,6 +119,9 @@ def test_a_restart_under_load_keeps_the_zero_and_reads_the_load_flagged(loaded_b
     kept = service.primary.calibration(0)["stored_zero"]
     assert kept["kept"] == PRESSED and kept["not_used"] is None and 0 <= kept["age_s"] < 30
     assert service.primary.calibration(1)["stored_zero"]["kept"] == [0, 1, 2, 3]
+    sensors = health_report(service)["sensors"]  # the quad's kept zero said too: only the grid's was
+    assert sensors["0"]["faulty_channels"] == {"loaded_at_tare": PRESSED}
+    assert sensors["1"]["faulty_channels"] == {"loaded_at_tare": [0, 1, 2, 3]}
 
 
 def test_a_restart_unloaded_tares_as_without_a_stored_zero(loaded_before, tmp_path):

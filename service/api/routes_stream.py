@@ -49,7 +49,8 @@ def subscription(params: QueryParams) -> Subscriber:
     for name in STREAM_PARAMS:
         given = params.getlist(name)
         if len(given) > 1:
-            raise ValueError(f"{name} given {len(given)} times: give it once ({name}=0,1 lists several sensors)")
+            raise ValueError(f"{name} given {len(given)} times: give it once"
+                             + (" (sensors=0,1 lists several)" if name == "sensors" else ""))
         if given == [""]:
             raise ValueError(f"{name}= is empty: leave it out for its default")
     encoding = params.get("encoding", "json")
