@@ -367,3 +367,14 @@ def test_a_frame_is_encoded_once_per_fields_and_encoding_and_never_for_a_client_
     asyncio.run(scenario())
     assert sorted(encoded, key=lambda e: (len(e[1]), e[0])) == (
         [(seq, force_only) for seq in range(10, total)] + [(seq, hub_module.DEFAULT_FIELDS) for seq in range(total)])
+
+
+@pytest.mark.parametrize("query, message", [
+    ("seconds=1&max_point=10", "unknown parameter 'max_point'"),  # a typo took the default decimation
+    ("seconds=1&seconds=2", "seconds given 2 times"),  # the last was taken
+])
+def test_a_rest_query_with_an_unknown_or_repeated_parameter_is_refused_naming_it(client, query, message):
+    reply = client.get(f"/sensors/0/history?{query}")
+    assert reply.status_code == 422 and message in reply.json()["detail"]
+    assert client.get("/sensors/0/history?seconds=1&max_points=10").status_code == 200
+    assert client.get("/health?verbose=1").status_code == 422

@@ -12,7 +12,7 @@ import threading
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.exceptions import RequestValidationError
 from fastapi_offline import FastAPIOffline
 
@@ -26,7 +26,7 @@ from . import (
 )
 from ..fanout.history_json import RecentRings
 from .admission import Admission
-from .deps import JSONResponse
+from .deps import JSONResponse, known_query
 from .guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 from .validation_errors import validation_error
 
@@ -58,8 +58,9 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     app.state.history_sending = 0  # bytes of history answers not sent yet (routes_sensors.MAX_SENDING_BYTES)
     app.state.recent_reads = routes_sensors.RecentReads()
     app.state.recent_rings = RecentRings(routes_sensors.RECENT_RING_BYTES)
-    for routes in (routes_health, routes_sensors, routes_calibration, routes_recording, routes_stream):
-        app.include_router(routes.router)
+    for routes in (routes_health, routes_sensors, routes_calibration, routes_recording):
+        app.include_router(routes.router, dependencies=[Depends(known_query)])
+    app.include_router(routes_stream.router)  # a WebSocket's query is checked by its subscription
     dashboard.add_dashboard(app)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_middleware(Admission)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import orjson
-from fastapi import Depends, Header, HTTPException
+from fastapi import Depends, Header, HTTPException, Request
 from fastapi.requests import HTTPConnection
 from fastapi.responses import Response
 
@@ -107,6 +107,25 @@ def latest_frame(found: Addressed = Depends(known_sensor)) -> ForceFrame:
     if frame is None:
         raise HTTPException(404, f"sensor {found.info.address} has not delivered a frame yet")
     return frame
+
+
+def known_query(request: Request) -> None:
+    """422 naming a query parameter the endpoint does not take, or one given
+    twice: FastAPI ignores the first and takes the last, so a typo
+    (``max_point=10``) silently got the default."""
+    dependant = getattr(request.scope.get("route"), "dependant", None)
+    if dependant is None:
+        return
+    known, pending = set(), [dependant]
+    while pending:  # the endpoint's query parameters and its dependencies'
+        current = pending.pop()
+        known.update(param.alias for param in current.query_params)
+        pending += current.dependencies
+    for name in request.query_params:
+        if name not in known:
+            raise HTTPException(422, f"unknown parameter {name!r}; known: {', '.join(sorted(known)) or 'none'}")
+        if len(request.query_params.getlist(name)) > 1:
+            raise HTTPException(422, f"{name} given {len(request.query_params.getlist(name))} times: give it once")
 
 
 def parse_sensors(text: str | None) -> frozenset | None:
