@@ -189,13 +189,8 @@ class CalibrationBook:
             return registry.cycles(key, calibration_id)
 
     def save_cycles(self, board: dict, counts: list) -> None:
-        """``counts``: [(info, calibration id, counts)] (Reconstructor.cycle_counts()'s values); kept in the
-        registry (a live service's, not a replay's), each sensor under the identity its INFO gave it."""
-        if not self.use_registry or self.replaying or not counts:
-            return
-        entries = [(sensor_identity(info.board_info or board, info)["key"], cid, values) for info, cid, values in counts]
-        with Registry(self.registry_path) as registry:
-            registry.save_cycles(entries)
+        """``counts``: [(info, calibration id, counts)] (Reconstructor.cycle_counts()'s values), kept (``_keep``)."""
+        self._keep(board, counts, Registry.save_cycles)
 
     def load_zero(self, board: dict, info: SensorInfo, calibration_id: str) -> dict | None:
         """The zero the registry keeps for the sensor under this calibration
@@ -206,13 +201,17 @@ class CalibrationBook:
             return registry.zero(sensor_identity(board, info)["key"], calibration_id)
 
     def save_zeros(self, board: dict, zeros: list) -> None:
-        """``zeros``: [(info, calibration id, zero)] (Reconstructor.zeros_to_keep()'s values); kept in the
-        registry (a live service's, not a replay's), each sensor under the identity its INFO gave it."""
-        if not self.use_registry or self.replaying or not zeros:
+        """``zeros``: [(info, calibration id, zero)] (Reconstructor.zeros_to_keep()'s values), kept (``_keep``)."""
+        self._keep(board, zeros, Registry.save_zeros)
+
+    def _keep(self, board: dict, items: list, write) -> None:
+        """[(info, calibration id, value)] written to the registry by ``write`` (a live service's, not a
+        replay's), each sensor under the identity its INFO gave it."""
+        if not self.use_registry or self.replaying or not items:
             return
-        entries = [(sensor_identity(info.board_info or board, info)["key"], cid, zero) for info, cid, zero in zeros]
+        entries = [(sensor_identity(info.board_info or board, info)["key"], cid, value) for info, cid, value in items]
         with Registry(self.registry_path) as registry:
-            registry.save_zeros(entries)
+            write(registry, entries)
 
     def store(self, document: dict) -> str:
         """Store and activate ``document`` (an upload through the API); its id."""
