@@ -232,8 +232,14 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
 
     def _judge_tare(self, state: SensorState) -> None:
         """Once a tare is complete: loaded channels get the stored zero (the first after the service
-        started), else a grid's the calibration's C0."""
-        state.tare_judged = state.judged_once = True
+        started), else a grid's the calibration's C0. Judged only once they have: the zeros' saver
+        (another thread, stored_zero.py) takes a judged zero, never the loaded means before it."""
+        try:
+            self._judge_loaded(state)
+        finally:
+            state.tare_judged = state.judged_once = True
+
+    def _judge_loaded(self, state: SensorState) -> None:
         state.tared_at = time.time()
         state.below_c0 = []
         stored, state.stored_zero = state.stored_zero, None
