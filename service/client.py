@@ -75,18 +75,26 @@ def _retry_after(error: urllib.error.HTTPError) -> float | None:
 
 
 def _skip_lagging(pending: deque[dict], max_lag_s: float) -> int:
-    """Drop the frames at the front of ``pending`` whose stamp lies more than
-    ``max_lag_s`` before the newest's (a frame without one is kept); how many."""
-    newest = pending[-1]["header"].get("stamp") if pending else None
-    skipped = 0
-    if newest is None or newest != newest:
-        return 0
-    while len(pending) > 1:
-        stamp = pending[0]["header"].get("stamp")
-        if stamp is None or not newest - stamp > max_lag_s:
-            break
-        pending.popleft()
-        skipped += 1
+    """Drop the frames of ``pending`` whose stamp lies more than ``max_lag_s``
+    before the newest of their own board's (a stamp is its service's host
+    clock: a gateway's boards come from hosts whose clocks may differ by
+    more; a frame without one is kept); how many."""
+    newest: dict = {}
+    for frame in pending:
+        header = frame["header"]
+        stamp, board = header.get("stamp"), header.get("board")
+        if stamp is not None and stamp > newest.get(board, -math.inf):  # NaN compares False
+            newest[board] = stamp
+
+    def lagging(header: dict) -> bool:
+        stamp = header.get("stamp")
+        return stamp is not None and newest.get(header.get("board"), stamp) - stamp > max_lag_s
+
+    kept = [frame for frame in pending if not lagging(frame["header"])]
+    skipped = len(pending) - len(kept)
+    if skipped:
+        pending.clear()
+        pending.extend(kept)
     return skipped
 
 
@@ -281,12 +289,15 @@ class TactileClient:
 
         with ws:
             while True:
-                if not pending:
+                arrived = not pending
+                if arrived:
                     pending.extend(self._frames_in(receive(timeout), url, wanted))
                 if max_lag_s is not None:  # what else has come meanwhile, so that the oldest can be told old
                     while (message := receive(0)) is not None:
                         pending.extend(self._frames_in(message, url, wanted))
-                    self.dropped += _skip_lagging(pending, max_lag_s)
+                        arrived = True
+                    if arrived:
+                        self.dropped += _skip_lagging(pending, max_lag_s)
                 if pending:
                     yield pending.popleft()
 

@@ -186,7 +186,8 @@ def test_websocket_decimates_and_batches_on_request(client):
      ("encoding=xml", "encoding='xml'"), ("batch_ms=0", "batch_ms='0'"),
      # A typo, a repeat or an empty value took the default, silently; ids no sensor can have got a notice only.
      ("max_rte=100", "unknown parameter 'max_rte'"), ("sensors=0&sensors=1", "sensors given 2 times"),
-     ("fields=", "fields= is empty"), ("sensors=-1", "-1 is no sensor id"), ("sensors=left/999", "999 is no sensor id")],
+     ("fields=", "fields= is empty"), ("sensors=-1", "-1 is no sensor id"), ("sensors=left/999", "999 is no sensor id"),
+     ("sensors=1_0", "sensors='1_0' must be")],
 )
 def test_websocket_rejects_bad_parameters(client, query, message):
     with client.websocket_connect(f"ws://localhost/ws?{query}") as ws:

@@ -291,3 +291,21 @@ def test_a_loop_slower_than_the_stream_gets_recent_frames_and_counts_the_skipped
     assert max(recent[2:]) < 0.6 and dropped > 500 and min(np.diff(seqs)[1:]) > 100
     behind, seqs, _ = ages(None)
     assert behind[-1] > 1.5 and list(np.diff(seqs)) == [1] * 7
+
+
+def test_frames_are_told_old_against_their_own_boards_newest_not_another_hosts():
+    """Stamps are each service's host clock: through a gateway, board B's
+    host 0.4 s ahead made every frame of A look 0.4 s behind and half of A
+    was skipped from a client that kept up (a review's skew.py: 197 of 400)."""
+    from collections import deque
+
+    from service.client import _skip_lagging
+
+    def frame(board, stamp):
+        return {"header": {"board": board, "stamp": stamp}}
+
+    pending = deque([frame("a", 100.00), frame("b", 100.40), frame("a", 100.02), frame("b", 100.42)])
+    assert _skip_lagging(pending, 0.25) == 0 and len(pending) == 4
+    pending = deque([frame("a", 99.0), frame("b", 100.4), frame("a", 99.9), frame("a", 100.0), frame("b", float("nan"))])
+    assert _skip_lagging(pending, 0.25) == 1  # a's 99.0, 1 s behind a's newest; a NaN stamp is kept
+    assert [(f["header"]["board"], f["header"]["stamp"]) for f in pending][:3] == [("b", 100.4), ("a", 99.9), ("a", 100.0)]

@@ -8,6 +8,7 @@ the routes are module-level and the API never imports the runtime to run.
 from __future__ import annotations
 
 import hmac
+import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -135,10 +136,9 @@ def parse_sensors(text: str | None) -> frozenset | None:
     wanted = set()
     for part in text.split(","):
         board, _, sid = part.strip().rpartition("/")
-        try:
-            number = int(sid)
-        except ValueError:
-            raise ValueError(f"sensors={text!r} must be a comma-separated list of ids or board/id addresses") from None
+        if re.fullmatch(r"-?[0-9]+", sid.strip()) is None:  # int() also takes "1_0" and other scripts' digits
+            raise ValueError(f"sensors={text!r} must be a comma-separated list of ids or board/id addresses")
+        number = int(sid)
         if not 0 <= number <= MAX_SENSOR_ID:
             raise ValueError(f"sensors={text!r}: {number} is no sensor id (ids are 0..{MAX_SENSOR_ID})")
         wanted.add((board, number) if board else number)
