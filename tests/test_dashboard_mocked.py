@@ -27,7 +27,7 @@ HEALTH = {
 
 
 def grid_frame(seq, forces, stamp=None, sensor=0):
-    """A grid frame with the service's contact summary (taxels above 0.05 N)."""
+    """A grid frame with the service's contact summary (taxels above 0.05 N; no σ sent)."""
     active = [i for i, f in enumerate(forces) if f > 0.05]
     total = sum(forces[i] for i in active)
     centre = (lambda axis: sum(axis(i) * 4.0 * forces[i] for i in active) / total) if total else (lambda axis: None)
@@ -150,6 +150,18 @@ def test_a_moved_press_leaves_no_outline_or_cross_behind(service):
     # Where the press was, the canvas now looks exactly like a taxel that was never pressed.
     assert differing_pixels(left, pixels_around(service.page, reference)) < len(left) // 400
     assert cyan_pixels(pixels_around(service.page, second)) > 50
+
+
+def test_a_taxel_within_its_noise_is_not_outlined_as_in_contact(service):
+    """The service's contact rule (above 0.05 N and 4 σ): a 0.2 N taxel whose
+    σ is 0.06 N (a low-C0 sensor's noise) is no contact and the page drew it
+    as one (its own fixed 0.05 N); 0.3 N at that σ is."""
+    service.open()
+    frame = grid_frame(1, pressed({27: 0.2, 45: 0.3}))
+    frame["sigma_N"] = [0.06] * (ROWS * COLS)
+    service.send([frame])
+    assert cyan_pixels(pixels_around(service.page, 27)) == 0
+    assert cyan_pixels(pixels_around(service.page, 45)) > 50
 
 
 def test_the_centre_of_pressure_ring_leaves_the_number_uncovered(service):

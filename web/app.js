@@ -7,7 +7,9 @@
 // last seconds, which the service keeps.
 
 const GRID_MAX_N = 5;             // colour scale top, newtons per taxel
-const CONTACT_THRESHOLD_N = 0.05; // the service's own contact threshold (docs/reconstruction.md)
+// The service's contact rule (reconstruct/contact.py, docs/reconstruction.md): above 0.05 N and 4 σ of the
+// taxel's own force, σ capped at 0.5 N; without σ, 0.05 N alone.
+const CONTACT_THRESHOLD_N = 0.05, CONTACT_NOISE_SIGMAS = 4, CONTACT_NOISE_CAP_N = 0.5;
 const PITCH_MM = 4;
 const SHEAR_MAX_N = 10;           // quad arrow full scale
 const FZ_MAX_N = 20;              // quad bar full scale
@@ -193,8 +195,10 @@ function drawTaxels(ctx, frame, cell) {
 
 function isLoaded(frame, r, c) {
   if (r < 0 || c < 0 || r >= frame.rows || c >= frame.cols) return false;
-  const f = frame.force_N[r * frame.cols + c];
-  return f !== null && f > CONTACT_THRESHOLD_N;
+  const i = r * frame.cols + c, f = frame.force_N[i];
+  const sigma = frame.sigma_N ? frame.sigma_N[i] : null;
+  const noise = sigma === null || sigma === undefined ? 0 : Math.min(CONTACT_NOISE_SIGMAS * sigma, CONTACT_NOISE_CAP_N);
+  return f !== null && f > Math.max(CONTACT_THRESHOLD_N, noise);
 }
 
 // Edges between a taxel in contact and one that is not.
