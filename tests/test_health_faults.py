@@ -119,16 +119,20 @@ def test_a_sensor_tared_under_load_on_every_taxel_says_to_lift_it_and_tare_again
     assert report["status"] == "degraded"
 
 
+def described(info: bytes) -> TactileService:
+    """A service fed the INFO ``info``, then 150 scans of sensors 0 (grid) and 1 (quad)."""
+    service = TactileService("sim://")
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info), time.time())
+    feed(service, np.random.default_rng(6), 0, 150, GRID, QUAD, time.time())
+    return service
+
+
 def test_a_sensor_the_info_describes_twice_is_said_so_not_unlisted():
     """An INFO that lists sensor 0 as a grid and as a quad: it is left
     undescribed, its frames flow, and /health said "the board's INFO does
     not list it"; the log says why, and now /health does too."""
-    rng = np.random.default_rng(6)
-    service = TactileService("sim://")
-    info = (b'{"board": "tmux", "serial": "TMX-2", "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}, '
-            b'{"id": 0, "kind": "quad"}, {"id": 1, "kind": "quad"}, {"id": 2, "kind": "thermo"}]}')
-    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info), time.time())
-    feed(service, rng, 0, 150, GRID, QUAD, time.time())
+    service = described(b'{"board": "tmux", "serial": "TMX-2", "sensors": [{"id": 0, "kind": "grid", "rows": 8, '
+                        b'"cols": 8}, {"id": 0, "kind": "quad"}, {"id": 1, "kind": "quad"}, {"id": 2, "kind": "thermo"}]}')
     report = health_report(service)
     assert report["sensors"]["0"]["not_in_info"] is True and report["sensors"]["1"]["not_in_info"] is False
     assert report["sensors"]["0"]["info_problem"] == "describes it twice, differently"
@@ -143,12 +147,9 @@ def test_a_sensor_described_with_a_shape_no_grid_has_and_a_refused_info_are_said
     """Sensor 2 described as a 0x4 grid: set aside (the whole INFO was refused
     and every frame of the board rejected as unknown_shape, /health ok); the
     others read. Then an INFO with a field of the wrong type: refused, said."""
-    rng = np.random.default_rng(7)
-    service = TactileService("sim://")
-    info = (b'{"board": "tmux", "serial": "TMX-3", "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}, '
-            b'{"id": 1, "kind": "quad"}, {"id": 2, "kind": "grid", "rows": 0, "cols": 4}, {"id": 3, "kind": "thermo"}]}')
-    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info), time.time())
-    feed(service, rng, 0, 150, GRID, QUAD, time.time())
+    service = described(b'{"board": "tmux", "serial": "TMX-3", "sensors": [{"id": 0, "kind": "grid", "rows": 8, '
+                        b'"cols": 8}, {"id": 1, "kind": "quad"}, {"id": 2, "kind": "grid", "rows": 0, "cols": 4}, '
+                        b'{"id": 3, "kind": "thermo"}]}')
     report = health_report(service)
     assert sorted(report["sensors"]) == ["0", "1"] and report["rejected"]["unknown_shape"] == 0
     assert report["problems"] == ["link down",  # sim:// is never started here
