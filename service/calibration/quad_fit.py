@@ -57,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..physics.quad_model import COMBINATIONS, QuadModel
+from ..physics.quad_model import QuadModel, combinations
 from ..physics.shear import shear_force
 from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS
 from .segmentation import find_runs
@@ -179,7 +179,7 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
     unloaded = np.linalg.norm(fxyz, axis=1) < UNLOADED_N
     loads = check(fxyz, saturated, unloaded)
     c0 = np.nanmean(capacitance_pF[unloaded], axis=0)
-    axes = (capacitance_pF / c0 - 1.0) @ COMBINATIONS
+    axes = combinations(capacitance_pF / c0 - 1.0)
     noise = np.nanstd(axes[unloaded], axis=0)  # one frame's σ of X, Y, Z
     loaded = (np.linalg.norm(fxyz, axis=1) > LOADED_N) & np.isfinite(axes).all(axis=1)
     fxyz, axes = fxyz[loaded], axes[loaded]

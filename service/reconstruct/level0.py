@@ -58,6 +58,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..physics.paper_data import QUAD_NORMAL_SLOPE_PER_N, QUAD_SHEAR_SLOPE_PER_N, GridCalibration
+from ..physics.quad_model import combinations
 
 PLAUSIBLE_LOW = 0.5  # C/C0 below this is no reading of a working sensor
 PLAUSIBLE_MARGIN = 1.5  # C/C0 above (1 + r_top) times this is none either
@@ -154,12 +155,8 @@ def grid_forces(capacitance_pF: np.ndarray, baseline_pF: np.ndarray, calibration
 
 
 def quad_axes(relative: np.ndarray) -> np.ndarray:
-    """Electrode ΔC/C0 of shape (..., 4) → (..., 3) as (r_X, r_Y, r_Z)."""
-    r11, r12, r21, r22 = np.moveaxis(relative, -1, 0)
-    return np.stack(
-        [((r12 + r22) - (r11 + r21)) / 4.0, ((r21 + r22) - (r11 + r12)) / 4.0, (r11 + r12 + r21 + r22) / 4.0],
-        axis=-1,
-    )
+    """Electrode ΔC/C0 of shape (..., 4) → (..., 3) as (r_X, r_Y, r_Z) (quad_model.combinations)."""
+    return combinations(relative)[..., :3]
 
 
 def quad_forces(capacitance_pF: np.ndarray, baseline_pF: np.ndarray) -> np.ndarray:

@@ -133,9 +133,14 @@ def steps(states: list, counts: list[int], capacitance: np.ndarray, baseline: np
     against ``baseline`` (R, 4) with Z's noise ``noise`` (R,); ``stale``
     (R, 4) or None (quad_batch.stale_runs). Changes nothing."""
     relative = capacitance / baseline - 1.0
-    x, y, z = np.moveaxis(quad_axes(relative), -1, 0)
-    band = np.array([state.processor.plausible for state in states])
-    low, high = (np.repeat(band[:, i], counts)[:, None] for i in (0, 1))
+    axes = quad_axes(relative)
+    x, y, z = axes[:, 0], axes[:, 1], axes[:, 2]
+    bands = [state.processor.plausible for state in states]
+    if len(set(bands)) == 1:  # the usual case: one band for every row
+        low, high = bands[0]
+    else:
+        band = np.array(bands)
+        low, high = (np.repeat(band[:, i], counts)[:, None] for i in (0, 1))
     plausible = np.all((relative >= low) & (relative <= high), axis=1)  # NaN compares False
     if stale is not None:
         plausible &= ~stale.any(axis=1)
