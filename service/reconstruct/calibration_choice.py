@@ -55,14 +55,15 @@ class CalibrationChoice:
         return document
 
     def _described_again(self, state: SensorState, info: SensorInfo) -> None:
-        """A new INFO describes the sensor as before (``info`` equal, not the
-        same object): later readings carry ``info``, so it is kept (they
-        skip the comparison); and the INFO may name the board, which a board
-        already streaming when the service connected had not before the
-        sensor's first frames: its calibration is looked up again and one
-        that differs is swapped in, the zero kept (one set through
-        ``set_calibration`` stays). At the first reading after the INFO,
-        live or in a replay however its reads are joined."""
+        """A new INFO describes the sensor as before (``info`` the same
+        sensor, sensor_states._same_sensor; not the same object): later
+        readings carry ``info``, so it is kept (they skip the comparison);
+        and the INFO may name the board, which a board already streaming
+        when the service connected had not before the sensor's first frames:
+        its calibration is looked up again and one that differs is swapped
+        in, the zero kept (one set through ``set_calibration`` stays). At
+        the first reading after the INFO, live or in a replay however its
+        reads are joined."""
         before, state.info = identity(state.info), info
         if before in self._chosen:  # the INFO only named the board: the sensor is the same
             self._chosen[identity(info)] = self._chosen.pop(before)

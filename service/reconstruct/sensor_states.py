@@ -25,7 +25,7 @@ from .baseline import Baseline
 from .calibration_upload import own_level, processor_for, tare_window
 from .fatigue import CycleCounter
 from .grid import GridProcessor
-from .identity import Replacements
+from .identity import Replacements, named
 from .loaded_tare import judge, loaded_taxels
 from .quad import QuadProcessor
 from .quad_drift import resume, where
@@ -118,7 +118,7 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
 
     def _state(self, info: SensorInfo) -> SensorState:
         state = self._sensors.get(info.id)
-        if state is not None and state.info is not info and state.info == info:
+        if state is not None and state.info is not info and _same_sensor(state.info, info):
             self._described_again(state, info)
             if not state.judged_once:  # the INFO may name it only now: its stored zero is known by its name
                 state.stored_zero = self._stored_zero(info, state.calibration.id)
@@ -277,6 +277,17 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             "pending_estimates": processor.estimator.report(),
             "common_mode_drift": processor.drift.drift,
         }
+
+
+def _same_sensor(before: SensorInfo, info: SensorInfo) -> bool:
+    """Whether ``info`` describes the sensor ``before`` did: equal, or
+    ``before`` was known only from its data frames and the board's first INFO
+    gives it the kind and shape inferred from them. That INFO names the board
+    (its address and identity change, not the sensor: identity.named), so the
+    sensor keeps its zero; re-tared there, it took the load it held as 0 N."""
+    if before == info:
+        return True
+    return not named(before) and (before.kind, before.rows, before.cols) == (info.kind, info.rows, info.cols)
 
 
 def _listed(values: np.ndarray) -> list[float | None]:
