@@ -679,3 +679,43 @@ def test_a_recording_whose_first_chunk_is_damaged_replays_the_rest_described_and
     while not (port.finished and not port.in_waiting):
         served += port.read(1 << 16)
     assert served == b"".join(chunk for i, chunk in reads(pressed) if i >= 500)
+
+
+def test_a_forced_zero_a_recording_began_with_is_not_judged_again_at_a_calibration_set_while_recording(tmp_path):
+    """Taxel 27 holds +5 % ΔC/C0 (~4 N) when sensor 0 is tared with
+    force=true (the load is its zero, as asked); a recording begins, then a
+    calibration with its measured C0 is set. Live, the forced zero stays (27
+    reads ~0 N); the replay started from the zero without knowing it was
+    forced, judged it against the new C0 and read 27 at its full load
+    (4.82 N, flagged loaded_at_tare) on all 300 frames after the upload."""
+    from service.calibration.registry import builtin_document
+    from service.protocol import FrameType, encode_frame
+
+    rng = np.random.default_rng(3)
+    c0 = np.array(builtin_document()["taxels"]["c0_pF"])  # pF (64,): the emulated sensor's own C0
+    reads_ = []
+    for read in range(90):  # 10 scans a read
+        chunk = b""
+        for seq in range(10 * read, 10 * read + 10):
+            grid = c0 * np.where((np.arange(64) == 27) & (seq >= 200), 1.05, 1.0) + rng.normal(0, 0.002, 64)
+            chunk += encode_frame(FrameType.GRID, 0, seq, 1000 * seq, np.round(grid * 1e6).astype("<u4").tobytes())
+        reads_.append(chunk)
+    pipeline = Pipeline(Reconstructor(level="table"))
+    recorder = None
+    for read, chunk in enumerate(reads_):
+        if read == 30:
+            pipeline.tare(0, force=True)  # zero ready at scan 400
+        if read == 50:
+            recorder = Recorder(tmp_path / "run.mcap")
+            recorder.attach(pipeline)
+        if read == 60:
+            pipeline.set_calibration(pipeline.interpreter.sensors[0],
+                                     {"sensitivity_pct_per_N": [1.1] * 64, "c0_pF": c0.tolist()})
+        pipeline.feed(chunk, 1000.0 + 0.01 * read)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    uploaded = [d for d in live.values() if d["calibration"] != "builtin-table1"]
+    assert len(live) == 400 and len(uploaded) == 300
+    assert all(abs(d["taxels_N"][27]) <= 3 * d["sigma_N"][27] and "loaded_at_tare" not in d["flags"] for d in uploaded)
+    again = by_frame(replayed_forces(tmp_path / "run.mcap"))
+    assert again == live

@@ -142,6 +142,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             if zero is not None and len(zero["baseline_pF"]) == info.channels:
                 state.baseline.preset(_array(zero["baseline_pF"]), _array(zero["std_pF"]))
                 state.tare_judged = True  # judged live, before the recording
+                # A forced zero stays the zero when a calibration set later has it judged again, as it did live.
+                state.judge_tare = zero.get("judge") is not False
                 if zero.get("loaded"):
                     state.loaded = np.isin(np.arange(info.channels), zero["loaded"])
                 if zero.get("stale_runs") is not None and len(zero["stale_runs"]) == info.channels:
@@ -155,7 +157,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
 
     def baselines(self) -> list[dict]:
         """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
-        where its stale-channel count stands: stale_last_pF, stale_runs, its
+        judge (False: a forced tare's, the load present is the zero), where
+        its stale-channel count stands: stale_last_pF, stale_runs, its
         load-cycle count: cycles, cycles_seen, cycles_armed, and a quad's
         drift tracker: drift} (NaN as None), what a recording begun now
         stores for its replay."""
@@ -163,7 +166,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         for sid, state in sorted(self._sensors.items()):
             if state.baseline.ready:
                 zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
-                        "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist()}
+                        "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist(),
+                        "judge": state.judge_tare}
                 runs = state.processor.stale_runs
                 if runs is not None:
                     zero |= {"stale_last_pF": _listed(runs[0]), "stale_runs": runs[1].tolist()}

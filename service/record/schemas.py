@@ -62,6 +62,8 @@ BASELINES = {
             "std_pF": {"type": "array", "items": {"type": ["number", "null"]}},
             "loaded": {"type": "array", "items": {"type": "integer"},
                        "description": "taxels whose zero is the calibration's C0 (loaded at the tare)"},
+            "judge": {"type": "boolean", "description": "the zero is judged against a calibration set later (false: a "
+                                                      "forced tare's, the load present is the zero; absent: true)"},
             "stale_last_pF": {"type": "array", "items": {"type": ["number", "null"]},
                               "description": "each channel's last reading, where its stale count stands"},
             "stale_runs": {"type": "array", "items": {"type": "integer"},
