@@ -29,6 +29,17 @@ def broken(field: str) -> dict:
         taxels["c0_pF"][4] = None
     elif field == "nan":
         taxels["gain"][3] = float("nan")
+    elif field.startswith("sensitivity"):  # "sensitivity=VALUE" on taxel 27
+        taxels["sensitivity_pct_per_N"][27] = float(field.split("=")[1])
+    elif field.startswith("curves="):
+        taxels["curves"] = json.loads(field.split("=")[1])
+    elif field.startswith("curve="):  # "curve=F0,F1" on taxel 27
+        taxels["curves"] = {"27": {"force_N": [float(f) for f in field.split("=")[1].split(",")],
+                                   "relative": [0.0, 0.5]}}
+    elif field.startswith("max_force"):
+        taxels["max_force_N"][5] = float(field.split("=")[1])
+    elif field.startswith("created"):
+        document["created"] = json.loads(field.split("=")[1])
     else:
         force, relative = [0.0, 2.0, 5.0, 9.0], [0.0, 0.02, 0.05, 0.09]
         taxels["curves"] = {"0": {"force_N": force[::-1] if field == "reversed" else force,
@@ -44,6 +55,23 @@ def broken(field: str) -> dict:
     ("nan", "taxels.gain[3] = nan is not a JSON number"),
     ("reversed", "taxels.curves['0']: must be finite and strictly increasing"),
     ("lengths", "taxels.curves['0']: force_N (4 values) and relative (3) are not two lists of one length"),
+    # the short form's range (0.1, 10) %/N: at level0 these read a 5 N load as -4.4, 5.5e4 and 0.0055 N, unflagged
+    ("sensitivity=-1.25", "taxels.sensitivity_pct_per_N[27] = -1.25 is outside (0.1, 10) %/N"),
+    ("sensitivity=0.0001", "taxels.sensitivity_pct_per_N[27] = 0.0001 is outside (0.1, 10) %/N"),
+    ("sensitivity=1000", "taxels.sensitivity_pct_per_N[27] = 1000 is outside (0.1, 10) %/N"),
+    # a curve's forces from 0 up to where the stiffest plausible taxel's gap closes (37.68 N / 0.08 = 471 N):
+    # -100..-99 N read a 5 N load as -99.9 ± 0.018 N, 0..1e9 N as 1.1e8 N; a session's max_force_N likewise
+    ("curve=-100,-99", "taxels.curves['27']: force_N starts at -100 N, below 0"),
+    ("curve=0,1e9", "taxels.curves['27']: force_N reaches 1e+09 N, past 471 N"),
+    ("curve=0,480", "taxels.curves['27']: force_N reaches 480 N, past 471 N"),
+    ("max_force=1e9", "taxels.max_force_N[5] = 1e+09 is outside (0, 471] N"),
+    ("max_force=-3", "taxels.max_force_N[5] = -3 is outside (0, 471] N"),
+    ('curves=[1]', "taxels.curves: expected an object {taxel: {force_N, relative}}, got [1]"),
+    ('curves="x"', "taxels.curves: expected an object {taxel: {force_N, relative}}, got 'x'"),
+    ("created=1", "created: expected an ISO 8601 time as a string, got 1"),
+    ('created={"x": 1}', "created: expected an ISO 8601 time as a string, got {'x': 1}"),
+    ("created=[1]", "created: expected an ISO 8601 time as a string, got [1]"),
+    ("created=null", "created: expected an ISO 8601 time as a string, got None"),  # registry: NOT NULL
 ])
 def test_a_document_the_service_cannot_use_is_not_imported_and_the_field_is_named(tmp_path, capsys, field, message):
     path = tmp_path / "c.json"
@@ -54,6 +82,47 @@ def test_a_document_the_service_cannot_use_is_not_imported_and_the_field_is_name
     assert f"{path}: not imported, the service could not use it: {message}" in error, error
     with reg.Registry(registry) as stored:
         assert [row["id"] for row in stored.list()] == [reg.BUILTIN_ID]
+
+
+def quad(**changes) -> dict:
+    """A quad document the service can use (fits 34/35's numbers), with ``changes``."""
+    from service.readings import SensorInfo
+    from service.reconstruct.calibration_upload import upload_document
+
+    fits = {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]}
+    document = upload_document(SensorInfo(1, "quad", 2, 2), fits, "flat", {"key": "sensor:Q-1"})
+    return {**{k: v for k, v in document.items() if k != "id"}, **changes}
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"normal_fit_se": 5}, "normal_fit_se: expected the standard errors [c2, c1] of normal_fit, got 5"),
+    ({"normal_fit_se": [1]}, "normal_fit_se: expected the standard errors [c2, c1] of normal_fit, got [1]"),
+    ({"normal_fit_se": [1, "2"]}, "normal_fit_se: expected the standard errors [c2, c1] of normal_fit, got [1, '2']"),
+    ({"shear_fit_se": {"a": 1}}, "shear_fit_se: expected the standard errors [a, b] of shear_fit, got {'a': 1}"),
+    ({"coupling": [1]}, "coupling: expected a number, got [1]"),
+    ({"coupling": {"c": 0.1}}, "coupling: expected a number, got {'c': 0.1}"),
+    ({"coupling": True}, "coupling: expected a number, got True"),
+    ({"statistics": "x"}, "statistics: expected an object, got 'x'"),
+    ({"created": {"x": 1}}, "created: expected an ISO 8601 time as a string, got {'x': 1}"),
+])
+def test_a_quad_document_with_a_field_of_another_type_is_not_imported_and_the_field_is_named(tmp_path, capsys,
+                                                                                            changes, message):
+    """They raised TypeError, IndexError, AttributeError (a 500 from PUT) or failed inside SQLite."""
+    path = tmp_path / "q.json"
+    path.write_text(json.dumps(quad(**changes)))
+    registry = tmp_path / "r.sqlite3"
+    assert main(["calibrations", "import", str(path), "--registry", str(registry)]) == 2
+    assert f"{path}: not imported, the service could not use it: {message}" in capsys.readouterr().err
+
+
+def test_a_quad_document_with_its_standard_errors_gives_the_slopes_relative_errors():
+    """normal_fit_se, shear_fit_se [se of each coefficient]: c1's and a's σ over c1 and a."""
+    from service.reconstruct.sensor_calibration import from_document
+    from service.readings import SensorInfo
+
+    document = quad(normal_fit_se=[0.0001, 0.000686], shear_fit_se=[0.000231, 0.00001], coupling=0.0)
+    calibration = from_document({**document, "id": "q"}, SensorInfo(1, "quad", 2, 2))
+    assert calibration.quad_relative_se == pytest.approx((0.000686 / 0.0343, 0.000231 / 0.0077))  # 2 %, 3 %
 
 
 def test_a_usable_document_imports_with_the_id_of_its_content(tmp_path):

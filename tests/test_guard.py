@@ -298,3 +298,68 @@ def test_a_whole_calibration_document_uploads_as_exported_and_an_edited_one_is_r
     assert client.put("/sensors/0/calibration", json={"schema": 1}).status_code == 422
     other = client.put("/sensors/1/calibration", json=grid)  # sensor 0's document onto sensor 1
     assert other.status_code == 422 and "not this sensor" in other.json()["detail"]
+
+
+def _exported_documents(client) -> tuple[dict, dict]:
+    """What ``tactile calibrations export`` gives for the simulator's grid (sensor 0) and quad (sensor 1)."""
+    from service.calibration.registry import sensor_identity
+    from service.reconstruct.calibration_upload import upload_document
+
+    board = client.app.state.service.all_boards[0]
+    info = board.sensors
+    grid = upload_document(info[0], {"sensitivity_pct_per_N": [1.3] * 64, "c0_pF": [10.5] * 64}, "flat",
+                           sensor_identity(board.info, info[0]))
+    quad = upload_document(info[1], {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]}, "flat",
+                           sensor_identity(board.info, info[1]))
+    return grid, quad
+
+
+def test_a_document_with_a_field_of_another_type_or_out_of_range_is_a_422_naming_it_and_nothing_changes(
+        own_registry_client):
+    """Odd types were a 500 (TypeError, IndexError, AttributeError, or SQLite's binding error for created);
+    created = 1 was stored and made /health a 500 for good; a curve to -99 or 1e9 N, a sensitivity of
+    0.0001 %/N were taken and read a 5 N load as -99.9 ± 0.018 N, 1.1e8 N, 5.5e4 N (level0), unflagged."""
+    client = own_registry_client
+    grid, quad = _exported_documents(client)
+    for sid, document in ((0, grid), (1, quad)):
+        assert client.put(f"/sensors/{sid}/calibration", json=document).status_code == 200
+    sensitivities = list(grid["taxels"]["sensitivity_pct_per_N"])
+    sensitivities[27] = 0.0001
+    cases = [(0, {"created": 1}, "created: "), (0, {"created": {"x": 1}}, "created: "),
+             (0, {"created": [1]}, "created: "),
+             (0, {"curves": [1]}, "taxels.curves: "), (0, {"curves": "x"}, "taxels.curves: "),
+             (0, {"curves": {"27": {"force_N": [-100.0, -99.0], "relative": [0.0, 0.5]}}}, "taxels.curves['27']: "),
+             (0, {"curves": {"27": {"force_N": [0.0, 1e9], "relative": [0.0, 0.5]}}}, "taxels.curves['27']: "),
+             (0, {"sensitivity_pct_per_N": sensitivities}, "taxels.sensitivity_pct_per_N[27] = 0.0001 "),
+             (1, {"normal_fit_se": 5}, "normal_fit_se: "), (1, {"normal_fit_se": [1]}, "normal_fit_se: "),
+             (1, {"shear_fit_se": {"a": 1}}, "shear_fit_se: "), (1, {"coupling": [1]}, "coupling: "),
+             (1, {"coupling": {"c": 1}}, "coupling: "), (1, {"statistics": "x"}, "statistics: "),
+             (1, {"created": {"x": 1}}, "created: ")]
+    for sid, change, named in cases:
+        base = grid if sid == 0 else quad
+        if sid == 0 and "created" not in change:
+            change = {"taxels": {**grid["taxels"], **change}}
+        document = {k: v for k, v in {**base, **change}.items() if k != "id"}
+        answer = client.put(f"/sensors/{sid}/calibration", json=document)
+        assert answer.status_code == 422 and answer.json()["detail"].startswith(named), (change, answer.text)
+    for sid, document in ((0, grid), (1, quad)):  # nothing half-applied
+        assert client.get(f"/sensors/{sid}/calibration").json()["id"] == document["id"]
+    assert client.get("/health").status_code == 200
+
+
+def test_a_stored_document_whose_created_is_not_a_string_leaves_the_sensor_on_the_built_in(own_registry_client):
+    """Stored before uploads were checked (created = 1, the registry's active calibration), it made /health
+    and GET /sensors/0/calibration a 500 at every start: now the sensor reads with table 1, the problem named."""
+    from service.calibration.registry import Registry
+
+    grid, _ = _exported_documents(own_registry_client)
+    with Registry() as registry:  # TACTILE_REGISTRY: the fixture's own
+        registry.add({**{k: v for k, v in grid.items() if k != "id"}, "created": 1}, activate=True)
+    with TestClient(create_app(TactileService("sim://?scene=idle")), base_url="http://localhost:8000") as client:
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and client.get("/sensors/0/calibration").status_code == 409:
+            time.sleep(0.02)
+        state = client.get("/sensors/0/calibration")
+        assert state.status_code == 200, state.text
+        assert state.json()["id"] == "builtin-table1" and "created: " in state.json()["problem"]
+        assert client.get("/health").status_code == 200

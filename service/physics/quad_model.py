@@ -119,6 +119,8 @@ class QuadModel:
             raise ValueError(f"shear_fit: b = {b} must be ≥ 0 (ΔC/C0 = a F − b F²)")
         normal_usable = _narrowed("normal_usable_N", _usable("normal_fit", "c2", c1, -c2), normal_usable_N)
         shear_usable = _narrowed("shear_usable_N", _usable("shear_fit", "b", a, b), shear_usable_N)
+        if isinstance(coupling, bool) or not isinstance(coupling, (int, float)):
+            raise ValueError(f"coupling: expected a number, got {coupling!r}")
         coupling = float(coupling)
         top = (c2 * normal_usable + c1) * normal_usable
         if not (math.isfinite(coupling) and 0.0 <= coupling and coupling * top <= 0.9):

@@ -8,12 +8,17 @@ grid  ``taxels``: ``gain`` (n,) compliance gains of the model curve (κ in
       physics/taxel_response.py), ``gain_se`` (n,) their standard errors
       (null: unknown), ``c0_pF`` (n,) unloaded capacitances, ``curves``
       {taxel: {force_N, relative}} monotone empirical curves that replace
-      the model for those taxels, ``residual_rms_N`` (n,); optional
+      the model for those taxels (forces 0 to force_max_N, 471 N),
+      ``residual_rms_N`` (n,); optional ``sensitivity_pct_per_N`` (n,)
+      (level0's slopes, 0.1–10 %/N as an upload's; null: the curve's),
+      ``max_force_N`` (n,) the largest force pressed (up to 471 N), and
       ``crosstalk`` {mechanical, electrical} measured in the session.
 quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
-      optional ``normal_fit_se``/``shear_fit_se`` of c1 and a, and
+      optional ``normal_fit_se``/``shear_fit_se`` (the standard errors of
+      the two coefficients; c1's and a's are used), and
       ``normal_usable_N``/``shear_usable_N``: where the session's response
       stopped rising (past them a force is held and flagged).
+both  ``created``: an ISO 8601 string (absent: not known).
 
 ``builtin`` is what a sensor without a calibration of its own uses: table 1
 (8x8; the table's mean for other shapes) or fits 34/35. Its gain error is
@@ -141,6 +146,27 @@ def from_document(document: dict, info: SensorInfo, mounting: str = "flat") -> S
     return _grid(document, cid, info, document.get("mounting") or mounting)
 
 
+def _created(document: dict) -> str | None:
+    """The document's ``created`` (ISO 8601; absent: not known); ValueError
+    unless a string: /health tells its age and the registry files it as text
+    (created = 1 was stored and /health answered 500 at every start)."""
+    if "created" not in document:
+        return None
+    created = document["created"]
+    if not isinstance(created, str):
+        raise ValueError(f"created: expected an ISO 8601 time as a string, got {created!r}")
+    return created
+
+
+def force_max_N(mounting: str) -> float:
+    """The largest force (N) a taxel of ``mounting`` can be calibrated to:
+    where the model table's gap closes at the lowest plausible gain (37.7 N
+    at gain 1 on both mountings, so 471 N at 0.08, i.e. 0.1 %/N). An
+    empirical curve's or a session's force past it is a unit slip (g, mN)
+    or garbage: a curve to 1e9 N read a 5 N load as 1.1e8 N, unflagged."""
+    return float(model_table(mounting).force_N[-1]) / GAIN_RANGE[0]
+
+
 def check_for_its_sensor(document: dict) -> None:
     """ValueError naming the field when the service could not use ``document``
     on a sensor of the kind and shape it declares (from_document's own checks):
@@ -185,6 +211,16 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
     return out
 
 
+def _check_within(name: str, values: np.ndarray, low: float, high: float, unit: str, high_in: bool = False) -> None:
+    """ValueError naming the first of ``values`` (n,) outside (low, high), or
+    (low, high] with ``high_in``; NaN (a null: not known) passes."""
+    above = values > high if high_in else values >= high
+    bad = np.flatnonzero((values <= low) | above)
+    if bad.size:
+        raise ValueError(f"taxels.{name}[{bad[0]}] = {values[bad[0]]:g} is outside "
+                         f"({low:.3g}, {high:.3g}{']' if high_in else ')'} {unit}")
+
+
 def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCalibration:
     if mounting not in MOUNTINGS:
         raise ValueError(f"mounting: {mounting!r} is not one of {', '.join(MOUNTINGS)}")
@@ -205,10 +241,14 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     table = model_table(mounting)
     response = TaxelResponse(table.force_N, table.relative_change, gain, table.dense)
     response.check()
-    curves, model_sigma = _curves(taxels.get("curves") or {}, n, residual)
+    force_max = force_max_N(mounting)
+    curves, model_sigma = _curves(taxels.get("curves"), n, residual, force_max)
     reach = _numbers(taxels, "max_force_N", n, missing_ok=True) if "max_force_N" in taxels else np.full(n, np.nan)
-    sensitivity = _numbers(taxels, "sensitivity_pct_per_N", n, missing_ok=True) / 100.0
-    sensitivity = np.where(np.isnan(sensitivity), _ls_sensitivity(response), sensitivity)
+    _check_within("max_force_N", reach, 0.0, force_max, "N", high_in=True)
+    # level0 divides by it: 0.0001 %/N read a 5 N load as 5.5e4 N, -1.25 as -4.4 N, with a small σ
+    sensitivity = _numbers(taxels, "sensitivity_pct_per_N", n, missing_ok=True)
+    _check_within("sensitivity_pct_per_N", sensitivity, *SENSITIVITY_RANGE_PCT_PER_N, "%/N")
+    sensitivity = np.where(np.isnan(sensitivity), _ls_sensitivity(response), sensitivity / 100.0)
     coupling = _coupling(document.get("crosstalk"))
     # C0 is this sensor's where the document says so (an upload without c0_pF
     # carries table 1's) and the taxel's values are not carried from a built-in.
@@ -216,7 +256,7 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     measured = np.array([bool(document.get("c0_measured", True)) and not str(src).startswith("builtin")
                          for src in sources[:n]] + [False] * (n - len(sources[:n])))
     tare_c0 = c0 if coupling is None else Crosstalk(info.rows, info.cols, *coupling).leak(c0)
-    return SensorCalibration(cid, "grid", document.get("created"), measured,
+    return SensorCalibration(cid, "grid", _created(document), measured,
                              GridCalibration(info.rows, info.cols, c0, sensitivity), response, relative_se, model_sigma,
                              curves, coupling, fatigue=FatigueModel.from_document(document.get("fatigue"), None),
                              tare_c0_pF=tare_c0, document=document, calibrated_to_N=np.where(reach > 0, reach, np.inf))
@@ -243,8 +283,14 @@ def _ls_sensitivity(response: TaxelResponse) -> np.ndarray:
     return ((r - r.mean(axis=0)) * f[:, None]).sum(axis=0) / (f * f).sum()
 
 
-def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
-    """Empirical inverses {taxel: (relative, force)} and the model σ per taxel."""
+def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) -> tuple[dict, np.ndarray]:
+    """Empirical inverses {taxel: (relative, force)} and the model σ per taxel;
+    a curve's forces within [0, ``force_max``] N (a compressive taxel reads no
+    pull: -100..-99 N read a 5 N load as -99.9 ± 0.018 N, unflagged)."""
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ValueError(f"taxels.curves: expected an object {{taxel: {{force_N, relative}}}}, got {raw!r}")
     curves, model_sigma = {}, np.zeros(n)
     for key, curve in raw.items():
         try:
@@ -263,6 +309,11 @@ def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
         if not (np.isfinite(force).all() and np.isfinite(relative).all()
                 and np.all(np.diff(force) > 0) and np.all(np.diff(relative) > 0)):
             raise ValueError(f"taxels.curves[{key!r}]: must be finite and strictly increasing")
+        if force[0] < 0:
+            raise ValueError(f"taxels.curves[{key!r}]: force_N starts at {force[0]:g} N, below 0")
+        if force[-1] > force_max:
+            raise ValueError(f"taxels.curves[{key!r}]: force_N reaches {force[-1]:g} N, past {force_max:.3g} N "
+                             "(where the gap of the stiffest plausible taxel closes)")
         curves[taxel] = (relative, force)
         model_sigma[taxel] = 0.0 if math.isnan(residual[taxel]) else residual[taxel]
     return curves, model_sigma
@@ -271,7 +322,10 @@ def _curves(raw: dict, n: int, residual: np.ndarray) -> tuple[dict, np.ndarray]:
 def _quad_residual(document: dict) -> tuple[float, float, float]:
     """The fit's residual RMS (Fx, Fy, Fz) through the model (statistics.rms_N of a calibrated quad;
     zeros where absent: an upload of fits alone); ValueError naming a bad one."""
-    rms = (document.get("statistics") or {}).get("rms_N") or {}
+    statistics = document.get("statistics")
+    if statistics is not None and not isinstance(statistics, dict):
+        raise ValueError(f"statistics: expected an object, got {statistics!r}")
+    rms = (statistics or {}).get("rms_N") or {}
     out = []
     for axis in "xyz":
         value = rms.get(axis, 0.0) if isinstance(rms, dict) else None
@@ -281,13 +335,27 @@ def _quad_residual(document: dict) -> tuple[float, float, float]:
     return out[0], out[1], out[2]
 
 
+def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str], slope: str, value: float) -> float:
+    """σ/value of the fit's ``slope`` coefficient (of ``value``) from ``name``
+    (the standard errors of its two ``coefficients``), the built-in's where
+    absent; ValueError naming a bad one."""
+    errors = document.get(name)
+    if errors is None:
+        return BUILTIN_RELATIVE_SE
+    if not (isinstance(errors, list) and len(errors) == 2
+            and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in errors)):
+        raise ValueError(f"{name}: expected the standard errors [{', '.join(coefficients)}] of {name[:-3]}, "
+                         f"got {errors!r}")
+    return abs(float(errors[coefficients.index(slope)])) / value
+
+
 def _quad(document: dict, cid: str) -> SensorCalibration:
-    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"), document.get("coupling") or 0.0,
+    coupling = document.get("coupling")
+    model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"),
+                                0.0 if coupling is None else coupling,
                                 document.get("normal_usable_N"), document.get("shear_usable_N"))
-    se = []
-    for name, slope in (("normal_fit_se", model.normal_fit[1]), ("shear_fit_se", model.shear_a)):
-        value = document.get(name)
-        se.append(BUILTIN_RELATIVE_SE if value is None else abs(float(value[1] if name == "normal_fit_se" else value[0])) / slope)
-    return SensorCalibration(cid, "quad", document.get("created"), None, quad=model, quad_relative_se=(se[0], se[1]),
+    se = (_slope_relative_se(document, "normal_fit_se", ("c2", "c1"), "c1", model.normal_fit[1]),
+          _slope_relative_se(document, "shear_fit_se", ("a", "b"), "a", model.shear_a))
+    return SensorCalibration(cid, "quad", _created(document), None, quad=model, quad_relative_se=se,
                              quad_model_sigma_N=_quad_residual(document),
                              fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)
