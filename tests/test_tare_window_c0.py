@@ -1,9 +1,16 @@
 """The tare window is set by the C0 of the calibration in use: a sensor far
 from the papers' C0 (0.3–0.5 pF taxels, 17 pF quad electrodes) tares once
-its own calibration, with its measured C0, is uploaded."""
+its own calibration, with its measured C0, is uploaded; on the built-in one
+/health says its capacitances lie outside what that calibration expects."""
+import time
+
 import numpy as np
+import orjson
 import pytest
 
+from service.health import health_report
+from service.live_service import TactileService
+from service.protocol import FrameType, encode_frame
 from service.readings import Reading, SensorInfo
 from service.reconstruct import Reconstructor
 from service.reconstruct.calibration_upload import tare_window
@@ -130,3 +137,50 @@ def test_a_bad_quad_c0_is_refused_naming_it(c0, said):
     with pytest.raises(ValueError, match=said.replace("[", r"\[").replace("]", r"\]")):
         Reconstructor().prepare_calibration(QUAD, {"normal_fit": LINEAR_NORMAL, "shear_fit": LINEAR_SHEAR,
                                                    "c0_pF": c0})
+
+
+def _tiny_grid_service():
+    service = TactileService("sim://")
+    info = orjson.dumps({"board": "b", "serial": "B-7", "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}]})
+    counts = np.round(TINY_C0 * 1e6).astype("<u4")  # aF
+    scans = b"".join(encode_frame(FrameType.GRID, 0, s, 1000 * (s + 1), counts.tobytes()) for s in range(150))
+    service.pipeline.feed(encode_frame(FrameType.INFO, 255, 0, 0, info) + scans, time.time())
+    return service, counts
+
+
+def test_health_says_the_capacitances_lie_outside_what_the_built_in_calibration_expects():
+    service, _ = _tiny_grid_service()
+    report = health_report(service)
+    lines = [p for p in report["problems"] if p.startswith("sensor 0")]
+    assert len(lines) == 1, lines
+    low, high = TINY_C0.min(), TINY_C0.max()
+    assert f"all 64 taxels read {low:.3g}–{high:.3g} pF" in lines[0]
+    c0 = table1().c0_pF
+    assert f"outside the {c0.min() / 6:.3g}–{c0.max() * (1 + TABLE_TOP_FLAT) * 4.5:.3g} pF" in lines[0]
+    assert "builtin-table1" in lines[0] and "c0_pF" in lines[0] and "until they read plausibly" not in lines[0]
+
+
+def test_health_is_ok_once_the_sensors_own_c0_is_uploaded():
+    service, counts = _tiny_grid_service()
+    service.pipeline.set_calibration(service.pipeline.interpreter.sensors[0],
+                                     {"sensitivity_pct_per_N": [1.25] * 64, "c0_pF": TINY_C0.tolist()})
+    scans = b"".join(encode_frame(FrameType.GRID, 0, s, 1000 * (s + 1), counts.tobytes()) for s in range(150, 300))
+    service.pipeline.feed(scans, time.time())
+    report = health_report(service)
+    assert report["sensors"]["0"]["unzeroed_channels"] == []
+    assert not [p for p in report["problems"] if p.startswith("sensor 0")], report["problems"]
+    assert np.abs(service.pipeline.latest[0].forces_N).max() < 0.05
+
+
+def test_health_says_a_measured_c0_the_sensor_does_not_read_is_not_this_sensors():
+    """Another sensor's calibration (table 1's C0 as measured) on the 0.3–0.5 pF grid: no zero, said so."""
+    service, counts = _tiny_grid_service()
+    service.pipeline.set_calibration(service.pipeline.interpreter.sensors[0],
+                                     {"sensitivity_pct_per_N": [1.25] * 64, "c0_pF": table1().c0_pF.tolist()})
+    scans = b"".join(encode_frame(FrameType.GRID, 0, s, 1000 * (s + 1), counts.tobytes()) for s in range(150, 160))
+    service.pipeline.feed(scans, time.time())
+    outside = health_report(service)["sensors"]["0"]["outside_calibration"]
+    assert outside["measured"] is True and outside["channels"] == list(range(64))
+    assert outside["read_pF"] == pytest.approx([TINY_C0.min(), TINY_C0.max()], abs=1e-6)
+    (line,) = [p for p in health_report(service)["problems"] if p.startswith("sensor 0")]
+    assert "its C0 measured" in line and "the calibration is not this sensor's" in line
