@@ -53,6 +53,9 @@ def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None
             # (a board whose INFO cannot list every sensor; an INFO? reply is no restart) is stale: a failure.
             "retired": stale and (sid in dropped or (sid in unlisted and sid not in sent)),
             "unzeroed_channels": pipeline.reconstructor.unzeroed(sid),
+            # Most channels read outside what the calibration's C0 lets a tare take: no zero until calibrated.
+            "outside_calibration": None if latest is None else
+            pipeline.reconstructor.outside_expected(sid, latest.capacitance_pF),
             "tare_glitches": {str(k): n for k, n in pipeline.reconstructor.tare_glitches(sid).items()},
             "tare_restarts": pipeline.reconstructor.tare_restarts(sid),
             "below_zero": [] if history is None or stale else history.below_zero(),
@@ -131,8 +134,10 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"it reads with the built-in calibration {s['calibration']['id']}, none being stored for it (calibrate "
                  f"it, or upload its own: PUT /sensors/{s['board']}/{sid}/calibration)" for sid, s in sensors.items()
                  if s.get("replaced") and (s.get("calibration") or {}).get("builtin")]
-    problems += [f"sensor {sid}: channels {s['unzeroed_channels']} have no zero (no plausible reading while it "
-                 "tared, or one far off the sensor's own level: a fault then): their forces are null until they read plausibly" for sid, s in sensors.items() if s.get("unzeroed_channels")]
+    problems += [_outside_line(sid, s) for sid, s in sensors.items() if s.get("outside_calibration")]
+    problems += [f"sensor {sid}: channels {channels} have no zero (no plausible reading while it "
+                 "tared, or one far off the sensor's own level: a fault then): their forces are null until they read "
+                 "plausibly" for sid, s in sensors.items() if (channels := _unzeroed_otherwise(s))]
     problems += [f"sensor {sid}: {_outputs(s)} below {'its' if s['kind'] == 'quad' else 'their'} tared zero for "
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
@@ -140,6 +145,37 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
     problems += [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
                  "(its shape is taken from its frames)" for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems
+
+
+def _unzeroed_otherwise(sensor: dict) -> list[int]:
+    """The channels without a zero that ``outside_calibration`` does not name (its own line says why)."""
+    named = set((sensor.get("outside_calibration") or {}).get("channels", ()))
+    return [c for c in sensor.get("unzeroed_channels") or () if c not in named]
+
+
+def _outside_line(sid: str, sensor: dict) -> str:
+    """The problem line of a sensor whose readings lie outside what its calibration's C0 lets a tare take."""
+    out = sensor["outside_calibration"]
+    noun = "electrodes" if sensor["kind"] == "quad" else "taxels"
+    named = (f"all {len(out['channels'])} {noun}" if len(out["channels"]) == sensor["rows"] * sensor["cols"]
+             else f"{noun} {out['channels']}")
+    (low, high), (w_low, w_high), (c_low, c_high) = out["read_pF"], out["window_pF"], out["c0_pF"]
+    upload = f"PUT /sensors/{sensor['board']}/{sid}/calibration"
+    if out["measured"]:
+        whose = "its C0 measured"
+        advice = f"a fault, or the calibration is not this sensor's: calibrate it again, or upload its own ({upload})"
+    else:
+        whose = "the papers' C0, not measured on this sensor"
+        advice = f"calibrate the sensor, or upload its calibration with its measured C0 (c0_pF: {upload})"
+    return (f"sensor {sid}: {named} read {_span(low, high)} pF, outside the {_span(w_low, w_high)} pF a tare takes "
+            f"with calibration {out['calibration']} ({whose}: {_span(c_low, c_high)} pF): no zero, their forces "
+            f"stay null; {advice}, and it tares at its first reading inside")
+
+
+def _span(low: float, high: float) -> str:
+    """``low–high`` to 3 digits, one number when they read alike."""
+    low_text, high_text = f"{low:.3g}", f"{high:.3g}"
+    return low_text if low_text == high_text else f"{low_text}–{high_text}"
 
 
 def _info_problems(interpreter, sensors: dict) -> list[str]:

@@ -155,8 +155,14 @@ def test_calibration_upload_is_validated_and_applied(client):
     assert short.status_code == 422 and "expected 64 values" in short.json()["detail"]
     negative = client.put("/sensors/0/calibration", json={"sensitivity_pct_per_N": [1.25] * 63 + [-1.0]})
     assert negative.status_code == 422 and "sensitivity_pct_per_N[63]" in negative.json()["detail"]
-    quad = client.put("/sensors/1/calibration", json={"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]})
+    fits = {"normal_fit": [-0.0009, 0.0343], "shear_fit": [0.0077, 0.0004]}
+    measured = client.put("/sensors/1/calibration", json={**fits, "c0_pF": [2.2, 2.21, 2.19, 2.2]})
+    assert measured.status_code == 200 and measured.json()["c0_pF"] == [2.2, 2.21, 2.19, 2.2]  # sets its tare window
+    three = client.put("/sensors/1/calibration", json={**fits, "c0_pF": [2.2, 2.21, 2.19]})
+    assert three.status_code == 422 and "c0_pF: expected 4 values" in three.json()["detail"]
+    quad = client.put("/sensors/1/calibration", json=fits)
     assert quad.status_code == 200 and quad.json()["normal_usable_N"] == pytest.approx(17.15)
+    assert "c0_pF" not in quad.json()  # none given: the document (and its id) as before
     wrong = client.put("/sensors/1/calibration", json={"normal_fit": [0.001, 0.0343], "shear_fit": [0.0077, 0.0004]})
     assert wrong.status_code == 422 and "normal_fit" in wrong.json()["detail"]
     assert client.put("/sensors/1/calibration", json={"normal_fit": "x"}).status_code == 422

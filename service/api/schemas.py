@@ -25,6 +25,8 @@ class QuadCalibrationUpload(BaseModel):
     normal_fit: tuple[Number, Number] = Field(description="ΔC/C0 = c2 F² + c1 F: [c2, c1]; c2 ≤ 0 (0 = linear), "
                                              "c1 in (0.001, 1) /N, |c2| ≤ 0.45·c1")
     shear_fit: tuple[Number, Number] = Field(description="ΔC/C0 = a F − b F²: [a, b]; a in (0.001, 1) /N, 0 ≤ b ≤ 0.45·a")
+    c0_pF: list[Number] | None = Field(default=None, description="C11, C12, C21, C22: measured unloaded capacitances "
+                                      "in pF, 0.01–1000 (a tare takes readings around them; ~2.2 pF when absent)")
 
 
 class CalibrationDocumentUpload(BaseModel):

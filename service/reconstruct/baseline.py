@@ -122,6 +122,16 @@ class Baseline:
         self._any_late = bool(self._late.any())
         self.zeroless = self._without_zero()  # as live: it tares from its first valid reading
 
+    def rewindow(self, window: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Take ``window`` (another calibration's C0: calibration_choice.py)
+        from the next reading on: the zeros made keep, a tare under way or
+        a channel still without a zero takes readings within it (a late
+        one within its own level's window, as before), and a sensor without
+        any zero begins its tare at its first reading inside it."""
+        self.window = self._window = window
+        if self.ready:
+            self._narrow_late()
+
     def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
         """Take ``values_pF`` (channels,) as the zero of ``channels`` (bool
         mask): a loaded tare's taxels get the calibration's C0. A new array,

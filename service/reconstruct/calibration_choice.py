@@ -5,7 +5,9 @@ upload, by the sensor's identity: identity.py), else ``resolve``'s (the
 registry, a recording, ``--calibration``, chosen above this layer), else
 the built-in one; one that does not fit the sensor is set aside with its
 reason, never a reason to stop its data. Swapping keeps the sensor's zero
-and judges its tare again against the new C0. A mixin of SensorStates
+and judges its tare again against the new C0; the window of readings a tare
+takes is the new C0's from then on (a sensor that had no zero tares at its
+first reading inside it). A mixin of SensorStates
 (sensor_states.py), whose state it reads and changes.
 """
 from __future__ import annotations
@@ -14,7 +16,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from ..readings import SensorInfo
-from .calibration_upload import own_level, processor_for, upload_document
+from .calibration_upload import own_level, processor_for, tare_window, upload_document
 from .identity import identity, named
 from .sensor_calibration import SensorCalibration, builtin, from_document
 
@@ -82,6 +84,7 @@ class CalibrationChoice:
             processor.restore_stale_runs(*runs)
         state.processor, state.calibration = processor, calibration
         state.baseline.own_level = own_level(state.info, self.mounting, calibration)  # its C0 pattern from now on
+        state.baseline.rewindow(tare_window(state.info, self.mounting, calibration))  # a tare expects its C0 now
         state.cycles = self._cycles(state.info, calibration)  # counts belong to a calibration: a new one starts anew
         state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
         self._calibration_applied(state.info.id)

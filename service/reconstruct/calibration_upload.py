@@ -5,7 +5,9 @@ its own from the registry or a recording, else the papers' built-in one).
 ``upload_document`` turns what ``PUT /sensors/{id}/calibration`` accepts into
 a registry document and checks it, naming the bad field and why (the API
 answers 422). ``processor_for`` builds the sensor's processor from its
-calibration, ``tare_window`` the readings a tare may take.
+calibration, ``tare_window`` the readings a tare may take: around the C0
+the calibration expects (``expected_c0``), the sensor's own where it was
+measured, else the papers' nominal one.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from .crosstalk import Crosstalk
 from .grid import GridProcessor
 from .level0 import own_level_window, tare_window_pF
 from .quad import QuadProcessor
-from .sensor_calibration import SCHEMA, SensorCalibration, calibration_id, check_c0, from_document
+from .sensor_calibration import SCHEMA, SensorCalibration, calibration_id, check_c0, from_document, quad_c0
 
 
 def processor_for(info: SensorInfo, level: str, mounting: str,
@@ -42,25 +44,38 @@ def processor_for(info: SensorInfo, level: str, mounting: str,
 
 
 def tare_window(info: SensorInfo, mounting: str, calibration: SensorCalibration) -> tuple[np.ndarray, np.ndarray]:
-    """Readings a tare may take (level0.py): the plausible window around
-    the nominal C0 (table 1's; a quad's NOMINAL_C0_PF), widened."""
-    return tare_window_pF(*_nominal(info, mounting, calibration))
+    """Readings (n,) low, high pF a tare may take (level0.py): the plausible
+    window around the C0 the calibration expects (``expected_c0``), widened."""
+    return tare_window_pF(expected_c0(info, calibration), _top(info, mounting, calibration))
 
 
 def own_level(info: SensorInfo, mounting: str, calibration: SensorCalibration):
     """The window around a finished tare's own level (level0.own_level_window), for the sensor's Baseline:
     against the calibration's C0 pattern (a sensor whose taxels' C0 differ 2.5× is not faulty)."""
-    nominal, top = _nominal(info, mounting, calibration)
-    if info.kind == "grid":
-        nominal = calibration.grid.c0_pF
-    return partial(own_level_window, nominal_c0_pF=nominal, top_relative=top)
+    nominal = calibration.grid.c0_pF if info.kind == "grid" else expected_c0(info, calibration)
+    return partial(own_level_window, nominal_c0_pF=nominal, top_relative=_top(info, mounting, calibration))
 
 
-def _nominal(info: SensorInfo, mounting: str, calibration: SensorCalibration) -> tuple[np.ndarray, float]:
-    """(nominal C0 (n,) pF, largest ΔC/C0 the model explains) of the sensor's kind and shape."""
+def expected_c0(info: SensorInfo, calibration: SensorCalibration) -> np.ndarray:
+    """The C0 (n,) pF a tare expects: the calibration's measured C0 where it
+    has one (a sensor's own, which may be 0.4 pF taxels or 17 pF electrodes),
+    else the papers' nominal (table 1's; a quad's NOMINAL_C0_PF) — on a
+    partly measured sensor scaled by the measured channels' median ratio
+    to it, the sensor's own level."""
     if info.kind == "quad":
-        return np.full(info.channels, NOMINAL_C0_PF), calibration.quad.top_relative
-    return grid_calibration(info.rows, info.cols).c0_pF, table_top(mounting)
+        nominal = np.full(info.channels, NOMINAL_C0_PF)
+    else:
+        nominal = grid_calibration(info.rows, info.cols).c0_pF
+    measured = calibration.measured_c0_pF
+    if measured is None:
+        return nominal
+    level = float(np.nanmedian(measured / nominal))
+    return np.where(np.isnan(measured), nominal * level, measured)
+
+
+def _top(info: SensorInfo, mounting: str, calibration: SensorCalibration) -> float:
+    """The largest ΔC/C0 the sensor's model explains (level0.py's r_top)."""
+    return calibration.quad.top_relative if info.kind == "quad" else table_top(mounting)
 
 
 def upload_document(info: SensorInfo, upload: dict, mounting: str, sensor: dict | None = None) -> dict:
@@ -79,7 +94,8 @@ def upload_document(info: SensorInfo, upload: dict, mounting: str, sensor: dict 
 
     Quad: ``normal_fit`` [c2, c1] of ΔC/C0 = c2 F² + c1 F and
     ``shear_fit`` [a, b] of ΔC/C0 = a F − b F², checked by
-    QuadModel.from_fits (physics/quad_model.py lists the ranges).
+    QuadModel.from_fits (physics/quad_model.py lists the ranges); optional
+    ``c0_pF`` (4, measured unloaded capacitances) sets the window a tare takes.
 
     ``sensor`` (the registry's identity of the sensor) is stored in the
     document, so the same numbers on two sensors are two calibrations.
@@ -132,9 +148,11 @@ def _quad_document(upload: dict) -> dict:
     if "normal_fit" not in upload or "shear_fit" not in upload:
         raise ValueError("a quad calibration needs normal_fit [c2, c1] and shear_fit [a, b]")
     model = QuadModel.from_fits(upload["normal_fit"], upload["shear_fit"])
+    c0 = quad_c0(upload.get("c0_pF"))
     return {"schema": SCHEMA, "kind": "quad", "created": _now(), "note": "uploaded fits",
             "normal_fit": [model.normal_fit[0], model.normal_fit[1]], "shear_fit": [model.shear_a, model.shear_b],
-            "normal_usable_N": model.normal_usable_N, "shear_usable_N": model.shear_usable_N}
+            "normal_usable_N": model.normal_usable_N, "shear_usable_N": model.shear_usable_N,
+            **({} if c0 is None else {"c0_pF": c0.tolist()})}
 
 
 def _values(upload: dict, name: str, n: int) -> np.ndarray:

@@ -48,10 +48,12 @@ plausible when
 The existing meaning of a small negative change stays: a grid ΔC/C0 below
 −5σ but above the plausible floor gives force 0, flagged ``out_of_range``
 (a value of 0, not null, tells the two apart). Before a tare the baseline
-has no C0 of its own: it then takes table 1's C0 (a quad: QUAD_NOMINAL_C0_PF,
-ε0·εr·S/d with εr = 5 assumed) as the reference, with the window widened by
-TARE_WIDEN = 3 on each side, since a board's zero is not the paper's
-(baseline.py): implausible readings take no part in a tare.
+has no C0 of its own: it then takes the C0 its calibration expects as the
+reference (calibration_upload.expected_c0: the measured one where it has
+one, else table 1's C0 or, a quad, NOMINAL_C0_PF, ε0·εr·S/d with εr = 5
+assumed), with the window widened by TARE_WIDEN = 3 on each side, since a
+board's zero is not the paper's (baseline.py): implausible readings take no
+part in a tare.
 """
 from __future__ import annotations
 
@@ -73,7 +75,7 @@ def plausible_relative(top_relative: float) -> tuple[float, float]:
 
 def tare_window_pF(nominal_c0_pF: np.ndarray, top_relative: float) -> tuple[np.ndarray, np.ndarray]:
     """(low, high) pF a reading must lie in to count in a tare, per channel,
-    against the nominal C0 (table 1 or the quad's), widened by TARE_WIDEN."""
+    against the C0 (n,) pF the calibration expects, widened by TARE_WIDEN."""
     nominal = np.asarray(nominal_c0_pF, dtype=float)
     return nominal * PLAUSIBLE_LOW / TARE_WIDEN, nominal * (1.0 + top_relative) * PLAUSIBLE_MARGIN * TARE_WIDEN
 

@@ -17,7 +17,9 @@ quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
       optional ``normal_fit_se``/``shear_fit_se`` (the standard errors of
       the two coefficients; c1's and a's are used), and
       ``normal_usable_N``/``shear_usable_N``: where the session's response
-      stopped rising (past them a force is held and flagged).
+      stopped rising (past them a force is held and flagged); optional
+      ``c0_pF`` (4,) the electrodes' unloaded capacitances its session
+      measured (``tactile calibrate``), which set the window a tare takes.
 both  ``created``: an ISO 8601 string (absent: not known).
 
 ``builtin`` is what a sensor without a calibration of its own uses: table 1
@@ -110,11 +112,22 @@ class SensorCalibration:
     fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
     tare_c0_pF: np.ndarray | None = None  # grid (n,): C0 as the multiplexer reads it (leakage applied), what a tare sees
     calibrated_to_N: np.ndarray | None = None  # grid (n,): the largest force its session pressed; None: unknown
+    quad_c0_pF: np.ndarray | None = None  # quad (4,): C0 its session measured; None: not measured
     document: dict | None = field(default=None, compare=False, repr=False)
 
     @property
     def builtin(self) -> bool:
         return self.id.startswith("builtin")
+
+    @property
+    def measured_c0_pF(self) -> np.ndarray | None:
+        """(n,) pF: the C0 measured on this sensor as a tare reads it (a grid's
+        leakage applied), NaN where not measured; None when none was."""
+        if self.quad_c0_pF is not None:
+            return self.quad_c0_pF
+        if self.measured is None or not self.measured.any():
+            return None
+        return np.where(self.measured, self.tare_c0_pF, np.nan)
 
 
 def builtin(info: SensorInfo, mounting: str = "flat") -> SensorCalibration:
@@ -349,6 +362,23 @@ def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str],
     return abs(float(errors[coefficients.index(slope)])) / value
 
 
+def quad_c0(values) -> np.ndarray | None:
+    """A quad's measured C0 (4,) pF from a document's or an upload's ``c0_pF``
+    (None: not measured); ValueError naming the bad value."""
+    if values is None:
+        return None
+    if not isinstance(values, list | tuple) or any(isinstance(v, bool) for v in values):
+        raise ValueError("c0_pF: expected a list of numbers, one per electrode (C11, C12, C21, C22)")
+    try:
+        c0 = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("c0_pF: expected a list of numbers, one per electrode (C11, C12, C21, C22)") from None
+    if c0.shape != (4,):
+        raise ValueError(f"c0_pF: expected 4 values (C11, C12, C21, C22), got {c0.size}")
+    check_c0("c0_pF", c0)
+    return c0
+
+
 def _quad(document: dict, cid: str) -> SensorCalibration:
     coupling = document.get("coupling")
     model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"),
@@ -357,5 +387,5 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
     se = (_slope_relative_se(document, "normal_fit_se", ("c2", "c1"), "c1", model.normal_fit[1]),
           _slope_relative_se(document, "shear_fit_se", ("a", "b"), "a", model.shear_a))
     return SensorCalibration(cid, "quad", _created(document), None, quad=model, quad_relative_se=se,
-                             quad_model_sigma_N=_quad_residual(document),
+                             quad_model_sigma_N=_quad_residual(document), quad_c0_pF=quad_c0(document.get("c0_pF")),
                              fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..readings import SensorInfo
 from .baseline import Baseline
-from .calibration_upload import own_level, processor_for, tare_window
+from .calibration_upload import expected_c0, own_level, processor_for, tare_window
 from .fatigue import CycleCounter
 from .grid import GridProcessor
 from .identity import Replacements, named
@@ -97,6 +97,29 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         if state is None or not state.baseline.ready:
             return []
         return np.flatnonzero(np.isnan(state.baseline.value)).tolist()
+
+    def outside_expected(self, sensor_id: int, capacitance_pF: np.ndarray) -> dict | None:
+        """Channels without a zero whose reading (n,) pF lies outside the
+        window a tare takes around the C0 its calibration expects
+        (calibration_upload.tare_window), when they are most of those that
+        read: the sensor's C0 is not the calibration's (a lone one is a
+        faulty channel, left to ``unzeroed``). {channels, read_pF: [min, max],
+        window_pF: [low, high], c0_pF: [min, max] over them, calibration: id,
+        measured: whether that C0 was measured on the sensor}; None otherwise."""
+        state = self._sensors.get(sensor_id)
+        if state is None or not state.baseline.ready:
+            return None
+        low, high = tare_window(state.info, self.mounting, state.calibration)
+        reads = capacitance_pF == capacitance_pF
+        outside = np.isnan(state.baseline.value) & reads & ((capacitance_pF < low) | (capacitance_pF > high))
+        if 2 * np.count_nonzero(outside) <= np.count_nonzero(reads):
+            return None
+        c0 = expected_c0(state.info, state.calibration)[outside]
+        return {"channels": np.flatnonzero(outside).tolist(),
+                "read_pF": [float(capacitance_pF[outside].min()), float(capacitance_pF[outside].max())],
+                "window_pF": [float(low[outside].min()), float(high[outside].max())],
+                "c0_pF": [float(c0.min()), float(c0.max())], "calibration": state.calibration.id,
+                "measured": state.calibration.measured_c0_pF is not None}
 
     def implausible(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
         """Channels whose reading (n,) pF lies outside the plausible ΔC/C0
