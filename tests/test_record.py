@@ -227,6 +227,44 @@ def test_replay_served_through_the_live_api(tmp_path):
         assert client.get("/sensors/0/latest").json()["header"]["seq"] == 1499
 
 
+def test_a_recording_made_through_the_api_is_served_again(tmp_path):
+    """POST /record/start (the dashboard's Record) records the board's INFO
+    with its zeros (/baselines); serving that recording (replay --serve,
+    serve --source replay://) crashed building the service (its board named
+    itself from that INFO before the service held its boards). Served, it
+    gives every frame recorded, under the board's recorded name, the last
+    not taring (it starts from the recorded zeros)."""
+    live = TactileService("sim://?scene=press&rate=200", recordings_dir=tmp_path)
+    with TestClient(create_app(live), base_url="http://localhost") as client:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and len(live.pipeline.latest) < 2:
+            time.sleep(0.02)
+        assert client.post("/record/start", json={"name": "api.mcap"}).status_code == 200
+        time.sleep(0.5)
+        assert client.post("/record/stop").json()["error"] is None
+    # What serving it must give: every frame of the recorded bytes (the recorded forces may lack the last
+    # read's, reconstructed after the stop).
+    recorded = {}
+    for frame in Decoder().feed(b"".join(chunk for _, chunk in read_raw(tmp_path / "api.mcap"))):
+        recorded.setdefault(frame.sensor, []).append(frame.seq)
+    board = next(orjson.loads(m.data)["board"] for topic, m in iter_messages(tmp_path / "api.mcap")
+                 if topic == "/baselines")
+    assert len(recorded[0]) > 20  # 0.5 s at 200 Hz: ~100, fewer on a loaded machine
+    service = TactileService(f"replay://{tmp_path / 'api.mcap'}?speed=max")
+    assert service.primary.name == board
+    with TestClient(create_app(service), base_url="http://localhost") as client:
+        def served():
+            sensors = client.get("/health").json()["sensors"]
+            return {sid: sensors.get(str(sid), {}).get("frames") for sid in recorded}
+
+        deadline = time.monotonic() + 20  # a loaded machine's worst; done in well under a second
+        while time.monotonic() < deadline and served() != {sid: len(seqs) for sid, seqs in recorded.items()}:
+            time.sleep(0.05)
+        assert served() == {sid: len(seqs) for sid, seqs in recorded.items()}
+        latest = client.get("/sensors/0/latest").json()
+        assert latest["header"]["seq"] == recorded[0][-1] and "taring" not in latest["flags"]
+
+
 def test_record_from_the_api_into_the_recordings_directory_only(tmp_path):
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")
