@@ -388,6 +388,28 @@ def test_a_paced_recording_keeps_its_pauses_but_not_the_host_clocks_steps(tmp_pa
     assert sum(slept) == pytest.approx(30.002, abs=0.01) and max(slept) == pytest.approx(20.0, abs=0.01)
 
 
+def test_a_paced_replay_emits_each_read_at_its_own_recorded_time(tmp_path):
+    """Each read of stepped_recording is one scan, received 2 ms after it:
+    paced, its frames go out when the replay reaches its receive time, as
+    far after the first frame as their scan is on the board clock. They
+    went out one read late, after the wait for the next read: the last
+    scan before the board's 20 s silence came out 20 s late."""
+    path = stepped_recording(tmp_path / "pause.mcap", 0.0)
+    pacer, _ = virtual_pacer()
+    now = pacer._clock
+    emitted = []
+
+    class Times:
+        def write(self, frames):
+            emitted.extend((now(), frame.t_us * 1e-6) for frame in frames)
+
+    replay(path, pacer=pacer, writer=Times())
+    assert len(emitted) == 2 * 1000
+    (w0, b0) = emitted[0]
+    late = [(w - w0) - (b - b0) for w, b in emitted]
+    assert max(late) == pytest.approx(0.0, abs=1e-6) and min(late) == pytest.approx(0.0, abs=1e-6)
+
+
 def recorded_diagnostics(path):
     return [orjson.loads(m.data) for t, m in iter_messages(path) if t == "/diagnostics"]
 

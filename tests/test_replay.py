@@ -155,3 +155,30 @@ def test_a_paced_raw_capture_goes_on_across_a_board_restart_without_a_wait(tmp_p
     assert sum(slept) == pytest.approx(times[-1] - times[0]) and max(slept) < 0.1
     assert len(slept) > 0.9 * (len(times) - 1)  # every chunk after the restart paced too
     assert paced.getvalue() == fast.getvalue() and fast.getvalue().count(b"\n") > 1000
+
+
+def test_a_paced_raw_capture_emits_each_chunk_at_its_own_board_time(tmp_path):
+    """Paced, a raw capture is read 4 KiB at a time, each chunk timed by the
+    newest scan it completes: its frames go out then, at most one chunk's
+    span after their own scan, never before it. They went out a chunk late,
+    after the wait for the next chunk (up to twice that span)."""
+    from service.protocol_decoder import Decoder
+    from service.record.pacing import Pacer
+
+    data, _ = capture(BoardConfig(scene="press", rate_hz=100, seed=3), 4.0)
+    path = tmp_path / "press.bin"
+    path.write_bytes(data)
+    span = 4096 / (len(data) / 4.0)  # s of scans in 4 KiB: ~0.13 s
+    first = max(f.t_us for f in Decoder().feed(data[:4096]) if f.type in DATA_TYPES) * 1e-6  # the pacing's anchor
+    now = [0.0]
+    emitted = []
+
+    class Times:
+        def write(self, frames):
+            emitted.extend((now[0], frame.t_us * 1e-6) for frame in frames)
+
+    pacer = Pacer(1.0, clock=lambda: now[0], sleep=lambda dt: now.__setitem__(0, now[0] + dt))
+    replay(path, pacer=pacer, writer=Times())
+    late = [w - (t - first) for w, t in emitted if t > 2.0]  # after the tare (held frames go out with it)
+    assert len(late) == 2 * 200 and 0.1 < span < 0.2  # two sensors, 2 s at 100 Hz
+    assert min(late) >= -1e-9 and max(late) <= span
