@@ -167,7 +167,12 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
                 feed_joined()
         feed_joined()
         for pipeline in pipelines.values():
+            counters = pipeline.decoder.counters
+            truncated, discarded = counters.truncated, counters.bytes_discarded
             pipeline.finish(t_last)
+            if hold and counters.truncated > truncated:  # a recording's cut is its reader's to say
+                log.warning("%s ends inside a frame: its last %d bytes are no whole frame (dropped, counted as "
+                            "truncated): the capture was cut short", path, counters.bytes_discarded - discarded)
     finally:  # an interrupted replay's export keeps every frame made so far (the writer gathers them)
         if own:
             writer.close()

@@ -182,3 +182,25 @@ def test_a_paced_raw_capture_emits_each_chunk_at_its_own_board_time(tmp_path):
     late = [w - (t - first) for w, t in emitted if t > 2.0]  # after the tare (held frames go out with it)
     assert len(late) == 2 * 200 and 0.1 < span < 0.2  # two sensors, 2 s at 100 Hz
     assert min(late) >= -1e-9 and max(late) <= span
+
+
+def test_a_raw_capture_cut_inside_a_frame_is_said_with_the_bytes_left_over(tmp_path, caplog):
+    """A capture cut short (head -c) replays every whole frame; the cut was
+    only a 'truncated': 1 in the summary, where a cut MCAP gets a warning.
+    The first 100 of a 272-byte grid frame after a whole capture: 100 bytes
+    left over, said in a warning; a whole capture says nothing."""
+    import logging
+
+    from service.protocol import encode_frame
+
+    data, _ = capture(BoardConfig(scene="press", seed=2), 0.3)
+    grid = encode_frame(FrameType.GRID, 0, 300, 3_000_000, bytes(256))
+    assert len(grid) == 14 + 256 + 2
+    (tmp_path / "whole.bin").write_bytes(data)
+    (tmp_path / "cut.bin").write_bytes(data + grid[:100])
+    with caplog.at_level(logging.WARNING, logger="service.replay"):
+        whole, _ = export(tmp_path / "whole.bin")
+        assert caplog.text == ""
+        cut, pipeline = export(tmp_path / "cut.bin")
+    assert cut == whole and len(whole) == 600 and pipeline.decoder.counters.truncated == 1
+    assert f"{tmp_path / 'cut.bin'} ends inside a frame: its last 100 bytes" in caplog.text
