@@ -103,7 +103,7 @@ def _add_replay(sub) -> None:
     replay.add_argument("file", nargs="?", help="recording (.mcap) or raw capture (any other suffix)")
     replay.add_argument("--raw", metavar="FILE", help="a raw capture (same as giving FILE)")
     replay.add_argument("--speed", type=speed, default=None,
-                        help="1 (real time), 2, … or max (default: max for --export, 1 for --serve)")
+                        help="1 (real time), 2, … (at least 0.0001) or max (default: max for --export, 1 for --serve)")
     replay.add_argument("--serve", action="store_true", help="publish through the live API and dashboard")
     replay.add_argument("--export", metavar="OUT.jsonl", help="write one JSON line per data frame ('-': to stdout); "
                                                               "OUT.parquet: one row per data frame, a Parquet table")

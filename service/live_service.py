@@ -72,10 +72,13 @@ class TactileService:
         self.scheduling = SliceRequest(None, current_slice_us())
         self.calibrations = calibrations if calibrations is not None else CalibrationBook(mounting=mounting)
         share = max(1, history_budget_bytes // len(specs))
-        self._boards = [Board(spec, self.calibrations.with_pinned(list(spec.calibration)) if spec.calibration
-                              else self.calibrations, Histories(share), partial(self._name_board, k), silence_s,
-                              grid_batch_s)
-                        for k, spec in enumerate(specs)]
+        # Filled one by one: a served recording's board names itself from its recorded INFO while it is built
+        # (_name_board then reads the boards before it).
+        self._boards: list[Board] = []
+        for k, spec in enumerate(specs):
+            self._boards.append(Board(spec, self.calibrations.with_pinned(list(spec.calibration)) if spec.calibration
+                                      else self.calibrations, Histories(share), partial(self._name_board, k),
+                                      silence_s, grid_batch_s))
         # Boards without a name until their INFO settles one (never, if it is invalid) must not share
         # ``board``: /health showed one of two, and their sensors' addresses were the same.
         taken = set(names)

@@ -154,7 +154,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
             pacer.wait(pacing_time(board, t_recorded, chunk))
             pending = changes.get(board)
             redo = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
-            if paced or hold or board != joined_board or redo or len(joined) >= JOIN_READS:
+            if hold or board != joined_board or redo or len(joined) >= JOIN_READS:
                 feed_joined()
             pipeline = pipeline_of(board)
             while pending and pending[0][0] <= number:
@@ -163,9 +163,16 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
             joined.append((chunk, t_recorded))
             joined_board = board
             t_last = t_recorded
+            if paced:  # out at its own time: held for the next read's wait, it came out a whole pause late
+                feed_joined()
         feed_joined()
         for pipeline in pipelines.values():
+            counters = pipeline.decoder.counters
+            truncated, discarded = counters.truncated, counters.bytes_discarded
             pipeline.finish(t_last)
+            if hold and counters.truncated > truncated:  # a recording's cut is its reader's to say
+                log.warning("%s ends inside a frame: its last %d bytes are no whole frame (dropped, counted as "
+                            "truncated): the capture was cut short", path, counters.bytes_discarded - discarded)
     finally:  # an interrupted replay's export keeps every frame made so far (the writer gathers them)
         if own:
             writer.close()

@@ -79,6 +79,23 @@ def test_a_port_outside_the_tcp_range_is_refused_by_name(port, capsys):
     assert f"argument --port: port {port if port.lstrip('-').isdigit() else repr(port)}" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("text", ["1e-300", "5e-5"])
+def test_a_replay_speed_too_slow_to_wait_for_is_refused_by_name_before_the_export_is_made(text, tmp_path, capsys):
+    """--speed 1e-300 ended in an OverflowError traceback (a wait of 1e300 s) with an empty export left
+    behind. A day-long recording at the slowest speed, 1e-4, waits 8.64e8 s: within time.sleep's 2**63 ns
+    (9.2e9 s), as is any recording up to 10 days."""
+    out = tmp_path / "x.jsonl"
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["replay", str(tmp_path / "run.bin"), "--export", str(out), "--speed", text])
+    assert exit_.value.code == 2 and f"argument --speed: speed {text!r} must be at least 0.0001" in capsys.readouterr().err
+    assert not out.exists()
+    with pytest.raises(ValueError, match=f"replay:// speed '{text}' must be at least 0.0001"):
+        from service.sources.protocol_replay import parse_replay_url
+
+        parse_replay_url(f"replay://run.mcap?speed={text}")
+    assert 10 * 86400 / 1e-4 < 2**63 * 1e-9  # the bound the docstring gives
+
+
 @pytest.mark.parametrize("command", [["replay", "x.bin"], ["record", "--out", "x.mcap"], ["calibrations", "list"],
                                      ["calibrations", "show", "ab12"]])
 def test_a_registry_named_for_reading_must_exist(command, tmp_path, capsys):

@@ -227,6 +227,44 @@ def test_replay_served_through_the_live_api(tmp_path):
         assert client.get("/sensors/0/latest").json()["header"]["seq"] == 1499
 
 
+def test_a_recording_made_through_the_api_is_served_again(tmp_path):
+    """POST /record/start (the dashboard's Record) records the board's INFO
+    with its zeros (/baselines); serving that recording (replay --serve,
+    serve --source replay://) crashed building the service (its board named
+    itself from that INFO before the service held its boards). Served, it
+    gives every frame recorded, under the board's recorded name, the last
+    not taring (it starts from the recorded zeros)."""
+    live = TactileService("sim://?scene=press&rate=200", recordings_dir=tmp_path)
+    with TestClient(create_app(live), base_url="http://localhost") as client:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and len(live.pipeline.latest) < 2:
+            time.sleep(0.02)
+        assert client.post("/record/start", json={"name": "api.mcap"}).status_code == 200
+        time.sleep(0.5)
+        assert client.post("/record/stop").json()["error"] is None
+    # What serving it must give: every frame of the recorded bytes (the recorded forces may lack the last
+    # read's, reconstructed after the stop).
+    recorded = {}
+    for frame in Decoder().feed(b"".join(chunk for _, chunk in read_raw(tmp_path / "api.mcap"))):
+        recorded.setdefault(frame.sensor, []).append(frame.seq)
+    board = next(orjson.loads(m.data)["board"] for topic, m in iter_messages(tmp_path / "api.mcap")
+                 if topic == "/baselines")
+    assert len(recorded[0]) > 20  # 0.5 s at 200 Hz: ~100, fewer on a loaded machine
+    service = TactileService(f"replay://{tmp_path / 'api.mcap'}?speed=max")
+    assert service.primary.name == board
+    with TestClient(create_app(service), base_url="http://localhost") as client:
+        def served():
+            sensors = client.get("/health").json()["sensors"]
+            return {sid: sensors.get(str(sid), {}).get("frames") for sid in recorded}
+
+        deadline = time.monotonic() + 20  # a loaded machine's worst; done in well under a second
+        while time.monotonic() < deadline and served() != {sid: len(seqs) for sid, seqs in recorded.items()}:
+            time.sleep(0.05)
+        assert served() == {sid: len(seqs) for sid, seqs in recorded.items()}
+        latest = client.get("/sensors/0/latest").json()
+        assert latest["header"]["seq"] == recorded[0][-1] and "taring" not in latest["flags"]
+
+
 def test_record_from_the_api_into_the_recordings_directory_only(tmp_path):
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")
@@ -348,6 +386,28 @@ def test_a_paced_recording_keeps_its_pauses_but_not_the_host_clocks_steps(tmp_pa
             served += port.read(1 << 16)
     assert served == b"".join(chunk for _, chunk in read_raw(path))
     assert sum(slept) == pytest.approx(30.002, abs=0.01) and max(slept) == pytest.approx(20.0, abs=0.01)
+
+
+def test_a_paced_replay_emits_each_read_at_its_own_recorded_time(tmp_path):
+    """Each read of stepped_recording is one scan, received 2 ms after it:
+    paced, its frames go out when the replay reaches its receive time, as
+    far after the first frame as their scan is on the board clock. They
+    went out one read late, after the wait for the next read: the last
+    scan before the board's 20 s silence came out 20 s late."""
+    path = stepped_recording(tmp_path / "pause.mcap", 0.0)
+    pacer, _ = virtual_pacer()
+    now = pacer._clock
+    emitted = []
+
+    class Times:
+        def write(self, frames):
+            emitted.extend((now(), frame.t_us * 1e-6) for frame in frames)
+
+    replay(path, pacer=pacer, writer=Times())
+    assert len(emitted) == 2 * 1000
+    (w0, b0) = emitted[0]
+    late = [(w - w0) - (b - b0) for w, b in emitted]
+    assert max(late) == pytest.approx(0.0, abs=1e-6) and min(late) == pytest.approx(0.0, abs=1e-6)
 
 
 def recorded_diagnostics(path):

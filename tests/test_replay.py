@@ -155,3 +155,52 @@ def test_a_paced_raw_capture_goes_on_across_a_board_restart_without_a_wait(tmp_p
     assert sum(slept) == pytest.approx(times[-1] - times[0]) and max(slept) < 0.1
     assert len(slept) > 0.9 * (len(times) - 1)  # every chunk after the restart paced too
     assert paced.getvalue() == fast.getvalue() and fast.getvalue().count(b"\n") > 1000
+
+
+def test_a_paced_raw_capture_emits_each_chunk_at_its_own_board_time(tmp_path):
+    """Paced, a raw capture is read 4 KiB at a time, each chunk timed by the
+    newest scan it completes: its frames go out then, at most one chunk's
+    span after their own scan, never before it. They went out a chunk late,
+    after the wait for the next chunk (up to twice that span)."""
+    from service.protocol_decoder import Decoder
+    from service.record.pacing import Pacer
+
+    data, _ = capture(BoardConfig(scene="press", rate_hz=100, seed=3), 4.0)
+    path = tmp_path / "press.bin"
+    path.write_bytes(data)
+    span = 4096 / (len(data) / 4.0)  # s of scans in 4 KiB: ~0.13 s
+    first = max(f.t_us for f in Decoder().feed(data[:4096]) if f.type in DATA_TYPES) * 1e-6  # the pacing's anchor
+    now = [0.0]
+    emitted = []
+
+    class Times:
+        def write(self, frames):
+            emitted.extend((now[0], frame.t_us * 1e-6) for frame in frames)
+
+    pacer = Pacer(1.0, clock=lambda: now[0], sleep=lambda dt: now.__setitem__(0, now[0] + dt))
+    replay(path, pacer=pacer, writer=Times())
+    late = [w - (t - first) for w, t in emitted if t > 2.0]  # after the tare (held frames go out with it)
+    assert len(late) == 2 * 200 and 0.1 < span < 0.2  # two sensors, 2 s at 100 Hz
+    assert min(late) >= -1e-9 and max(late) <= span
+
+
+def test_a_raw_capture_cut_inside_a_frame_is_said_with_the_bytes_left_over(tmp_path, caplog):
+    """A capture cut short (head -c) replays every whole frame; the cut was
+    only a 'truncated': 1 in the summary, where a cut MCAP gets a warning.
+    The first 100 of a 272-byte grid frame after a whole capture: 100 bytes
+    left over, said in a warning; a whole capture says nothing."""
+    import logging
+
+    from service.protocol import encode_frame
+
+    data, _ = capture(BoardConfig(scene="press", seed=2), 0.3)
+    grid = encode_frame(FrameType.GRID, 0, 300, 3_000_000, bytes(256))
+    assert len(grid) == 14 + 256 + 2
+    (tmp_path / "whole.bin").write_bytes(data)
+    (tmp_path / "cut.bin").write_bytes(data + grid[:100])
+    with caplog.at_level(logging.WARNING, logger="service.replay"):
+        whole, _ = export(tmp_path / "whole.bin")
+        assert caplog.text == ""
+        cut, pipeline = export(tmp_path / "cut.bin")
+    assert cut == whole and len(whole) == 600 and pipeline.decoder.counters.truncated == 1
+    assert f"{tmp_path / 'cut.bin'} ends inside a frame: its last 100 bytes" in caplog.text

@@ -5,9 +5,14 @@ import math
 import time
 from typing import Callable
 
+# The slowest speed: a recording's waits, its span / speed, must stay within time.sleep's range (2**63 ns,
+# 9.2e9 s): at 1e-4 they do for a recording of up to 10 days (a day's: 8.64e8 s).
+MIN_SPEED = 1e-4
+
 
 def parse_speed(text: str) -> float:
-    """'1', '2.5', … or 'max' (as fast as possible: math.inf); ValueError naming the text otherwise."""
+    """'1', '2.5', … (at least MIN_SPEED) or 'max' (as fast as possible:
+    math.inf); ValueError naming the text otherwise."""
     if text == "max":
         return math.inf
     try:
@@ -16,6 +21,8 @@ def parse_speed(text: str) -> float:
         raise ValueError(f"speed {text!r} must be a number or 'max'") from None
     if not speed > 0:
         raise ValueError(f"speed {text!r} must be > 0")
+    if speed < MIN_SPEED:
+        raise ValueError(f"speed {text!r} must be at least {MIN_SPEED} (slower, a recording's waits overflow)")
     return speed
 
 
