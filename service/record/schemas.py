@@ -80,13 +80,20 @@ BASELINES = {
 
 RESUME = {
     "title": "tactile.Resume",
-    "description": "Once a second of reads, the zeros and INFO in force before the board's read after_reads: where "
-                   "a replay whose first reads were lost (a damaged chunk) begins, as the recording ran from there",
+    "description": "Once a second of reads, the zeros, INFO and calibrations in force before the board's read "
+                   "after_reads: where a replay whose first reads were lost (a damaged chunk) begins, as the "
+                   "recording ran from there",
     "type": "object",
     "properties": {**BASELINES["properties"],
                    "after_reads": {"type": "integer", "description": "the board's reads recorded before it"},
                    "described": {"type": "array", "items": {"type": "integer"},
-                                 "description": "the sensors then described (by INFO or their frames), tared or not"}},
+                                 "description": "the sensors then described (by INFO or their frames), tared or not"},
+                   "calibrations": {"type": "array", "description": "the calibration each sensor seen was then "
+                                                                    "reconstructed with (absent in older recordings)",
+                                    "items": {"type": "object", "properties": {
+                                        "board": {"type": "string"}, "sensor": {"type": "integer"},
+                                        "id": {"type": "string"},
+                                        "key": {"type": "string", "description": "its identity, as /calibrations"}}}}},
 }
 
 TARE = {
