@@ -114,7 +114,8 @@ class McapLog:
 
     def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "") -> None:
         """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded, …} when the recording
-        began; ``info``: the board's INFO then in force (Interpreter.info_document), if any."""
+        began (one taring: its window so far, ``taring``); ``info``: the board's INFO then in force
+        (Interpreter.info_document), if any."""
         self._add(f"{prefix}/baselines", "baselines", t_host,
                   {"board": board, "sensors": sensors, **({"info": info} if info is not None else {})})
 
