@@ -71,6 +71,31 @@ def test_baseline_mean_of_first_frames_ignoring_sentinels():
     np.testing.assert_array_equal(base.value[:2], [2.0, 2.0])
 
 
+def test_a_tare_window_gone_on_with_elsewhere_gives_the_zero_of_the_whole_window():
+    """A recording begun mid-tare stores the window so far (JSON); a replay
+    goes on with it: a 3-channel window of 4 readings, 2 before (a sentinel
+    among them) and 2 after, gives mean [2, 2] and spread [1, 0] as one
+    baseline fed all 4 does; a window of another size is refused by name."""
+    import json
+
+    rows = [[1.0, 2.0, np.nan], [3.0, 2.0, np.nan], [1.0, 2.0, np.nan], [3.0, 2.0, np.nan]]
+    live = Baseline(3, frames=4)
+    for row in rows[:2]:
+        live.update(np.array(row))
+    so_far = json.loads(json.dumps(live.window_so_far()))
+    again = Baseline(3, frames=4)
+    again.resume_window(so_far)
+    assert not again.ready
+    for row in rows[2:]:
+        again.update(np.array(row))
+    assert again.ready
+    np.testing.assert_array_equal(again.value[:2], [2.0, 2.0])
+    np.testing.assert_array_equal(again.std[:2], [1.0, 0.0])
+    assert np.isnan(again.value[2]) and again.window_so_far() is None
+    with pytest.raises(ValueError, match="of 3 channels: this baseline has 4 channels"):
+        Baseline(4, frames=4).resume_window(so_far)
+
+
 def test_reconstructor_tares_then_reports_and_retares():
     rec = Reconstructor(tare_frames=3, level="level0")
     c0 = table1().c0_pF

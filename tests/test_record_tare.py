@@ -312,6 +312,42 @@ def test_a_recording_begun_on_a_running_service_replays_from_the_zeros_it_began_
     assert sorted(board.pipeline.reconstructor._preset) == [z["sensor"] for z in zeros]
 
 
+@pytest.mark.parametrize("forced_at", [None, 600])
+def test_a_recording_begun_while_a_sensor_tares_replays_its_tare_as_it_ran_live(tmp_path, pressed, forced_at):
+    """Begun during the auto-tare (``forced_at`` None) or a forced tare made
+    just before: the zeros then in force (/baselines) had none for the
+    taring sensors, so the replay tared them afresh on the recording's first
+    100 frames: frames null and flagged ``taring`` that had forces live, and
+    another zero after. The window so far is recorded with the zeros and the
+    replay goes on with it: its frames equal the live ones, the taring ones
+    included, bit for bit."""
+    pipeline = Pipeline(Reconstructor(level="table"))
+    taring = []  # frames of the window live: the recording begins in its middle
+    pipeline.listeners.append(lambda frames: taring.extend(f for f in frames if "taring" in f.flags))
+    begin = None if forced_at is None else forced_at + 4  # ~25 frames of sensor 0 into the forced tare's window
+    recorder = None
+    for i, chunk in reads(pressed):
+        if i == forced_at:
+            pipeline.tare(force=True)
+            taring.clear()
+        if recorder is None and (i == begin or begin is None and sum(f.sensor.id == 0 for f in taring) >= 30):
+            before = sum(f.sensor.id == 0 for f in taring)
+            assert 0 < before < 100
+            recorder = Recorder(tmp_path / "run.mcap")
+            recorder.attach(pipeline)
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    live = by_frame(recorded_forces(tmp_path / "run.mcap"))
+    again = by_frame(replayed_forces(tmp_path / "run.mcap"))
+    assert again.keys() == live.keys() and len(live) > 2000
+    # The rest of the window live, and only that, is null and flagged in the replay (of its 100 readings the
+    # last completes it: it has forces).
+    rest = [key for key, doc in live.items() if key[0] == 0 and "taring" in doc["flags"]]
+    assert len(rest) == 99 - before
+    assert [key for key, doc in again.items() if key[0] == 0 and "taring" in doc["flags"]] == rest
+    assert [key for key in live if live[key] != again[key]] == []
+
+
 def test_a_tare_made_again_by_a_replay_is_recorded_by_a_recording_of_it(tmp_path, pressed):
     """Recording a served replay (replay:// with a Recorder attached): the
     replayed tares are tares of that stream too, so the new recording holds

@@ -132,6 +132,37 @@ class Baseline:
         if self.ready:
             self._narrow_late()
 
+    def window_so_far(self) -> dict | None:
+        """A tare window in progress as JSON values (None once ready): readings
+        ``seen``, ``restarts``, and per channel its valid readings ``count``,
+        their running ``sum_pF`` and ``sum_sq_pF2`` and the readings
+        themselves, ``samples_pF`` (row k: each channel's k-th, None for none):
+        what a recording begun now stores so its replay goes on with it."""
+        if self.ready:
+            return None
+        rows = int(self._count.max(initial=0))
+        return {"seen": self._seen, "restarts": self.restarts, "count": self._count.tolist(),
+                "sum_pF": self._sum.tolist(), "sum_sq_pF2": self._sum_sq.tolist(),
+                "samples_pF": [[None if v != v else v for v in row] for row in self._samples[:rows].tolist()]}
+
+    def resume_window(self, so_far: dict) -> None:
+        """Go on with a tare window ``window_so_far`` gave (made elsewhere: a
+        recording's, begun while the sensor tared); ValueError when it is not
+        this baseline's size."""
+        count = np.array(so_far["count"], dtype=np.int64)
+        total, total_sq = np.array(so_far["sum_pF"], dtype=float), np.array(so_far["sum_sq_pF2"], dtype=float)
+        samples = np.array([[np.nan if v is None else v for v in row] for row in so_far["samples_pF"]], dtype=float)
+        seen = int(so_far["seen"])
+        shapes = {count.shape, total.shape, total_sq.shape} | ({samples.shape[1:]} if samples.size else set())
+        if shapes != {self._count.shape} or not len(samples) <= seen < self.frames:
+            raise ValueError(f"tare window of {seen} readings ({len(samples)} kept) of {count.size} channels: this "
+                             f"baseline has {self._count.size} channels and a window of {self.frames}")
+        self.tare()
+        self._count, self._sum, self._sum_sq = count, total, total_sq
+        if samples.size:
+            self._samples[: len(samples)] = samples
+        self._seen, self.restarts = seen, int(so_far["restarts"])
+
     def substitute(self, channels: np.ndarray, values_pF: np.ndarray) -> None:
         """Take ``values_pF`` (channels,) as the zero of ``channels`` (bool
         mask): a loaded tare's taxels get the calibration's C0. A new array,

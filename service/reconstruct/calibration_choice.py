@@ -94,6 +94,11 @@ class CalibrationChoice:
         state = self._sensors.get(sensor_id)
         return None if state is None else state.calibration
 
+    def in_force(self) -> list[tuple[SensorInfo, str]]:
+        """(the sensor as its calibration was chosen for it, the calibration's
+        id) of each sensor seen, by id: what its frames are reconstructed with now."""
+        return [(state.info, state.calibration.id) for _, state in sorted(self._sensors.items())]
+
     def _calibration_for(self, info: SensorInfo) -> SensorCalibration:
         """Chosen by set_calibration, else ``resolve``'s, else the built-in one.
         A calibration that does not fit the sensor is set aside, with the

@@ -162,50 +162,82 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             state.stored_zero = self._stored_zero(info, calibration.id)
             state.judge_tare = self._first_judge.pop(info.id, True)
             zero = self._preset.pop(info.id, None)
-            if zero is not None and len(zero["baseline_pF"]) == info.channels:
+            if zero is not None and zero.get("taring") is not None:
+                self._resume_taring(state, zero)
+            elif zero is not None and len(zero["baseline_pF"]) == info.channels:
                 state.baseline.preset(_array(zero["baseline_pF"]), _array(zero["std_pF"]))
                 state.tare_judged = True  # judged live, before the recording
                 # A forced zero stays the zero when a calibration set later has it judged again, as it did live.
                 state.judge_tare = zero.get("judge") is not False
                 if zero.get("loaded"):
                     state.loaded = np.isin(np.arange(info.channels), zero["loaded"])
-                if zero.get("stale_runs") is not None and len(zero["stale_runs"]) == info.channels:
-                    state.processor.restore_stale_runs(_array(zero["stale_last_pF"]), zero["stale_runs"])
-                if zero.get("cycles") is not None and state.cycles is not None:
-                    state.cycles.resume(zero)
+                self._resume_counts(state, zero)
                 if zero.get("drift") is not None and isinstance(state.processor, QuadProcessor):
                     resume(state.processor, state.baseline, zero["drift"])
             self._sensors[info.id] = state
         return state
+
+    def _resume_taring(self, state: SensorState, zero: dict) -> None:
+        """A recording begun while the sensor tared: its window goes on from
+        the readings it had (judged at its end as live: forced or not); one
+        that does not fit the sensor is said and the sensor tares afresh."""
+        try:
+            state.baseline.resume_window(zero["taring"])
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("sensor %d: the tare window the recording began in cannot be gone on with (%s): tared "
+                        "afresh", state.info.id, exc)
+            return
+        state.judge_tare = zero.get("judge") is not False
+        self._resume_counts(state, zero)
+
+    @staticmethod
+    def _resume_counts(state: SensorState, zero: dict) -> None:
+        """Where a recorded sensor's stale-channel and load-cycle counts stood (``baselines``)."""
+        if zero.get("stale_runs") is not None and len(zero["stale_runs"]) == state.info.channels:
+            state.processor.restore_stale_runs(_array(zero["stale_last_pF"]), zero["stale_runs"])
+        if zero.get("cycles") is not None and state.cycles is not None:
+            state.cycles.resume(zero)
 
     def baselines(self) -> list[dict]:
         """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
         judge (False: a forced tare's, the load present is the zero), where
         its stale-channel count stands: stale_last_pF, stale_runs, its
         load-cycle count: cycles, cycles_seen, cycles_armed, and a quad's
-        drift tracker: drift} (NaN as None), what a recording begun now
-        stores for its replay."""
+        drift tracker: drift} (NaN as None); a sensor taring, its window so
+        far instead of a zero: {sensor, taring (Baseline.window_so_far),
+        judge, and those counts}. What a recording begun now stores for its
+        replay."""
         out = []
         for sid, state in sorted(self._sensors.items()):
-            if state.baseline.ready:
-                zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
-                        "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist(),
-                        "judge": state.judge_tare}
-                runs = state.processor.stale_runs
-                if runs is not None:
-                    zero |= {"stale_last_pF": _listed(runs[0]), "stale_runs": runs[1].tolist()}
-                if state.cycles is not None:
-                    zero |= state.cycles.where()
-                drift = where(state.processor, state.baseline.value) if isinstance(state.processor, QuadProcessor) else None
-                if drift is not None:
-                    zero["drift"] = drift
-                out.append(zero)
+            if not state.baseline.ready:
+                out.append({"sensor": sid, "taring": state.baseline.window_so_far(), "judge": state.judge_tare,
+                            **self._counts(state)})
+                continue
+            zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
+                    "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist(),
+                    "judge": state.judge_tare, **self._counts(state)}
+            drift = where(state.processor, state.baseline.value) if isinstance(state.processor, QuadProcessor) else None
+            if drift is not None:
+                zero["drift"] = drift
+            out.append(zero)
         return out
+
+    @staticmethod
+    def _counts(state: SensorState) -> dict:
+        """Where the sensor's stale-channel and load-cycle counts stand, as ``baselines`` gives them."""
+        counts = {}
+        runs = state.processor.stale_runs
+        if runs is not None:
+            counts |= {"stale_last_pF": _listed(runs[0]), "stale_runs": runs[1].tolist()}
+        if state.cycles is not None:
+            counts |= state.cycles.where()
+        return counts
 
     def preset_baselines(self, zeros: list[dict]) -> None:
         """Zeros a recording stored (``baselines``) for the sensors it will
         show: each starts tared with its own when first seen, as it ran live,
-        not with a tare on whatever load the recording begins with."""
+        not with a tare on whatever load the recording begins with (one then
+        taring goes on with its window so far)."""
         for zero in zeros:
             self._preset[int(zero["sensor"])] = zero
 

@@ -8,7 +8,8 @@ from pathlib import Path
 import orjson
 
 from ..physics.paper_data import BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS, TABLE1_ROWS
-from .mcap_reader import iter_messages, read_calibrations_set
+from .mcap_reader import iter_messages, read_calibrations_set, read_changes
+from .resume import resumed_calibrations
 
 log = logging.getLogger(__name__)
 
@@ -27,12 +28,15 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
     a board whose INFO came after its first frames names its sensors' own
     calibration then, as live; a calibration set for the same identity
     while recording (an upload) is set again where it was (replay.py), in a
-    recording made before those were recorded it is not, and a warning says so."""
+    recording made before those were recorded it is not, and a warning says so.
+    A recording whose first reads were lost (a damaged chunk, with them the
+    first entries) begins each sensor on the calibration it ran on where its
+    replay begins (record/resume.py; a later upload is not that)."""
     found: dict[int | str, list[dict]] = {}
     cycles: dict[int | str, dict[tuple, list[int]]] = {}
     for _, message in iter_messages(path, {"/calibrations"}):
         doc = orjson.loads(message.data)
-        sensor = f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
+        sensor = _address(doc)
         if not doc["id"]:  # frames made while the sensor had no state name none
             continue
         entries = found.setdefault(sensor, [])
@@ -40,6 +44,7 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
             entries.append({"id": doc["id"], "key": doc.get("key"), "document": doc.get("document")})
         if doc.get("cycles_at_start") is not None:
             cycles.setdefault(sensor, {}).setdefault((doc.get("key"), doc["id"]), doc["cycles_at_start"])
+    _begin_where_resumed(path, found)
     replayed = read_calibrations_set(path)  # set again by the replay where they were set (replay.py)
     for sensor, entries in found.items():
         differ = [e["id"] for e in _not_replayed(entries) if (sensor, e["id"]) not in replayed]
@@ -49,6 +54,34 @@ def recorded_calibrations(path: str | Path) -> tuple[dict, dict]:
                         "forces with %s differ from the recorded ones", path, sensor,
                         " → ".join(e["id"] for e in entries), ", ".join(differ))
     return found, cycles
+
+
+def _address(doc: dict) -> int | str:
+    """A recorded sensor's address: board/id, or its id in a recording made before boards were named."""
+    return f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"])
+
+
+def _begin_where_resumed(path: str | Path, found: dict[int | str, list[dict]]) -> None:
+    """Put first, in ``found``, each sensor's calibration in force where the
+    replay of a board whose first reads were lost begins: the entry that
+    named it may be lost with them, and the first left can be one set only
+    later. A document found nowhere else in the file (not a built-in one)
+    cannot be reconstructed on: the entry has none, so the sensor takes the
+    built-in calibration and its frames name that, and a warning says so."""
+    documents = {e["id"]: e["document"] for entries in found.values() for e in entries if e["document"]}
+    documents |= {change["id"]: change for made in read_changes(path).values() for _, _, change in made
+                  if isinstance(change, dict)}
+    for after_reads, in_force in resumed_calibrations(path):
+        for ran in in_force:
+            sensor, calibration_id = _address(ran), ran["id"]
+            document = documents.get(calibration_id)
+            if document is None and not calibration_id.startswith("builtin"):
+                log.warning("%s: sensor %s ran on calibration %s at read %d, where its replay begins after the lost "
+                            "start, and that calibration's document was lost with it: replayed on the built-in "
+                            "calibration, which its frames name", path, sensor, calibration_id, after_reads)
+            begins = {"id": calibration_id, "key": ran["key"], "document": document}
+            found[sensor] = [begins] + [e for e in found.get(sensor, []) if (e["id"], e["key"]) != (calibration_id,
+                                                                                                   ran["key"])]
 
 
 def first_for_identity(entries: list[dict], key: str) -> dict:

@@ -13,7 +13,7 @@ replay reconstructs with it whatever the registry holds then), ``/tare``
 (tactile.Tare: a tare made while recording, with the read before which it
 took effect, so a replay makes it there), ``/calibration_set`` (tactile.CalibrationSet: a calibration
 set while recording, an upload, likewise placed), ``/resume`` (tactile.Resume: once a second of reads, the
-zeros and INFO in force before a read, where a replay whose start was lost to a damaged chunk begins), ``/settings`` (tactile.Settings: the level and mounting the
+zeros, INFO and calibrations in force before a read, where a replay whose start was lost to a damaged chunk begins), ``/settings`` (tactile.Settings: the level and mounting the
 board's forces were reconstructed with, which its replay takes). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
 
@@ -114,16 +114,22 @@ class McapLog:
 
     def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "") -> None:
         """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded, …} when the recording
-        began; ``info``: the board's INFO then in force (Interpreter.info_document), if any."""
+        began (one taring: its window so far, ``taring``); ``info``: the board's INFO then in force
+        (Interpreter.info_document), if any."""
         self._add(f"{prefix}/baselines", "baselines", t_host,
                   {"board": board, "sensors": sensors, **({"info": info} if info is not None else {})})
 
     def resume(self, board: str, after_reads: int, sensors: list[dict], info: dict | None, described: list[int],
-               t_host: float, prefix: str = "") -> None:
+               in_force: list[tuple], t_host: float, prefix: str = "") -> None:
         """The zeros (``sensors``, as ``baselines``) and INFO in force before the board's read ``after_reads``
-        of the recording, and the sensors then described (``described``, tared or not)."""
+        of the recording, the sensors then described (``described``, tared or not) and ``in_force``: (SensorInfo,
+        calibration id) each seen sensor was reconstructed with (named as in /calibrations, whose entry for it
+        may be lost with the recording's start)."""
+        calibrations = [{"board": sensor.board, "sensor": sensor.id, "id": calibration_id,
+                         "key": sensor_identity(sensor.board_info or {}, sensor)["key"]}
+                        for sensor, calibration_id in in_force]
         self._add(f"{prefix}/resume", "resume", t_host, {"board": board, "after_reads": after_reads, "sensors": sensors,
-                                                         "described": described,
+                                                         "described": described, "calibrations": calibrations,
                                                          **({"info": info} if info is not None else {})})
 
     def settings(self, board: str, level: str, mounting: str, t_host: float, prefix: str = "") -> None:

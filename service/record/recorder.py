@@ -246,9 +246,9 @@ class _Listeners:
             put(("diag", (self.pipeline, self.pipeline.diagnostics()), t_host))
             after_reads = self.pipeline.reads - self._first_read
             if after_reads:  # where a replay whose start was lost (a damaged chunk) can begin: the first read has it
-                interpreter = self.pipeline.interpreter
-                put(("resume", (self.pipeline, (after_reads, self.pipeline.reconstructor.baselines(),
-                                                interpreter.info_document(), sorted(interpreter.sensors))), t_host))
+                interpreter, reconstructor = self.pipeline.interpreter, self.pipeline.reconstructor
+                put(("resume", (self.pipeline, (after_reads, reconstructor.baselines(), interpreter.info_document(),
+                                                sorted(interpreter.sensors), reconstructor.in_force())), t_host))
         put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:

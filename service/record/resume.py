@@ -5,7 +5,8 @@ The recorder writes, once a second of reads, the zeros and INFO in force
 before a read (``/resume``); a replay of a board whose first reads are gone
 begins at the first such point after them, as the recording ran from
 there, rather than describing its sensors by their frames alone (under the
-name "board") and taring them again on whatever load came next. The reads
+name "board") and taring them again on whatever load came next, each sensor
+on the calibration it then ran on (record/calibrations.py). The reads
 between the damage and that point (a second at most) are skipped: the
 zeros they were reconstructed with are unknown.
 """
@@ -30,3 +31,11 @@ def lost_start(path: str | Path, board: str | None) -> tuple[int, dict | None]:
     its replay begins at, when that is not 0 and one was recorded)."""
     first = next((number for name, number, _, _ in read_numbered(path) if name == board), 0)
     return first, resume_point(read_resumes(path).get(board, []), first) if first else None
+
+
+def resumed_calibrations(path: str | Path) -> list[tuple[int, list[dict]]]:
+    """(the read a board whose first reads were lost begins at, the calibration
+    each of its sensors then ran on: [{"board", "sensor", "id", "key"}], none
+    in a recording made before /resume held them) of each such board."""
+    points = (lost_start(path, board)[1] for board in read_resumes(path))
+    return [(point["after_reads"], point.get("calibrations", [])) for point in points if point is not None]

@@ -50,7 +50,8 @@ CALIBRATION = {
 BASELINES = {
     "title": "tactile.Baselines",
     "description": "The zeros in force when a recording began on a running service (sensors tared before it): "
-                   "a replay starts from them instead of taring afresh on whatever load the recording begins with",
+                   "a replay starts from them instead of taring afresh on whatever load the recording begins with; "
+                   "a sensor then taring has its window so far instead (taring), which the replay goes on with",
     "type": "object",
     "properties": {
         "board": {"type": "string"},
@@ -64,6 +65,10 @@ BASELINES = {
                        "description": "taxels whose zero is the calibration's C0 (loaded at the tare)"},
             "judge": {"type": "boolean", "description": "the zero is judged against a calibration set later (false: a "
                                                       "forced tare's, the load present is the zero; absent: true)"},
+            "taring": {"type": ["object", "null"], "description": "a tare window in progress (no baseline_pF then): "
+                                                                "readings seen, restarts, and per channel its valid "
+                                                                "readings' count, sum_pF, sum_sq_pF2, samples_pF "
+                                                                "(baseline.py window_so_far)"},
             "stale_last_pF": {"type": "array", "items": {"type": ["number", "null"]},
                               "description": "each channel's last reading, where its stale count stands"},
             "stale_runs": {"type": "array", "items": {"type": "integer"},
@@ -80,13 +85,20 @@ BASELINES = {
 
 RESUME = {
     "title": "tactile.Resume",
-    "description": "Once a second of reads, the zeros and INFO in force before the board's read after_reads: where "
-                   "a replay whose first reads were lost (a damaged chunk) begins, as the recording ran from there",
+    "description": "Once a second of reads, the zeros, INFO and calibrations in force before the board's read "
+                   "after_reads: where a replay whose first reads were lost (a damaged chunk) begins, as the "
+                   "recording ran from there",
     "type": "object",
     "properties": {**BASELINES["properties"],
                    "after_reads": {"type": "integer", "description": "the board's reads recorded before it"},
                    "described": {"type": "array", "items": {"type": "integer"},
-                                 "description": "the sensors then described (by INFO or their frames), tared or not"}},
+                                 "description": "the sensors then described (by INFO or their frames), tared or not"},
+                   "calibrations": {"type": "array", "description": "the calibration each sensor seen was then "
+                                                                    "reconstructed with (absent in older recordings)",
+                                    "items": {"type": "object", "properties": {
+                                        "board": {"type": "string"}, "sensor": {"type": "integer"},
+                                        "id": {"type": "string"},
+                                        "key": {"type": "string", "description": "its identity, as /calibrations"}}}}},
 }
 
 TARE = {
