@@ -68,6 +68,9 @@ class GatewayService:
     def health(self) -> dict:
         report = health_report(self)
         report["gateway"] = {"boards": len(self._boards), "boards_refused": self.boards_refused}
+        if self.zenoh is not None:
+            report["problems"] += self.zenoh.problems(time.monotonic())
+        report["status"] = "degraded" if report["problems"] else "ok"
         return report
 
     def start_recording(self, name: str | None = None) -> dict:
