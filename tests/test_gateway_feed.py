@@ -12,7 +12,7 @@ import numpy as np
 import orjson
 import pytest
 
-from service.net.zenoh_config import frame_key, open_session, sensors_key, session_config
+from service.net.zenoh_config import alive_key, frame_key, open_session, sensors_key, session_config
 from service.net.zenoh_feed import ZenohFeed
 from service.net.zenoh_publisher import encode
 from service.readings import SensorInfo
@@ -27,16 +27,17 @@ class Peer:
     def __init__(self, endpoint: str, board: str, instance: str, sensors: list) -> None:
         self.board, self.instance = board, instance
         self.session = open_session(session_config(connect=[endpoint], multicast=False))
+        self.token = self.session.liveliness().declare_token(alive_key(board, instance))
         document = orjson.dumps({"board": board, "instance": instance, "info": {}, "sensors": sensors})
         self.queryable = self.session.declare_queryable(sensors_key(board),
                                                         lambda query: query.reply(sensors_key(board), document))
 
-    def put(self, kind: str, n: int, seq: int) -> None:
-        """One frame of sensor 0 with ``n`` forces of 1 N each (σ 0.1 N)."""
-        info = SensorInfo(0, kind, 8, 8, board=self.board)
+    def put(self, kind: str, n: int, seq: int, sensor: int = 0) -> None:
+        """One frame of ``sensor`` with ``n`` forces of 1 N each (σ 0.1 N)."""
+        info = SensorInfo(sensor, kind, 8, 8, board=self.board)
         frame = ForceFrame(info, seq, 1000 * seq, time.time(), np.ones(n), np.zeros(n), [], "full",
                            calibration="x", sigma_N=np.full(n, 0.1), t_host_scan=time.time())
-        self.session.put(frame_key(self.board, 0), encode([frame]), attachment=self.instance.encode())
+        self.session.put(frame_key(self.board, sensor), encode([frame]), attachment=self.instance.encode())
 
 
 @pytest.fixture
@@ -109,3 +110,30 @@ def test_each_announced_shape_beyond_the_protocol_is_refused_naming_it(entry, wh
     assert list(shapes) == [1] and shapes[1].channels == 4  # the other sensor is still taken
     [reason] = refused
     assert why in reason, reason
+
+
+def test_what_a_service_sends_under_a_name_after_renaming_it_is_dropped_and_counted(feed):
+    """A bare board's frames go out as `board` until its INFO names it; its
+    service then says {"renamed_to": NAME}: the frames taken before are
+    delivered, and the frames still in flight under the old name are
+    dropped, counted (the gateway forgets the name at once)."""
+    feed, endpoint, delivered = feed
+    peer = Peer(endpoint, "board", "lab:20:eeeeee", [{"id": 0, "kind": "quad", "rows": 2, "cols": 2}])
+    try:
+        time.sleep(0.5)
+        for seq in range(20):
+            peer.put("quad", 3, seq)
+            time.sleep(0.02)
+        time.sleep(0.3)
+        peer.session.put("tactile/board/health", orjson.dumps({"board": "board", "renamed_to": "LATE-1"}),
+                         attachment=peer.instance.encode())
+        time.sleep(0.3)
+        for seq in range(20, 30):
+            peer.put("quad", 3, seq)
+            time.sleep(0.02)
+        time.sleep(0.3)
+    finally:
+        peer.session.close()
+    time.sleep(0.3)
+    assert [f.seq for board, frames in delivered for f in frames] == list(range(20))
+    assert feed.status()["samples_renamed"] >= 10  # the 10 frames, and its token's withdrawal

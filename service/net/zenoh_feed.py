@@ -15,7 +15,11 @@ refused, and so is a record whose forces do not fill its sensor's shape;
 both are counted and named in ``problems`` (the gateway's /health). Each
 sample and token names the service instance that sent it; ``claims`` (board_claims.py)
 says which instance each board name is served from, and the others' samples
-are dropped unparsed, their liveliness not passed on.
+are dropped unparsed, their liveliness not passed on. A health sample
+``{"renamed_to": NAME}`` is a service saying it renamed the board (a bare
+board's provisional name, at its first INFO): what that instance sends
+under the old name afterwards (frames in flight, its token's withdrawal) is
+dropped, counted in ``samples_renamed``.
 """
 from __future__ import annotations
 
@@ -45,6 +49,7 @@ REMOTE_LEVEL = "remote"  # a gateway's frames: reconstructed elsewhere, the leve
 QUAD_FORCES = 3  # Fx, Fy, Fz
 REFUSALS_KEPT_S = 60.0  # a refusal's problem line stays this long after the last one
 MAX_REFUSALS = 16  # boards with a refusal told; beyond, the least recent is forgotten
+MAX_RENAMED = 64  # (old name, instance) pairs remembered; a service renames each board at most once
 
 
 def _board_of(key) -> str:
@@ -76,6 +81,9 @@ class ZenohFeed:
         self.misfit_frames = 0  # records whose forces do not fill their sensor's announced shape
         self._refusals: dict[str, tuple[float, str]] = {}  # board → (monotonic time, why), the latest
         self._refusals_lock = threading.Lock()  # written by the feed's thread, read by the event loop's
+        self._renamed: dict[tuple[str, str], float] = {}  # (old name, instance) → when its service said so
+        self._forgotten: deque[str] = deque()  # boards the gateway forgot, for the feed's thread to forget
+        self.samples_renamed = 0
         self._subscriptions: list = []
         self._thread = threading.Thread(target=self._run, name="tactile-gateway-feed", daemon=True)
 
@@ -103,7 +111,13 @@ class ZenohFeed:
                 "samples_dropped": self.samples_dropped,
                 "samples_refused": self.samples_refused, "oversized": self.oversized,
                 "undecodable": self.undecodable, "unshaped_frames": self.unshaped_frames,
-                "shapes_refused": self.shapes_refused, "misfit_frames": self.misfit_frames}
+                "shapes_refused": self.shapes_refused, "misfit_frames": self.misfit_frames,
+                "samples_renamed": self.samples_renamed}
+
+    def forget(self, board: str) -> None:
+        """From any thread: the gateway forgot ``board``; its shapes and refusals go too (on the feed's thread)."""
+        self._forgotten.append(board)
+        self._ready.set()
 
     def problems(self, now: float) -> list[str]:
         """A line per board whose service announced a shape no frame can have
@@ -131,6 +145,8 @@ class ZenohFeed:
         while not self._closing.is_set():
             self._ready.wait()
             self._ready.clear()
+            while self._forgotten:
+                self._drop(self._forgotten.popleft())
             batches: dict[str, list[ForceFrame]] = {}
             while self._samples:
                 kind, sample, at = self._samples.popleft()
@@ -142,14 +158,25 @@ class ZenohFeed:
             for board, frames in batches.items():
                 self._deliver(board, frames)
 
+    def _drop(self, board: str) -> None:
+        for known in [k for k in self._shapes if k[0] == board]:
+            del self._shapes[known]
+        for known in [k for k in self._asked if k[0] == board]:
+            del self._asked[known]
+        with self._refusals_lock:
+            self._refusals.pop(board, None)
+
     def _take(self, kind: str, sample: zenoh.Sample, at: float, batches: dict) -> None:
         board = _board_of(sample.key_expr)
+        instance = instance_of_alive(sample.key_expr) if kind == "alive" else instance_of_sample(sample)
+        if (board, instance) in self._renamed:
+            self.samples_renamed += 1
+            return
         if kind == "alive":
             alive = sample.kind == zenoh.SampleKind.PUT
-            if self.claims.heard(board, instance_of_alive(sample.key_expr), at, alive):
+            if self.claims.heard(board, instance, at, alive):
                 self._on_alive(board, alive)
             return
-        instance = instance_of_sample(sample)
         if not self.claims.heard(board, instance, at):
             self.samples_refused += 1
             return
@@ -160,6 +187,8 @@ class ZenohFeed:
         if kind == "health":
             document = orjson.loads(payload.to_bytes())
             if isinstance(document, dict):
+                if isinstance(document.get("renamed_to"), str):
+                    self._renamed_by(board, instance, at, batches)
                 self._on_health(board, document)
             return
         self.samples_received += 1
@@ -184,6 +213,17 @@ class ZenohFeed:
         if frames:  # a board is made of frames taken, never of refused ones
             batches.setdefault(board, []).extend(frames)
         self.frames_received += len(records)
+
+    def _renamed_by(self, board: str, instance: str, at: float, batches: dict) -> None:
+        """``instance`` renamed ``board``: its frames taken so far go first (the
+        gateway then forgets the name), what it sends under it later is dropped."""
+        frames = batches.pop(board, None)
+        if frames:
+            self._deliver(board, frames)
+        self._renamed[(board, instance)] = at
+        if len(self._renamed) > MAX_RENAMED:
+            del self._renamed[next(iter(self._renamed))]
+        self._drop(board)
 
     def _sensor(self, board: str, instance: str, sensor_id: int, kind: str) -> SensorInfo | None:
         """The sensor's shape as the board's service ``instance`` announced it
