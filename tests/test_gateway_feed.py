@@ -12,6 +12,7 @@ import numpy as np
 import orjson
 import pytest
 
+from service.fanout.encoding import to_json_dict
 from service.net.zenoh_config import alive_key, frame_key, open_session, sensors_key, session_config
 from service.net.zenoh_feed import ZenohFeed
 from service.net.zenoh_publisher import encode
@@ -110,6 +111,48 @@ def test_each_announced_shape_beyond_the_protocol_is_refused_naming_it(entry, wh
     assert list(shapes) == [1] and shapes[1].channels == 4  # the other sensor is still taken
     [reason] = refused
     assert why in reason, reason
+
+
+def test_the_first_frames_of_a_restarted_service_are_marked_board_restart_and_name_its_instance(feed):
+    """A service restarted behind the gateway begins seq and board_time_us
+    again: each sensor's first frame from the new instance is flagged
+    board_restart (protocol.md: a restart is not a gap, and is told apart),
+    and every frame's JSON header names the instance. Before, a gateway
+    client saw seq 6304 -> 2733 with flags [] and no instance."""
+    feed, endpoint, delivered = feed
+    shapes = [{"id": 0, "kind": "quad", "rows": 2, "cols": 2}, {"id": 1, "kind": "quad", "rows": 2, "cols": 2}]
+    first = Peer(endpoint, "d", "lab:10:aaaaaa", shapes)
+    time.sleep(0.5)
+    for seq in range(6280, 6305):
+        first.put("quad", 3, seq, sensor=0)
+        first.put("quad", 3, seq, sensor=1)
+        time.sleep(0.02)
+    time.sleep(0.3)
+    first.session.close()  # its token withdrawn: the name is free for its successor
+    time.sleep(0.3)
+    second = Peer(endpoint, "d", "lab:11:bbbbbb", shapes)
+    try:
+        time.sleep(0.5)
+        for seq in range(2733, 2758):
+            second.put("quad", 3, seq, sensor=0)
+            if seq >= 2740:  # sensor 1 comes later: its first frame is marked too
+                second.put("quad", 3, seq, sensor=1)
+            time.sleep(0.02)
+        time.sleep(0.5)
+    finally:
+        second.session.close()
+    got = [f for board, frames in delivered if board == "d" for f in frames]
+    for sensor, restart_seq in ((0, 2733), (1, 2740)):
+        mine = [f for f in got if f.sensor.id == sensor]
+        seqs = [f.seq for f in mine]
+        assert seqs == [*range(6280, 6305), *range(restart_seq, 2758)], seqs  # every frame of both, in order
+        marked = [(f.seq, f.instance) for f in mine if "board_restart" in f.flags]
+        assert marked == [(restart_seq, "lab:11:bbbbbb")]  # the new instance's first frame only
+        assert {f.instance for f in mine if f.seq >= 6280} == {"lab:10:aaaaaa"}
+        assert {f.instance for f in mine if f.seq < 6280} == {"lab:11:bbbbbb"}
+    header = to_json_dict(next(f for f in got if f.seq == 2733 and f.sensor.id == 0))["header"]
+    assert header["instance"] == "lab:11:bbbbbb" and header["seq"] == 2733
+    assert to_json_dict(got[0])["header"]["instance"] == "lab:10:aaaaaa"
 
 
 def test_what_a_service_sends_under_a_name_after_renaming_it_is_dropped_and_counted(feed):

@@ -19,7 +19,10 @@ are dropped unparsed, their liveliness not passed on. A health sample
 ``{"renamed_to": NAME}`` is a service saying it renamed the board (a bare
 board's provisional name, at its first INFO): what that instance sends
 under the old name afterwards (frames in flight, its token's withdrawal) is
-dropped, counted in ``samples_renamed``.
+dropped, counted in ``samples_renamed``. When another instance takes a
+board over (a restarted service: seq and board_time_us begin again), each
+sensor's first frame from it is flagged ``board_restart``, as a service
+flags a board's after its restart; every frame names its instance.
 """
 from __future__ import annotations
 
@@ -84,6 +87,8 @@ class ZenohFeed:
         self._renamed: dict[tuple[str, str], float] = {}  # (old name, instance) → when its service said so
         self._forgotten: deque[str] = deque()  # boards the gateway forgot, for the feed's thread to forget
         self.samples_renamed = 0
+        # board → (the instance whose frames were last taken, whether it took over from another, its sensors since)
+        self._instances: dict[str, tuple[str, bool, set[int]]] = {}
         self._subscriptions: list = []
         self._thread = threading.Thread(target=self._run, name="tactile-gateway-feed", daemon=True)
 
@@ -163,6 +168,7 @@ class ZenohFeed:
             del self._shapes[known]
         for known in [k for k in self._asked if k[0] == board]:
             del self._asked[known]
+        self._instances.pop(board, None)
         with self._refusals_lock:
             self._refusals.pop(board, None)
 
@@ -209,10 +215,24 @@ class ZenohFeed:
                 self._refuse(board, f"{misfit}, from {instance or 'a service without instance'}: its frames are "
                                     f"dropped ({self.misfit_frames} so far, zenoh.misfit_frames)")
                 continue
-            frames.append(_frame(info, record))
+            frames.append(_frame(info, record, instance, self._restarted(board, instance, info.id)))
         if frames:  # a board is made of frames taken, never of refused ones
             batches.setdefault(board, []).extend(frames)
         self.frames_received += len(records)
+
+    def _restarted(self, board: str, instance: str, sensor_id: int) -> bool:
+        """Whether this is the sensor's first frame from an instance that took
+        ``board`` over from another (the name passes only once its holder is
+        gone: board_claims.py), which is a restart, not a gap."""
+        served = self._instances.get(board)
+        if served is None or served[0] != instance:
+            self._instances[board] = (instance, served is not None, {sensor_id})
+            return served is not None
+        _, took_over, seen = served
+        if sensor_id in seen:
+            return False
+        seen.add(sensor_id)
+        return took_over
 
     def _renamed_by(self, board: str, instance: str, at: float, batches: dict) -> None:
         """``instance`` renamed ``board``: its frames taken so far go first (the
@@ -309,14 +329,17 @@ def _misfit(info: SensorInfo, record: dict) -> str | None:
            f"{expected}"
 
 
-def _frame(info: SensorInfo, record: dict) -> ForceFrame:
-    """A decoded binary record as the ForceFrame the service published
-    (raw channels are not in the published encoding)."""
+def _frame(info: SensorInfo, record: dict, instance: str = "", restart: bool = False) -> ForceFrame:
+    """A decoded binary record as the ForceFrame the service ``instance``
+    published (raw channels are not in the published encoding); ``restart``:
+    flagged board_restart."""
     forces = np.array(record["force_N"], dtype=np.float64)
     sigma = record.get("sigma_N")
     bits = record.get("taxel_flag_bits")
+    flags = record["flags"] + ["board_restart"] if restart and "board_restart" not in record["flags"] \
+        else record["flags"]
     return ForceFrame(info, record["seq"], record["board_time_us"], record["stamp"], forces,
-                      np.full(info.channels, np.nan), record["flags"], REMOTE_LEVEL,
+                      np.full(info.channels, np.nan), flags, REMOTE_LEVEL,
                       taxel_flags=None if bits is None else bits.copy(), calibration=record["calibration"],
                       sigma_N=None if sigma is None else np.array(sigma, dtype=np.float64),
-                      t_host_scan=record["scan_stamp"])
+                      t_host_scan=record["scan_stamp"], instance=instance)
