@@ -1,11 +1,18 @@
 """``tactile gateway``: the REST API, WebSocket stream and dashboard for every
 board of every host, fed by Zenoh instead of serial ports.
 
-The gateway holds a RemoteBoard per board heard under ``tactile/`` (up to
-``MAX_BOARDS``; more are counted and ignored) and publishes their frames to
-the same fan-out hub as a live service, so the API's routes serve it
-unchanged. It records nothing and changes nothing on a board: each board's
-own service does (its API's mutations answer 409 here, naming the board).
+The gateway holds a RemoteBoard per board under ``tactile/`` whose service
+declared its liveliness token or sent frames (a health sample alone makes no
+board), and publishes their frames to the same fan-out hub as a live
+service, so the API's routes serve it unchanged. A board lost (its token
+withdrawn, or silent: remote_board.py) is reported lost for
+``FORGET_AFTER_S`` and then forgotten, its sensors and history with it; a
+name its service renamed (a bare board's provisional ``board``, at its first
+INFO) is forgotten as soon as the service says so. At most ``MAX_BOARDS``
+boards are live at once: a lost one gives its place to a new one, and a
+board refused for want of a place is counted and named in /health. It
+records nothing and changes nothing on a board: each board's own service
+does (its API's mutations answer 409 here, naming the board).
 Two services publishing one board name are not merged: the first heard is
 served, the other refused and the clash reported (net/board_claims.py).
 """
@@ -23,6 +30,9 @@ from .remote_board import RemoteBoard
 from .sched import SliceRequest, current_slice_us
 
 MAX_BOARDS = 64
+FORGET_AFTER_S = 60.0  # a lost board is reported this long, then forgotten (as a refused service: board_claims.py)
+PRUNE_PERIOD_S = 1.0
+REFUSED_NAMED = 16  # refused boards named in /health; beyond, the least recently refused is not
 
 
 class GatewayService:
@@ -38,7 +48,8 @@ class GatewayService:
         self.recorder = None
         self.calibrations = None
         self.zenoh = None  # the ZenohFeed, from start
-        self.boards_refused = 0
+        self.boards_refused = 0  # samples and tokens of boards refused for want of a place
+        self._refused: dict[str, tuple[int, float]] = {}  # board → (times refused, last time), most recent last
         self.claims = BoardClaims()  # which service each board name is served from
         self._boards: dict[str, RemoteBoard] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -60,6 +71,7 @@ class GatewayService:
                                on_health=lambda board, doc: post(self._on_health, board, doc),
                                on_alive=lambda board, alive: post(self._on_alive, board, alive),
                                claims=self.claims).start()
+        self._loop.call_later(PRUNE_PERIOD_S, self._prune_often)
 
     def stop(self) -> None:
         if self.zenoh is not None:
@@ -67,7 +79,15 @@ class GatewayService:
 
     def health(self) -> dict:
         report = health_report(self)
-        report["gateway"] = {"boards": len(self._boards), "boards_refused": self.boards_refused}
+        now = time.time()
+        report["gateway"] = {"boards": len(self._boards), "boards_refused": self.boards_refused,
+                             "forget_after_s": FORGET_AFTER_S}
+        report["problems"] += [f"board {name}: refused {count} times, the last {now - at:.1f} s ago: this gateway "
+                               f"serves at most {self.max_boards} live boards at once (a lost one gives its place)"
+                               for name, (count, at) in self._refused.items()]
+        if self.zenoh is not None:
+            report["problems"] += self.zenoh.problems(time.monotonic())
+        report["status"] = "degraded" if report["problems"] else "ok"
         return report
 
     def start_recording(self, name: str | None = None) -> dict:
@@ -81,31 +101,76 @@ class GatewayService:
         if self.hub.unbatched_due():
             await asyncio.sleep(0)
 
-    def _remote(self, name: str) -> RemoteBoard | None:
+    def _remote(self, name: str, now: float) -> RemoteBoard | None:
+        """The board ``name``, made if there is a place: fewer than
+        ``max_boards`` are live (a lost one gives its place, the longest lost
+        first); None, counted and named, when there is none."""
         board = self._boards.get(name)
-        if board is None:
-            if len(self._boards) >= self.max_boards:
-                self.boards_refused += 1
-                return None
-            board = self._boards[name] = RemoteBoard(name, Histories(self.history_share),
-                                                     publishers=lambda now, n=name: self.claims.report(n, now))
+        if board is not None:
+            return board
+        lost = sorted((b.lost_since(now), b.name) for b in self._boards.values() if b.lost(now))
+        if len(self._boards) - len(lost) >= self.max_boards:
+            self.boards_refused += 1
+            count, _ = self._refused.pop(name, (0, now))
+            self._refused[name] = (count + 1, now)
+            if len(self._refused) > REFUSED_NAMED:
+                del self._refused[next(iter(self._refused))]
+            return None
+        for _, gone in lost[:max(0, len(self._boards) - self.max_boards + 1)]:
+            self._forget(gone)
+        self._refused.pop(name, None)
+        board = self._boards[name] = RemoteBoard(name, Histories(self.history_share),
+                                                 publishers=lambda at, n=name: self.claims.report(n, at))
         return board
 
+    def _forget(self, name: str) -> None:
+        """The board, its sensors and history gone from the API; its name free for whichever service comes."""
+        self._boards.pop(name, None)
+        self.claims.forget(name)
+        if self.zenoh is not None:
+            self.zenoh.forget(name)
+
+    def _prune(self, now: float) -> None:
+        """Forget boards lost for more than FORGET_AFTER_S, refusals as old, and
+        the claims of names that never became a board (a health sample alone)."""
+        for board in list(self._boards.values()):
+            since = board.lost_since(now)
+            if since is not None and now - since > FORGET_AFTER_S:
+                self._forget(board.name)
+        for name in [n for n, (_, at) in self._refused.items() if now - at > FORGET_AFTER_S]:
+            del self._refused[name]
+        for name in self.claims.prune(now, keep=set(self._boards), after_s=FORGET_AFTER_S):
+            if self.zenoh is not None:
+                self.zenoh.forget(name)
+
+    def _prune_often(self) -> None:
+        self._prune(time.time())
+        self._loop.call_later(PRUNE_PERIOD_S, self._prune_often)
+
     def _receive(self, name: str, frames: list) -> None:
-        board = self._remote(name)
-        if board is None or not frames:
+        if not frames:
             return
         now = time.time()
+        board = self._remote(name, now)
+        if board is None:
+            return
         board.receive(frames, now)
         self.published_latency.add(now - frames[0].t_host)
         self.hub.publish(frames)
 
     def _on_health(self, name: str, document: dict) -> None:
-        board = self._remote(name)
+        """A health sample updates a board; it makes none (anyone may put one
+        under any name). One saying its board was renamed forgets the old name."""
+        if isinstance(document.get("renamed_to"), str):
+            self._forget(name)
+            return
+        board = self._boards.get(name)
         if board is not None:
             board.on_health(document, time.time())
 
     def _on_alive(self, name: str, alive: bool) -> None:
-        board = self._remote(name)
+        """A token declared makes the board (if there is a place); one withdrawn makes none."""
+        now = time.time()
+        board = self._remote(name, now) if alive else self._boards.get(name)
         if board is not None:
-            board.on_alive(alive, time.time())
+            board.on_alive(alive, now)

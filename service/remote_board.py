@@ -6,7 +6,8 @@ network; changes (tare, calibration) belong to the service that reads it and
 are refused naming it. A board is ``lost`` when its service's liveliness
 token goes (the session ended: a stopped or killed service is seen at once),
 or when neither frames nor health came for ``LOST_AFTER_S`` (a network that
-went silent, before Zenoh's lease expires). Liveliness and data are the
+went silent, before Zenoh's lease expires); ``lost_since`` says since when
+(the gateway forgets a board lost for a while). Liveliness and data are the
 served service's only (``publishers``: net/board_claims.py), so another
 service of the same name neither keeps it alive nor feeds it.
 """
@@ -37,6 +38,7 @@ class RemoteBoard:
         self.health_at: float | None = None
         self.frame_at: float | None = None
         self.alive: bool | None = None  # None: no liveliness heard yet
+        self.alive_at: float | None = None  # its token last declared
         self.lost_at: float | None = None
 
     @property
@@ -58,12 +60,18 @@ class RemoteBoard:
     def on_alive(self, alive: bool, now: float) -> None:
         self.alive = alive
         self.lost_at = None if alive else now
+        if alive:
+            self.alive_at = now
 
     def lost(self, now: float) -> bool:
+        return self.lost_since(now) is not None
+
+    def lost_since(self, now: float) -> float | None:
+        """When the board was lost (s, the clock of ``now``), None while it is not."""
         if self.alive is False:
-            return True
-        heard = max(t for t in (self.health_at, self.frame_at, 0.0) if t is not None)
-        return now - heard > LOST_AFTER_S
+            return self.lost_at
+        heard = max(t for t in (self.health_at, self.frame_at, self.alive_at, 0.0) if t is not None)
+        return heard + LOST_AFTER_S if now - heard > LOST_AFTER_S else None
 
     def tared(self, sensor_id: int) -> bool:
         frame = self.latest.get(sensor_id)

@@ -6,7 +6,8 @@ geometry_msgs/WrenchStamped for the quad):
 
     {"header": {"board": "left", "sensor_id": 0, "sensor_name": "grid0", "kind": "grid",
                 "seq": 1250, "board_time_us": 1251000, "stamp": 1795342752.12,
-                "scan_stamp": 1795342752.1187, "calibration": "3f2a…" | "builtin-table1"},
+                "scan_stamp": 1795342752.1187, "calibration": "3f2a…" | "builtin-table1",
+                "instance": "arm-pc:4711:3b3e8d"},                  # a gateway's frames only
      "rows": 8, "cols": 8,
      "force_N": [64 numbers, row-major, null = no reading],      # grid, calibrated
      "sigma_N": [64 numbers: 1-σ of each force, null = none],    # grid, fields=sigma
@@ -22,8 +23,10 @@ epoch), ``board_time_us`` the board clock (wraps at 2^32), ``scan_stamp``
 the scan's time on the host clock (the board clock mapped to it,
 service/clock_map.py; null until mapped), ``calibration``
 the id of the calibration the forces rest on (the registry's, or a
-built-in: docs/calibration.md). Numbers are numbers, never strings; null
-means no value.
+built-in: docs/calibration.md), ``instance`` (a gateway's frames) the
+service that published the frame: seq and board_time_us begin again with
+another instance, whose first frame of each sensor is flagged
+board_restart. Numbers are numbers, never strings; null means no value.
 
 Binary (``encoding=binary``), little-endian, one record per frame,
 concatenated; a message starts with the u16 record count:
@@ -86,6 +89,8 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
             "calibration": frame.calibration,
         }
     }
+    if frame.instance:
+        out["header"]["instance"] = frame.instance
     sigma = frame.sigma_N if frame.sigma_N is not None else np.full(len(frame.forces_N), np.nan)
     if info.kind == "grid":
         out["rows"], out["cols"] = info.rows, info.cols

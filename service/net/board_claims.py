@@ -121,6 +121,25 @@ class BoardClaims:
              "gone_for_s": None if p.gone_since(now) is None else round(now - p.gone_since(now), 3),
              "samples_refused": p.samples_refused} for p in publishers]}
 
+    def forget(self, board: str) -> None:
+        """Every publisher of ``board``, the one served too (the gateway forgot
+        the board: lost for long, or renamed by its service)."""
+        with self._lock:
+            self._publishers.pop(board, None)
+            self._holders.pop(board, None)
+
+    def prune(self, now: float, keep: set[str], after_s: float) -> list[str]:
+        """Forget the names outside ``keep`` whose publishers are all gone for
+        more than ``after_s`` (a name heard once, in a health sample, that
+        never became a board); the names forgotten."""
+        with self._lock:
+            stale = [board for board, publishers in self._publishers.items() if board not in keep and all(
+                (gone := p.gone_since(now)) is not None and now - gone > after_s for p in publishers.values())]
+            for board in stale:
+                del self._publishers[board]
+                self._holders.pop(board, None)
+        return stale
+
     def _forget(self, board: str, publishers: dict[str, Publisher], now: float) -> None:
         """Refused publishers gone for FORGET_GONE_S, and the least recently
         heard beyond MAX_PUBLISHERS (never the one served)."""

@@ -100,6 +100,7 @@ class ZenohPublisher:
         self._service = None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._queryables: dict[str, list] = {}  # board name → its queryables
+        self._declared: dict[str, object] = {}  # board name → the board declared under it (whose name may change)
         self._declare_lock = threading.Lock()  # the sender and the health thread both declare
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -158,13 +159,16 @@ class ZenohPublisher:
 
     def _declare_boards(self) -> None:
         """Queryables under each board's name (again when a board's first
-        INFO named it: the provisional name's are undeclared)."""
+        INFO named it: the provisional name's are undeclared, after a sample
+        ``{"renamed_to": NAME}`` under its health key says so — a gateway then
+        forgets it at once, where a withdrawn token alone reads as a service lost)."""
         service = self._service
         if service is None:
             return
         names = {board.name: board for board in service.all_boards}
         with self._declare_lock:
             for gone in set(self._queryables) - set(names):
+                self._tell_renamed(gone, self._declared.pop(gone).name)
                 for entity in self._queryables.pop(gone):
                     entity.undeclare()
                 for key in [k for k in list(self._publishers) if k.startswith(f"{PREFIX}/{gone}/")]:
@@ -173,10 +177,20 @@ class ZenohPublisher:
                 board = names[name]
                 # The token vanishes for its subscribers the moment this session ends (a crash
                 # closes its sockets): a gateway says the board is lost without waiting for health.
+                self._declared[name] = board
                 self._queryables[name] = [
                     self.session.declare_queryable(latest_key(name, "*"), lambda q, b=board: self._answer_latest(b, q)),
                     self.session.declare_queryable(sensors_key(name), lambda q, b=board: self._answer_sensors(b, q)),
                     self.session.liveliness().declare_token(alive_key(name, self.instance))]
+
+    def _tell_renamed(self, old: str, new: str) -> None:
+        document = {"board": old, "renamed_to": new, "instance": self.instance}
+        try:
+            self.session.put(health_key(old), orjson.dumps(document), attachment=self._attachment,
+                             congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA)
+        except zenoh.ZError as exc:  # the gateway then reports the old name lost, and forgets it a minute later
+            self.put_errors += 1
+            log.warning("zenoh: telling that board %s is now %s failed: %s", old, new, exc)
 
     def _publisher(self, board: str, sensor: int) -> zenoh.Publisher:
         key = frame_key(board, sensor)

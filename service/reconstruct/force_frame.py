@@ -31,6 +31,7 @@ class ForceFrame:
     calibration: str = ""  # id of the calibration the forces rest on (registry id or "builtin-…")
     sigma_N: np.ndarray | None = None  # 1-σ of each force, shape of forces_N; NaN where the force is
     t_host_scan: float = float("nan")  # the scan's time on the host clock (s since the epoch), NaN: not mapped
+    instance: str = ""  # a gateway's frame: the service instance that published it (host:pid:random); "" otherwise
     _contact: dict | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
