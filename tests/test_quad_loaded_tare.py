@@ -232,3 +232,21 @@ def test_a_recording_begun_after_a_loaded_tare_replays_it(tmp_path):
     assert [d["seq"] for d in again] == [f.seq for f in live]
     np.testing.assert_array_equal([d["fxyz_N"] for d in again], [f.forces_N for f in live])
     assert all(d["flags"] == ["loaded_at_tare"] for d in again)
+
+
+@pytest.mark.parametrize("c0", [True, False])
+def test_a_tare_asked_while_the_quad_is_pressed_is_refused_naming_its_electrodes_unless_forced(tmp_path, c0):
+    """POST /tare's check (pipeline_changes.LoadedAtTare, a 409), as a grid's: a quad tared unloaded then
+    pressed with 3 N reads 9.5 % above its measured C0 on every electrode. Without a measured C0 nothing is
+    judged and the tare is made, as before."""
+    from service.pipeline_changes import LoadedAtTare
+
+    pipeline = pipeline_on(registry_with(tmp_path, c0=c0))
+    run(pipeline, [(200, (0.0, 0.0, 0.0), 0.0), (100, (0.0, 0.0, 3.0), 0.0)])
+    if not c0:
+        assert pipeline.tare(1) == [1]
+        return
+    with pytest.raises(LoadedAtTare) as refused:  # main: tared, the press its zero
+        pipeline.tare(1)
+    assert refused.value.taxels == {1: [0, 1, 2, 3]}
+    assert pipeline.tare(1, force=True) == [1]

@@ -107,8 +107,10 @@ def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, marg
 def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
           frames: int, margin: Margin | None = None,
           max_drift: float = COMMON_MAX_DRIFT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(loaded (n,) bool, mismatch (n,) bool, C0 (n,) pF): ``loaded_taxels``
-    against the calibration's C0 moved by the common-mode drift
+    """(loaded (n,) bool, mismatch (n,) bool, C0 (n,) pF): the measured
+    taxels whose mean of ``frames`` readings (n,) pF, spread ``std_pF``
+    (n,), stands above the calibration's C0 (n,) by more than the margin
+    (False where the mean is missing), C0 moved by the common-mode drift
     (``common_c0``: the zero a loaded taxel takes); or, when the taxels
     below it by as much show it is not this sensor's (module docstring),
     none loaded and those taxels as mismatch (none otherwise). ``margin``:
@@ -136,12 +138,3 @@ def judge_quad(c0_pF: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
     if loaded.any():
         loaded = np.isfinite(mean_pF)
     return loaded, mismatch, c0
-
-
-def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
-                  frames: int) -> np.ndarray:
-    """(n,) bool: taxels whose mean of ``frames`` readings (n,) pF, spread
-    ``std_pF`` (n,), stands above the calibration's C0 (n,) by more than
-    LOADED_SIGMAS combined σ; False where C0 was not measured or the mean
-    is missing."""
-    return judge(c0_pF, measured, mean_pF, std_pF, frames)[0]

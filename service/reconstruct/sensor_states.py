@@ -27,7 +27,7 @@ from .calibration_upload import expected_c0, own_level, processor_for, tare_wind
 from .fatigue import CycleCounter
 from .grid import GridProcessor
 from .identity import Replacements, named
-from .loaded_tare import judge, judge_quad, loaded_taxels
+from .loaded_tare import judge, judge_quad
 from .quad import QuadProcessor
 from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration
@@ -237,15 +237,15 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             state.processor.reset()
 
     def loaded_now(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
-        """Taxels that a reading (n,) pF shows loaded against the calibration's
-        C0 (loaded_tare.py; one reading, so its own noise): what a tare now
-        would make its zero. Empty where C0 was not measured."""
+        """Taxels (a quad's electrodes) that a reading (n,) pF shows loaded
+        against the calibration's C0 (``against_c0``; one reading, so its own
+        noise): what a tare now would make its zero. Empty where C0 was not measured."""
         state = self._sensors.get(sensor_id)
-        calibration = None if state is None else state.calibration
-        if calibration is None or calibration.measured is None or not calibration.measured.any():
+        if state is None:
             return []
         std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
-        return np.flatnonzero(loaded_taxels(calibration.tare_c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
+        judged = against_c0(state.calibration, capacitance_pF, std, 1)
+        return [] if judged is None else np.flatnonzero(judged[0]).tolist()
 
     def below_c0(self, sensor_id: int) -> list[int]:
         """Taxels that read below the calibration's C0 at the last tare, enough of them to say it is not this
