@@ -25,20 +25,21 @@ quad's electrodes when its calibration carries the C0 its session measured
 
 A quad is judged as a whole. A normal load raises its four electrodes
 together (paper 001), as temperature does, so it has no free electrodes to
-tell temperature by (four, fewer than COMMON_MIN_TAXELS: C0 is not moved)
-and the drift allowance alone stands for it: the threshold is 4 × 0.1 % of
-C0 (a 100-frame mean of 0.5 fF noise adds 0.05 fF to 2.2 fF), the Fz of
-ΔC/C0 = 0.004 on the quad's normal fit: 0.117 N on fit 34 (−0.0009 F² +
-0.0343 F). An unloaded quad 0.3 % warmer or cooler than at its calibration
-(0.088 N's worth) tares as usual; from 0.4 % warmer it is called loaded, its
-zero C0, so it reads the warming as Fz (0.5 %: 0.147 N) flagged
-``loaded_at_tare`` until tared again. When any electrode is loaded all four
-(those with a zero) take C0: every force combines all four, and a zero
-made half of tared means, half of C0 turns the load left in the former
-(up to the threshold) into shear. Electrodes below C0 by as much are a
-mismatch as on a grid (two of the four): a load lowers none that far unless
-its shear's ΔC/C0 passes its normal's by the threshold (a shear over ~4.5
-times Fz on fits 34/35, past the friction of a grip).
+tell temperature by (four, fewer than COMMON_MIN_TAXELS). Its margin is
+therefore the grid's (4 × 0.1 % of C0: a 100-frame mean of 0.5 fF noise
+adds 0.05 fF to 2.2 fF) plus the whole common-mode allowance a grid's free
+taxels may move C0 by, COMMON_MAX_DRIFT (2 %, a few kelvin): 2.4 % of C0,
+the Fz of ΔC/C0 = 0.024 on the quad's normal fit, 0.713 N on fit 34
+(−0.0009 F² + 0.0343 F). A quad started a few kelvin warmer or cooler than
+at its calibration tares as usual (with only the grid's 0.4 %, one 0.4 %
+warmer was called loaded and read the warming as 0.15 N for good); a grip
+lighter than 0.7 N passes as unloaded, its zero the grip, which /health
+then names as below zero after the release. When any electrode is loaded
+all four (those with a zero) take C0: every force combines all four, and a
+zero made half of tared means, half of C0 turns the load left in the
+former into shear. Electrodes below C0 by as much are a mismatch as on a
+grid (two of the four): a load lowers none that far unless its shear's
+ΔC/C0 passes its normal's by the margin.
 
 Nothing reads below its zero, so taxels whose tared mean stands *below*
 the calibration's C0 by as much say the C0 is not this sensor's as it is
@@ -131,10 +132,13 @@ def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: 
 def judge_quad(c0_pF: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
                frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``judge`` of a quad's tared means (4,) pF, spread ``std_pF`` (4,),
-    against the C0 (4,) pF its session measured, the quad as a whole (module
-    docstring): (loaded (4,): every electrode with a zero when any is,
-    mismatch (4,), C0 (4,) pF)."""
-    loaded, mismatch, c0 = judge(c0_pF, np.ones(c0_pF.shape, dtype=bool), mean_pF, std_pF, frames)
+    against the C0 (4,) pF its session measured, the quad as a whole with
+    the common-mode allowance in its margin (module docstring): (loaded
+    (4,): every electrode with a zero when any is, mismatch (4,), C0 (4,) pF)."""
+    def margin(reference: np.ndarray) -> np.ndarray:
+        return c0_margin(reference, std_pF, frames) + COMMON_MAX_DRIFT * reference
+
+    loaded, mismatch, c0 = judge(c0_pF, np.ones(c0_pF.shape, dtype=bool), mean_pF, std_pF, frames, margin)
     if loaded.any():
         loaded = np.isfinite(mean_pF)
     return loaded, mismatch, c0
