@@ -95,7 +95,8 @@ def upload_document(info: SensorInfo, upload: dict, mounting: str, sensor: dict 
     Quad: ``normal_fit`` [c2, c1] of ΔC/C0 = c2 F² + c1 F and
     ``shear_fit`` [a, b] of ΔC/C0 = a F − b F², checked by
     QuadModel.from_fits (physics/quad_model.py lists the ranges); optional
-    ``c0_pF`` (4, measured unloaded capacitances) sets the window a tare takes.
+    ``c0_pF`` (4, measured unloaded capacitances) sets the window a tare takes
+    and lets a tare tell a load.
 
     ``sensor`` (the registry's identity of the sensor) is stored in the
     document, so the same numbers on two sensors are two calibrations.

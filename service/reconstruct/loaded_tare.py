@@ -19,7 +19,27 @@ taxel loaded.
 A compressive taxel cannot read below its zero, so only an excess counts.
 With table 1's mean sensitivity (1.25 %/N) the threshold, 4 × 0.1 % of C0,
 is a load of about 0.3 N: a lighter grip passes as unloaded. Only taxels
-whose C0 was measured (``SensorCalibration.measured``) are judged.
+whose C0 was measured (``SensorCalibration.measured``) are judged, and a
+quad's electrodes when its calibration carries the C0 its session measured
+(``SensorCalibration.quad_c0_pF``): ``judge_quad``.
+
+A quad is judged as a whole. A normal load raises its four electrodes
+together (paper 001), as temperature does, so it has no free electrodes to
+tell temperature by (four, fewer than COMMON_MIN_TAXELS). Its margin is
+therefore the grid's (4 × 0.1 % of C0: a 100-frame mean of 0.5 fF noise
+adds 0.05 fF to 2.2 fF) plus the whole common-mode allowance a grid's free
+taxels may move C0 by, COMMON_MAX_DRIFT (2 %, a few kelvin): 2.4 % of C0,
+the Fz of ΔC/C0 = 0.024 on the quad's normal fit, 0.713 N on fit 34
+(−0.0009 F² + 0.0343 F). A quad started a few kelvin warmer or cooler than
+at its calibration tares as usual (with only the grid's 0.4 %, one 0.4 %
+warmer was called loaded and read the warming as 0.15 N for good); a grip
+lighter than 0.7 N passes as unloaded, its zero the grip, which /health
+then names as below zero after the release. When any electrode is loaded
+all four (those with a zero) take C0: every force combines all four, and a
+zero made half of tared means, half of C0 turns the load left in the
+former into shear. Electrodes below C0 by as much are a mismatch as on a
+grid (two of the four): a load lowers none that far unless its shear's
+ΔC/C0 passes its normal's by the margin.
 
 Nothing reads below its zero, so taxels whose tared mean stands *below*
 the calibration's C0 by as much say the C0 is not this sensor's as it is
@@ -88,8 +108,10 @@ def common_c0(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, marg
 def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
           frames: int, margin: Margin | None = None,
           max_drift: float = COMMON_MAX_DRIFT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(loaded (n,) bool, mismatch (n,) bool, C0 (n,) pF): ``loaded_taxels``
-    against the calibration's C0 moved by the common-mode drift
+    """(loaded (n,) bool, mismatch (n,) bool, C0 (n,) pF): the measured
+    taxels whose mean of ``frames`` readings (n,) pF, spread ``std_pF``
+    (n,), stands above the calibration's C0 (n,) by more than the margin
+    (False where the mean is missing), C0 moved by the common-mode drift
     (``common_c0``: the zero a loaded taxel takes); or, when the taxels
     below it by as much show it is not this sensor's (module docstring),
     none loaded and those taxels as mismatch (none otherwise). ``margin``:
@@ -107,10 +129,16 @@ def judge(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: 
     return loaded, np.zeros_like(below), c0_pF
 
 
-def loaded_taxels(c0_pF: np.ndarray, measured: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
-                  frames: int) -> np.ndarray:
-    """(n,) bool: taxels whose mean of ``frames`` readings (n,) pF, spread
-    ``std_pF`` (n,), stands above the calibration's C0 (n,) by more than
-    LOADED_SIGMAS combined σ; False where C0 was not measured or the mean
-    is missing."""
-    return judge(c0_pF, measured, mean_pF, std_pF, frames)[0]
+def judge_quad(c0_pF: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
+               frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``judge`` of a quad's tared means (4,) pF, spread ``std_pF`` (4,),
+    against the C0 (4,) pF its session measured, the quad as a whole with
+    the common-mode allowance in its margin (module docstring): (loaded
+    (4,): every electrode with a zero when any is, mismatch (4,), C0 (4,) pF)."""
+    def margin(reference: np.ndarray) -> np.ndarray:
+        return c0_margin(reference, std_pF, frames) + COMMON_MAX_DRIFT * reference
+
+    loaded, mismatch, c0 = judge(c0_pF, np.ones(c0_pF.shape, dtype=bool), mean_pF, std_pF, frames, margin)
+    if loaded.any():
+        loaded = np.isfinite(mean_pF)
+    return loaded, mismatch, c0

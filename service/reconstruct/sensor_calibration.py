@@ -19,7 +19,8 @@ quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
       ``normal_usable_N``/``shear_usable_N``: where the session's response
       stopped rising (past them a force is held and flagged); optional
       ``c0_pF`` (4,) the electrodes' unloaded capacitances its session
-      measured (``tactile calibrate``), which set the window a tare takes.
+      measured (``tactile calibrate``), which set the window a tare takes
+      and judge it (loaded_tare.judge_quad).
 both  ``created``: an ISO 8601 string (absent: not known).
 
 ``builtin`` is what a sensor without a calibration of its own uses: table 1

@@ -7,8 +7,9 @@ above this layer — else the built-in one), the processor built on it
 (calibration_upload.py), its tare window and its load-cycle counter with the
 counts kept for that calibration (fatigue.py). A finished tare is judged
 against the sensor's zero stored before the service started, the first
-after it (stored_zero.py), else against the calibration's C0
-(loaded_tare.py). Another sensor described at
+after it (stored_zero.py), else against the C0 its calibration measured
+(loaded_tare.py: a grid's taxels, a quad's four electrodes together).
+Another sensor described at
 its address (identity.py) is made anew the same way, as first seen.
 """
 from __future__ import annotations
@@ -26,7 +27,7 @@ from .calibration_upload import expected_c0, own_level, processor_for, tare_wind
 from .fatigue import CycleCounter
 from .grid import GridProcessor
 from .identity import Replacements, named
-from .loaded_tare import judge, loaded_taxels
+from .loaded_tare import judge, judge_quad
 from .quad import QuadProcessor
 from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration
@@ -268,15 +269,15 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             state.processor.reset()
 
     def loaded_now(self, sensor_id: int, capacitance_pF: np.ndarray) -> list[int]:
-        """Taxels that a reading (n,) pF shows loaded against the calibration's
-        C0 (loaded_tare.py; one reading, so its own noise): what a tare now
-        would make its zero. Empty where C0 was not measured."""
+        """Taxels (a quad's electrodes) that a reading (n,) pF shows loaded
+        against the calibration's C0 (``against_c0``; one reading, so its own
+        noise): what a tare now would make its zero. Empty where C0 was not measured."""
         state = self._sensors.get(sensor_id)
-        calibration = None if state is None else state.calibration
-        if calibration is None or calibration.measured is None or not calibration.measured.any():
+        if state is None:
             return []
         std = state.baseline.std if state.baseline.ready else np.full(state.info.channels, np.nan)
-        return np.flatnonzero(loaded_taxels(calibration.tare_c0_pF, calibration.measured, capacitance_pF, std, 1)).tolist()
+        judged = against_c0(state.calibration, capacitance_pF, std, 1)
+        return [] if judged is None else np.flatnonzero(judged[0]).tolist()
 
     def below_c0(self, sensor_id: int) -> list[int]:
         """Taxels that read below the calibration's C0 at the last tare, enough of them to say it is not this
@@ -304,21 +305,21 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         stored, state.stored_zero = state.stored_zero, None
         if not state.judge_tare or (stored is not None and self._judge_stored(state, stored)):
             return
-        calibration = state.calibration
-        if calibration.measured is None or not calibration.measured.any():
-            return
         baseline = state.baseline
-        loaded, mismatch, c0 = judge(calibration.tare_c0_pF, calibration.measured, baseline.value, baseline.std,
-                                     baseline.frames)
+        judged = against_c0(state.calibration, baseline.value, baseline.std, baseline.frames)
+        if judged is None:
+            return
+        loaded, mismatch, c0 = judged
+        channels = "electrodes" if state.info.kind == "quad" else "taxels"
         state.below_c0 = np.flatnonzero(mismatch).tolist()
         if state.below_c0:
-            log.warning("sensor %d: taxels %s read below the calibration's C0 at the tare: its C0 is not this "
-                        "sensor's as it is now, so no taxel is judged loaded", state.info.id, state.below_c0)
+            log.warning("sensor %d: %s %s read below the calibration's C0 at the tare: its C0 is not this "
+                        "sensor's as it is now, so none is judged loaded", state.info.id, channels, state.below_c0)
         if loaded.any():
             baseline.substitute(loaded, c0)
             state.loaded = loaded
-            log.warning("sensor %d: taxels %s were loaded at tare; their zero is the calibration's C0",
-                        state.info.id, np.flatnonzero(loaded).tolist())
+            log.warning("sensor %d: %s %s were loaded at tare; their zero is the calibration's C0",
+                        state.info.id, channels, np.flatnonzero(loaded).tolist())
 
     def baseline(self, sensor_id: int) -> np.ndarray | None:
         state = self._sensors.get(sensor_id)
@@ -336,6 +337,19 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             "pending_estimates": processor.estimator.report(),
             "common_mode_drift": processor.drift.drift,
         }
+
+
+def against_c0(calibration: SensorCalibration, mean_pF: np.ndarray, std_pF: np.ndarray,
+               frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(loaded, mismatch, C0), each (n,), of means of ``frames`` readings
+    (n,) pF, spread ``std_pF`` (n,), against the C0 measured on the sensor:
+    a grid's measured taxels (loaded_tare.judge), a quad's four electrodes
+    together (judge_quad); None when its calibration measured none."""
+    if calibration.quad_c0_pF is not None:
+        return judge_quad(calibration.quad_c0_pF, mean_pF, std_pF, frames)
+    if calibration.measured is None or not calibration.measured.any():
+        return None
+    return judge(calibration.tare_c0_pF, calibration.measured, mean_pF, std_pF, frames)
 
 
 def _same_sensor(before: SensorInfo, info: SensorInfo) -> bool:
