@@ -52,13 +52,23 @@ class LinkState:
         self.last_data_time: float | None = None
 
     def silent_s(self, now: float) -> float | None:
-        """Seconds since the last byte (or since connecting, before the first); None while down."""
+        """Seconds since the last byte, also one from before a reopen (a link
+        reopened on a silent board has had no data since), or since the first
+        connect before any byte; None while down."""
+        if not self.up or self.connected_at is None:
+            return None
+        return now - (self.connected_at if self.last_data_time is None else self.last_data_time)
+
+    def silent_since_open_s(self, now: float) -> float | None:
+        """Seconds without a byte since this (re)open, None while down: a
+        reopened link gets the full ``silence_s`` before it is asked INFO? again."""
         if not self.up or self.connected_at is None:
             return None
         return now - max(self.last_data_time or self.connected_at, self.connected_at)
 
     def state(self, now: float, stale_after_s: float = MIN_STALE_S) -> str:
-        """up | stale (connected, no bytes for ``stale_after_s``) | down | finished (a recording's end)."""
+        """up | stale (connected, no bytes for ``stale_after_s``, however
+        often reopened) | down | finished (a recording's end)."""
         if self.finished:
             return "finished"
         silent = self.silent_s(now)  # once: the readout thread may drop the link meanwhile
@@ -184,7 +194,7 @@ class Readout:
     def _check_silence(self, source: Source) -> None:
         """Ask a silent board ``INFO?``; raise OSError (reopen) if that brings nothing."""
         now = self._clock()
-        silent = self.link.silent_s(now)
+        silent = self.link.silent_since_open_s(now)
         if silent is None or silent < self._silence_s:
             return
         if self._asked_at is None or self._asked_at < now - silent:  # not yet asked in this silence

@@ -147,8 +147,9 @@ def test_link_watcher_says_each_change_once():
     watcher.poll(103.0)  # silent for 1 s: stale
     link.last_data_time = 103.4
     watcher.poll(103.5)
-    link.connects, link.connected_at, link.last_error = 2, 104.0, "read failed"  # lost and back between two looks
-    watcher.poll(104.1)
+    # lost and back between two looks, within the stale threshold of the last byte (0.4 s)
+    link.connects, link.connected_at, link.last_error = 2, 103.7, "read failed"
+    watcher.poll(103.8)
     link.up = False
     watcher.poll(105.0)
     link.finished = True

@@ -276,3 +276,23 @@ def test_a_silent_link_is_not_blamed_on_an_error_from_before_it_connected():
     assert problems == ["link stale: connected, no bytes for 2 s"]
     link.up = False
     assert _problems(link.as_dict(103.0, 0.5), {}, {}) == ["link down: " + link.last_error]
+
+
+def test_a_link_reopened_on_a_silent_board_is_stale_until_a_byte_comes():
+    """A board paused (TCP open): the readout reopened the link every ~2.5 s
+    and /health said "up" after each reopen while the last byte was 2.6 s,
+    then 5.2 s old. Silence counts from the last byte, across a reopen."""
+    from service.health import _problems
+    from service.readout import LinkState
+
+    link = LinkState("socket://127.0.0.1:1")
+    link.up, link.connected_at, link.last_data_time = True, 97.0, 100.0  # bytes until 100 s
+    link.connected_at, link.last_error = 102.5, "no bytes for 2.0 s, not even after INFO?"  # reopened at 102.5 s
+    report = link.as_dict(102.6, 0.5)
+    assert (report["state"], report["silent_s"], report["last_data_age_s"]) == ("stale", 2.6, 2.6)
+    assert _problems(report, {}, {}) == ["link stale: connected, no bytes for 2.6 s"]
+    link.last_data_time = 102.7  # the board speaks again
+    assert link.as_dict(102.8, 0.5)["state"] == "up"
+    fresh = LinkState("socket://127.0.0.1:1")  # first open, no byte yet: up within the threshold, as before
+    fresh.up, fresh.connected_at = True, 100.0
+    assert [fresh.state(t, 0.5) for t in (100.3, 100.6)] == ["up", "stale"]

@@ -4,7 +4,8 @@
 each frame once in an ``Outgoing`` and queues references to those each
 client wants. A frame is serialised when a client's message is sent — once
 per (fields, encoding), cached on its ``Outgoing``, however many clients take
-it — so frames a stalled client drops cost nothing. A client may decimate (``max_rate_hz`` per sensor) or batch
+it — so frames a stalled client drops cost nothing. A client may decimate (``max_rate_hz`` per sensor: the
+flags of the frames it skips come with the next frame it is sent) or batch
 (``batch_ms``: frames are held and sent together, at most that long after the
 oldest of them was received). A client whose queue is full loses its own
 oldest message — never blocking the pipeline or other clients — and is told
@@ -14,11 +15,13 @@ in one message.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import struct
 import time
 from collections import deque
 from dataclasses import dataclass, field
 
+import numpy as np
 import orjson
 
 from ..latency import LatencyMeter
@@ -32,17 +35,30 @@ QUEUE_MESSAGES = 64
 MERGE_FRAMES = 32
 CLIENT_WINDOW_SAMPLES = 2_000  # 2 s of an unbatched 1 kHz client, 10 s of 5 ms batches
 _JSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
+_UNSET = object()
 
 
 class Outgoing:
     """A published frame as every client's queue holds it, with its
     serialised forms by (fields, binary), filled on first send."""
 
-    __slots__ = ("frame", "parts")
+    __slots__ = ("frame", "parts", "_flag_key")
 
     def __init__(self, frame: ForceFrame) -> None:
         self.frame = frame
         self.parts: dict[tuple[frozenset[str], bool], bytes] | None = None
+        self._flag_key: tuple[tuple[str, ...], bytes] | None | object = _UNSET
+
+    def flag_key(self) -> tuple[tuple[str, ...], bytes] | None:
+        """(frame flags, per-taxel bits as bytes), or None when the frame has
+        no flag: found once, however many decimating clients skip the frame."""
+        key = self._flag_key
+        if key is _UNSET:
+            frame = self.frame
+            bits = frame.taxel_flags
+            taxel = bits.tobytes() if bits is not None and np.count_nonzero(bits) else b""
+            key = self._flag_key = (tuple(frame.flags), taxel) if frame.flags or taxel else None
+        return key
 
     def encoded(self, fields: frozenset[str], binary: bool) -> bytes:
         parts = self.parts
@@ -57,6 +73,53 @@ class Outgoing:
                 part = orjson.dumps(to_json_dict(self.frame, fields), option=_JSON_OPTIONS)
             parts[key] = part
         return part
+
+
+class CarriedFlags:
+    """The quality flags of frames of one sensor a decimating client skipped,
+    for the next frame it is sent: a 10 ms saturation or one lost frame
+    between two frames of a 30 Hz stream is otherwise never seen.
+    ``flags``: frame flags, in the order first seen; ``taxel_flags``: (n,)
+    uint8 per-taxel bits OR-ed, None while no skipped frame had one."""
+
+    __slots__ = ("flags", "taxel_flags", "_last")
+
+    def __init__(self) -> None:
+        self.flags: dict[str, None] = {}
+        self.taxel_flags: np.ndarray | None = None
+        self._last: tuple | None = None
+
+    def add(self, item: Outgoing, key: tuple[tuple[str, ...], bytes]) -> None:
+        """Join ``item``'s flags (``key``: its ``flag_key()``)."""
+        if key == self._last:  # a flag held frame after frame: joined already
+            return
+        self._last = key
+        frame = item.frame
+        self.flags.update(dict.fromkeys(frame.flags))
+        bits = frame.taxel_flags
+        if not key[1]:
+            return
+        if self.taxel_flags is None or self.taxel_flags.shape != bits.shape:
+            self.taxel_flags = bits.copy()  # a sensor that changed shape: the old indices name no taxel now
+        else:
+            self.taxel_flags |= bits
+
+    def onto(self, item: Outgoing) -> Outgoing:
+        """``item``, or — when these flags add to its own — a copy of its
+        frame with them joined (forces, σ and all else its own), encoded
+        for this client alone. Taxel bits of another shape are left out."""
+        frame = item.frame
+        extra = [name for name in self.flags if name not in frame.flags]
+        own, carried = frame.taxel_flags, self.taxel_flags
+        if carried is not None and carried.shape != frame.forces_N.shape:
+            carried = None
+        if carried is not None and own is not None:
+            carried = None if not np.count_nonzero(carried & ~own) else carried | own
+        if not extra and carried is None:
+            return item
+        joined = dataclasses.replace(frame, flags=frame.flags + extra, taxel_flags=own if carried is None else carried)
+        joined.keep_contact(frame.contact)  # the same forces: the same summary
+        return Outgoing(joined)
 
 
 @dataclass(eq=False)
@@ -75,6 +138,7 @@ class Subscriber:
     # Receive stamp → handed to this client's socket, per message (its oldest frame).
     latency: LatencyMeter = field(default_factory=lambda: LatencyMeter(CLIENT_WINDOW_SAMPLES))
     _next_due: dict[tuple[str, int], float] = field(default_factory=dict)
+    _carried: dict[tuple[str, int], CarriedFlags] = field(default_factory=dict)  # per (board, sensor id)
     _batch: list[Outgoing] = field(default_factory=list)
     _flush_timer: asyncio.TimerHandle | None = None
     _wakeup: asyncio.Future | None = None  # set while its sender waits for a message
@@ -84,22 +148,32 @@ class Subscriber:
         """A message came while its sender waited, and the sender has not run yet."""
         return self._wakeup is not None and self._wakeup.done()
 
-    def wants(self, item: Outgoing) -> bool:
+    def chosen(self, item: Outgoing) -> Outgoing | None:
+        """``item`` as this client is sent it, or None: another sensor's, or
+        skipped by ``max_rate_hz`` — its flags then come with the next frame
+        of its sensor this client is sent (``CarriedFlags``)."""
         frame = item.frame
         info = frame.sensor
         sid = info.id
         if self.sensors is not None and sid not in self.sensors and (info.board, sid) not in self.sensors:
-            return False
+            return None
         if self.max_rate_hz is None:
-            return True
+            return item
         sid = (info.board, sid)
         due = self._next_due.get(sid, 0.0)
         if frame.t_host < due:
-            return False
+            key = item.flag_key()
+            if key is not None:
+                carried = self._carried.get(sid)
+                if carried is None:
+                    carried = self._carried[sid] = CarriedFlags()
+                carried.add(item, key)
+            return None
         period = 1.0 / self.max_rate_hz
         # Keep the phase while on time; restart it after a pause.
         self._next_due[sid] = due + period if frame.t_host < due + period else frame.t_host + period
-        return True
+        carried = self._carried.pop(sid, None)
+        return item if carried is None else carried.onto(item)
 
     def take(self, frames: list[Outgoing]) -> None:
         """Queue ``frames``, now or, when batching, in the batch that is sent
@@ -223,4 +297,4 @@ class Hub:
             if subscriber.sensors is None and subscriber.max_rate_hz is None:
                 subscriber.take(items)
             else:
-                subscriber.take([item for item in items if subscriber.wants(item)])
+                subscriber.take([taken for item in items if (taken := subscriber.chosen(item)) is not None])
