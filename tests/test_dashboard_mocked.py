@@ -59,6 +59,7 @@ class ScriptedService:
         self.history = []  # of sensor 0
         self.record_start = lambda body: (200, {"path": f"/srv/recordings/{body['name']}", "raw_path": None, "active": True, "messages": 0})
         self.posts = []
+        self.tare = lambda query: (200, {"tared": [0], "frames": 100})  # query: the POST /tare's, e.g. "force=true"
         self.socket = None
         page.route(f"{BASE}**", self.answer)
         page.route_web_socket(re.compile(r".*/ws(\?.*)?$"), self.connected)
@@ -90,6 +91,9 @@ class ScriptedService:
         if path == "/record/stop":
             self.recording = {**self.recording, "active": False, "messages": 1234}
             return self.json(route, self.recording)
+        if path == "/tare":
+            status, answer = self.tare(route.request.url.partition("?")[2])
+            return self.json(route, answer, status)
         self.json(route, {})
 
     def open(self):
@@ -97,11 +101,11 @@ class ScriptedService:
         self.page.wait_for_function("() => document.querySelector('section.panel')")
         assert self.socket is not None
 
-    def send(self, frames):
-        """Sends frames and returns once the page has drawn them."""
-        before = int(self.page.get_attribute('section[data-sensor="0"]', "data-frames") or 0)
+    def send(self, frames, sensor=0):
+        """Sends frames (of ``sensor``) and returns once the page has drawn them."""
+        before = int(self.page.get_attribute(f'section[data-sensor="{sensor}"]', "data-frames") or 0)
         self.socket.send(json.dumps({"type": "frames", "frames": frames}))
-        self.page.wait_for_selector(f'section[data-sensor="0"][data-frames="{before + len(frames)}"]')
+        self.page.wait_for_selector(f'section[data-sensor="{sensor}"][data-frames="{before + len(frames)}"]')
         self.page.evaluate("() => new Promise(done => requestAnimationFrame(() => requestAnimationFrame(done)))")
 
     def poll(self):
@@ -305,3 +309,66 @@ def test_record_button_shows_where_the_file_goes_with_either_backend(service, ba
     service.page.wait_for_selector("text=Stop recording")
     again = [body for path, body in service.posts if path == "/record/start"][len(bodies):]
     assert [list(body) for body in again] == [[backend]]
+
+
+def quad_frame(seq, force, stamp, sensor=0, flags=()):
+    """A quad frame: force (x, y, z) in N, None for a component the service could not give; σ 0.5 N each."""
+    x, y, z = force
+    return {"header": {"sensor_id": sensor, "sensor_name": f"quad{sensor}", "kind": "quad", "seq": seq,
+                       "board_time_us": seq * 1000, "stamp": stamp},
+            "wrench": {"force": {"x": x, "y": y, "z": z}},
+            "wrench_sigma": {"force": {k: None if v is None else 0.5 for k, v in zip("xyz", force)}},
+            "contact": None, "flags": list(flags), "taxel_flags": {}}
+
+
+# By hue, so a line's anti-aliased edge on the dark plot counts too; the axes and labels are grey.
+TRACE_COLOURS = {"orange": "d[i] - d[i + 2] > 60 && d[i] > d[i + 1]",    # ΣF, Fz (#ffb74d)
+                 "blue": "d[i + 2] - d[i] > 60 && d[i + 1] > d[i]"}      # |Fxy| (#4fc3f7)
+
+
+def trace_span(page, colour, sensor=0):
+    """(first, last) x of a history trace's pixels, as fractions of the plot's width (0 = −10 s, 1 = its
+    newest sample); None without any. The legend's swatches (above y = 12) are left out."""
+    return page.evaluate(
+        """([sensor, test]) => {
+            const canvas = document.querySelector(`section[data-sensor="${sensor}"] canvas.history`);
+            const scale = canvas.width / canvas.clientWidth, d = canvas.getContext("2d").getImageData(0, 0, canvas.width, canvas.height).data;
+            const plotX = 34 * scale, plotW = canvas.width - 42 * scale, hit = new Function("d", "i", `return ${test}`);
+            const xs = [];
+            for (let x = Math.ceil(plotX); x < canvas.width; x++)
+                for (let y = Math.ceil(12 * scale); y < canvas.height; y++) if (hit(d, 4 * (y * canvas.width + x))) { xs.push(x); break; }
+            return xs.length ? [(xs[0] - plotX) / plotW, (xs[xs.length - 1] - plotX) / plotW] : null;
+        }""",
+        [sensor, TRACE_COLOURS[colour]],
+    )
+
+
+def test_a_grid_taring_shows_no_total_and_its_history_a_gap(service):
+    """While a sensor tares the service gives no contact (null) and flags taring: the page said
+    "ΣF 0.00 N · contacts 0 · area 0 mm²" and drew ΣF = 0 N for those seconds."""
+    service.open()
+    loaded = [grid_frame(seq, pressed({27: 4.0}), stamp=100 + seq / 20) for seq in range(100)]  # 5 s of 4 N
+    taring = []
+    for seq in range(100, 200):  # then 5 s taring: forces and contact null
+        frame = grid_frame(seq, [0.0] * (ROWS * COLS), stamp=100 + seq / 20)
+        frame.update(force_N=[None] * (ROWS * COLS), contact=None, flags=["taring"])
+        taring.append(frame)
+    service.send(loaded + taring)
+    span = trace_span(service.page, "orange")
+    assert span[0] < 0.05 and 0.45 < span[1] < 0.55, span  # the trace ends where the taring began, half way
+    meta = service.page.text_content('section[data-sensor="0"] .meta')
+    assert "ΣF —" in meta and "contacts —" in meta and "area —" in meta, meta
+    assert "0.00" not in meta and "contacts 0" not in meta
+
+
+def test_a_quad_with_an_open_electrode_leaves_a_gap_in_its_history(service):
+    """An open electrode: wrench x, y, z null. The text said "—" while Fz and |Fxy| drew a flat 0 N line."""
+    service.sensors["sensors"] = [{"id": 0, "kind": "quad", "rows": 2, "cols": 2, "name": "quad0"}]
+    service.open()
+    good = [quad_frame(seq, (3.0, 4.0, 8.0), stamp=100 + seq / 20) for seq in range(100)]
+    opened = [quad_frame(seq, (None, None, None), stamp=100 + seq / 20, flags=["open_channel"]) for seq in range(100, 200)]
+    service.send(good + opened)
+    assert "Fz — N" in service.page.text_content('section[data-sensor="0"] .meta')
+    for colour in ("orange", "blue"):  # Fz 8 N, |Fxy| 5 N
+        span = trace_span(service.page, colour)
+        assert span[0] < 0.05 and 0.45 < span[1] < 0.55, (colour, span)

@@ -63,6 +63,11 @@ function beginDraw(canvas) {
   return { ctx, w: canvas.clientWidth, h: canvas.height / scale };
 }
 
+// A value as text, "—" where the service gave none (null): never shown as 0.
+function shown(value, format) {
+  return value === null || value === undefined ? "—" : format(value);
+}
+
 function haloText(ctx, text, x, y, colour = "#fff") {
   ctx.lineWidth = 3; ctx.strokeStyle = "rgba(0,0,0,0.85)"; ctx.lineJoin = "round";
   ctx.strokeText(text, x, y);
@@ -264,9 +269,10 @@ function drawGrid(panel) {
   drawContactOutline(view.ctx, frame, cell);
   drawCentreOfPressure(view.ctx, frame, cell);
   drawTaxelLabels(view.ctx, frame, cell); // last, so the numbers stay readable
+  // No contact (null while the sensor tares): no value, not 0.
   const contact = frame.contact || {};
-  panel.meta.textContent = [`seq ${frame.header.seq}`, `ΣF ${(contact.total_N ?? 0).toFixed(2)} N`,
-    `contacts ${contact.contacts ?? 0}`, `area ${contact.area_mm2 ?? 0} mm²`].join(" · ");
+  panel.meta.textContent = [`seq ${frame.header.seq}`, `ΣF ${shown(contact.total_N, (v) => `${v.toFixed(2)} N`)}`,
+    `contacts ${shown(contact.contacts, String)}`, `area ${shown(contact.area_mm2, (v) => `${v} mm²`)}`].join(" · ");
 }
 
 // ---- quad drawing -------------------------------------------------------
@@ -367,12 +373,19 @@ function updateFlags(panel, now) {
 
 // ---- history ------------------------------------------------------------
 
+// The plotted values of a frame, N: [ΣF] of a grid, [Fz, |Fxy|] of a quad; null where the
+// service gave none (a grid taring, an open electrode), drawn as a gap.
+function historyValues(f) {
+  if (f.header.kind === "grid") return [f.contact ? f.contact.total_N ?? null : null];
+  const { x, y, z } = f.wrench.force;
+  return [z ?? null, x === null || y === null ? null : Math.hypot(x, y)];
+}
+
 function recordHistory(panel) {
   const f = panel.frame;
   const t = f.header.stamp;
   if (panel.series.length && t < panel.series[panel.series.length - 1][0]) panel.series = []; // a replay restarted
-  const values = f.header.kind === "grid" ? [f.contact ? f.contact.total_N : 0]
-    : [f.wrench.force.z || 0, Math.hypot(f.wrench.force.x || 0, f.wrench.force.y || 0)];
+  const values = historyValues(f);
   panel.series.push([t, values]);
   while (panel.series[0][0] < t - HISTORY_S) panel.series.shift();
 }
@@ -421,7 +434,7 @@ function drawHistory(panel) {
   const plot = { x: 34, y: 16, w: w - 42, h: h - 34 };
   const names = panel.kind === "grid" ? ["ΣF"] : ["Fz", "|Fxy|"];
   const colours = ["#ffb74d", "#4fc3f7"];
-  const values = panel.series.flatMap(([, v]) => v);
+  const values = panel.series.flatMap(([, v]) => v).filter((v) => v !== null);
   const scale = niceScale(Math.min(0, ...values), Math.max(0, ...values));
   panel.history.dataset.top = scale.top;
   drawHistoryAxes(ctx, plot, scale);
@@ -430,11 +443,14 @@ function drawHistory(panel) {
   const t1 = panel.series[panel.series.length - 1][0];
   names.forEach((_, k) => {
     ctx.strokeStyle = colours[k]; ctx.lineWidth = 1.5; ctx.beginPath();
-    panel.series.forEach(([t, v], i) => {
+    let gap = true; // the line starts anew after a null
+    for (const [t, v] of panel.series) {
+      if (v[k] === null) { gap = true; continue; }
       const x = plot.x + plot.w * (1 - (t1 - t) / HISTORY_S);
       const y = plot.y + plot.h - (v[k] - scale.bottom) / (scale.top - scale.bottom) * plot.h;
-      if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y);
-    });
+      if (gap) ctx.moveTo(x, y); else ctx.lineTo(x, y);
+      gap = false;
+    }
     ctx.stroke();
   });
 }
