@@ -372,3 +372,16 @@ def test_a_quad_with_an_open_electrode_leaves_a_gap_in_its_history(service):
     for colour in ("orange", "blue"):  # Fz 8 N, |Fxy| 5 N
         span = trace_span(service.page, colour)
         assert span[0] < 0.05 and 0.45 < span[1] < 0.55, (colour, span)
+
+
+@pytest.mark.parametrize("age, state", [(3.0, "stale"), (0.3, "ok")])
+def test_a_link_reported_up_is_not_live_once_its_data_is_older_than_the_stale_threshold(service, age, state):
+    """/health's stale threshold is link.stale_after_s (here 0.5 s): data 3 s old is stale whatever link.state says."""
+    service.health["link"].update(state="up", last_data_age_s=age, stale_after_s=0.5)
+    service.open()
+    service.poll()
+    assert service.page.get_attribute("#status", "data-state") == state
+    text = service.page.text_content("#status")
+    assert ("Live" in text) == (state == "ok"), text
+    if state == "stale":
+        assert "no data for 3.0 s" in text

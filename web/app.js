@@ -16,7 +16,7 @@ const FZ_MAX_N = 20;              // quad bar full scale
 const HISTORY_S = 10;
 const STREAM_RATE_HZ = 30;        // frames a second per sensor, decimated server-side
 const RECENT_S = 5;               // as much as /sensors/…/history keeps
-const STALE_AFTER_S = 1;          // only for services that do not report link.state
+const STALE_AFTER_S = 1;          // only for services that do not report link.stale_after_s
 const FLAG_HOLD_MS = 1500;        // a flag raised for one frame stays long enough to be read
 const TAXEL_MARKS = [["saturated", "S"], ["out_of_range", "R"], ["crosstalk_corrected", "x"], ["stale", "?"]];
 const FLAG_SEVERITY = {
@@ -512,10 +512,13 @@ async function loadRecent(panel) {
 
 // ---- status banner --------------------------------------------------------
 
+// The link's state; "up" only while its last data is younger than /health's stale threshold,
+// whatever link.state says (a service may report up while the data has stopped).
 function linkState(link) {
-  if (link.state) return link.state;
+  const silent = link.last_data_age_s > (link.stale_after_s ?? STALE_AFTER_S);
+  if (link.state) return link.state === "up" && silent ? "stale" : link.state;
   if (!link.up) return "down";
-  return link.last_data_age_s > STALE_AFTER_S ? "stale" : "up";
+  return silent ? "stale" : "up";
 }
 
 // The board whose link is in the worst state (every board's part is under
