@@ -249,7 +249,8 @@ def test_a_degraded_service_says_why_in_the_banner(service):
     service.poll()
     assert service.page.get_attribute("#status", "data-state") == "degraded"
     text = service.page.text_content("#status")
-    assert "service degraded · sensor 0: channels [5] have no zero" in text and "(+1 more)" in text
+    # The most severe first: a silent sensor before null channels (all are listed: the next test).
+    assert "service degraded · sensor 3 stale (+1 more)" in text
 
 
 def test_stats_have_no_stray_separators_without_a_board(service):
@@ -385,3 +386,43 @@ def test_a_link_reported_up_is_not_live_once_its_data_is_older_than_the_stale_th
     assert ("Live" in text) == (state == "ok"), text
     if state == "stale":
         assert "no data for 3.0 s" in text
+
+
+def test_a_silent_sensor_is_marked_stale_with_its_age_and_greyed(service):
+    """A quad under 8 N goes silent: /health says stale, last frame 10.8 s old. The panel went on showing
+    "Fz 8.01 ± 0.56 N" and its shear as current, its history ending at "now"."""
+    service.sensors["sensors"] = [{"id": 0, "kind": "quad", "rows": 2, "cols": 2, "name": "quad0"}]
+    service.health["sensors"] = {"0": {"id": 0, "kind": "quad", "rate_hz": 1000.0, "stale": False,
+                                       "last_frame_age_s": 0.002}}
+    service.open()
+    service.send([quad_frame(seq, (6.0, 0.0, 8.0), stamp=100 + seq / 20) for seq in range(40)])
+    service.poll()
+    panel = 'section[data-sensor="0"]'
+    live_opacity = f"() => Number(getComputedStyle(document.querySelector('{panel} canvas.live')).opacity)"
+    assert "stale" not in service.page.inner_text(panel) and service.page.evaluate(live_opacity) == 1
+    service.health["sensors"]["0"].update(rate_hz=0.0, stale=True, last_frame_age_s=10.8)
+    service.poll()
+    service.page.evaluate("() => new Promise(done => requestAnimationFrame(() => requestAnimationFrame(done)))")
+    assert "stale · last frame 10.8 s ago" in service.page.inner_text(panel)
+    assert service.page.evaluate(live_opacity) < 0.5  # the last wrench is greyed, not shown as current
+    assert service.page.get_attribute(f"{panel} canvas.history", "data-end") == "last frame"
+    service.health["sensors"]["0"].update(rate_hz=1000.0, stale=False, last_frame_age_s=0.002)  # it speaks again
+    service.poll()
+    assert "stale" not in service.page.inner_text(panel) and service.page.evaluate(live_opacity) == 1
+
+
+def test_every_problem_is_listed_the_most_severe_first(service):
+    """Two boards: the banner showed problems[0] "(+2 more)", hiding board b's stale sensor."""
+    minor = "board a: sensor 0 uses the built-in calibration: its own could not be used (no such file)"
+    null = "board a: sensor 0: channels [5] have no zero (no plausible reading while it tared): their forces are null"
+    stale = "board b: sensor 1 stale"
+    service.health.update(status="degraded", problems=[minor, null, stale])
+    service.open()
+    service.poll()
+    assert "service degraded · board b: sensor 1 stale (+2 more)" in service.page.text_content("#status")
+    items = service.page.locator("#problems li")
+    assert items.all_inner_texts() == [stale, null, minor]
+    assert all(items.nth(k).is_visible() for k in range(3))
+    service.health.update(status="ok", problems=[])
+    service.poll()
+    assert service.page.locator("#problems").is_hidden()

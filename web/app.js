@@ -132,16 +132,19 @@ function createPanel(id, info) {
   el.dataset.board = info.board ?? "";
   const title = element("h3");
   const flags = element("span", "flags");
+  const staleMark = element("span", "stale-mark");
+  staleMark.hidden = true;
   const live = makeCanvas("live");
   const history = makeCanvas("history");
   const meta = element("div", "meta", "waiting for data…");
   const calibration = element("div", "calibration");
   el.append(element("div", "panel-head"), live);
-  el.firstChild.append(title, flags);
+  el.firstChild.append(title, staleMark, flags);
   if (info.kind === "grid") el.append(colourScale());
   el.append(history, meta, calibration);
-  const panel = { id, el, title, flags, live, history, meta, calibration, board: info.board ?? null,
-                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "", recentAsked: false };
+  const panel = { id, el, title, flags, staleMark, live, history, meta, calibration, board: info.board ?? null,
+                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "", recentAsked: false,
+                  stale: false };
   describePanel(panel, info);
   placePanel(panel);
   return panel;
@@ -399,7 +402,8 @@ function niceScale(low, high) {
   return { step, bottom: Math.floor(Math.min(0, low * 1.2) / step) * step, top: Math.ceil(Math.max(high * 1.2, 1) / step) * step };
 }
 
-function drawHistoryAxes(ctx, plot, scale) {
+// endLabel: what the plot's right end is ("now", or "last frame" of a stale sensor).
+function drawHistoryAxes(ctx, plot, scale, endLabel) {
   ctx.strokeStyle = "#333"; ctx.fillStyle = "#999"; ctx.lineWidth = 1;
   ctx.font = "10px system-ui, sans-serif"; ctx.textAlign = "right"; ctx.textBaseline = "middle";
   for (let v = scale.bottom; v <= scale.top + scale.step / 2; v += scale.step) {
@@ -411,7 +415,7 @@ function drawHistoryAxes(ctx, plot, scale) {
   for (let s = HISTORY_S; s >= 0; s -= 2) {
     // The end labels stay inside the plot's span: clear of the y labels and of the canvas edge.
     ctx.textAlign = s === 0 ? "right" : s === HISTORY_S ? "left" : "center";
-    ctx.fillText(s === 0 ? "now" : `−${s} s`, plot.x + plot.w * (1 - s / HISTORY_S), plot.y + plot.h + 3);
+    ctx.fillText(s === 0 ? endLabel : `−${s} s`, plot.x + plot.w * (1 - s / HISTORY_S), plot.y + plot.h + 3);
   }
 }
 
@@ -436,8 +440,10 @@ function drawHistory(panel) {
   const colours = ["#ffb74d", "#4fc3f7"];
   const values = panel.series.flatMap(([, v]) => v).filter((v) => v !== null);
   const scale = niceScale(Math.min(0, ...values), Math.max(0, ...values));
+  const endLabel = panel.stale ? "last frame" : "now";
   panel.history.dataset.top = scale.top;
-  drawHistoryAxes(ctx, plot, scale);
+  panel.history.dataset.end = endLabel;
+  drawHistoryAxes(ctx, plot, scale, endLabel);
   drawHistoryLegend(ctx, plot, names, colours);
   if (panel.series.length < 2) return;
   const t1 = panel.series[panel.series.length - 1][0];
@@ -533,6 +539,20 @@ function worstLink(health) {
   return [boards.length > 1 ? `board ${ranked[0][0]}: ` : "", ranked[0][1]];
 }
 
+// /health's problem lines, most severe first: a link down or board lost, then silence
+// (a stale link or sensor), then forces null or failing, then the rest (in /health's order).
+const PROBLEM_RANKS = [/(^|: )(lost|link down)\b/, /(^|: )(link stale|sensor \S+ stale$)/, /\bnull\b|\bfails\b/];
+
+function problemRank(text) {
+  const rank = PROBLEM_RANKS.findIndex((pattern) => pattern.test(text));
+  return rank < 0 ? PROBLEM_RANKS.length : rank;
+}
+
+function rankedProblems(health) {
+  const problems = health.status === "degraded" ? health.problems || [] : [];
+  return [...problems].sort((a, b) => problemRank(a) - problemRank(b));
+}
+
 function describeStatus(health) {
   const [which, link] = worstLink(health);
   const source = link.source ? ` · ${link.source}` : "";
@@ -545,8 +565,8 @@ function describeStatus(health) {
   }
   if (state === "stale") return ["stale", `${which}Stale: no data${age}${source}`];
   if (!streamOpen) return ["stale", `Live stream disconnected, reconnecting…${source}`];
-  // Degraded with the link up: say why (the first problem /health names, and how many more).
-  const problems = health.status === "degraded" ? health.problems || [] : [];
+  // Degraded with the link up: say why (the most severe problem, and how many more: all are listed below).
+  const problems = rankedProblems(health);
   const why = problems.length ? ` · ${problems[0]}${problems.length > 1 ? ` (+${problems.length - 1} more)` : ""}` : "";
   const degraded = health.status === "degraded" ? ` (service degraded${why})` : "";
   if (health.replay) return ["replay", `Replay${degraded}${source}`];
@@ -557,6 +577,30 @@ function showStatus(state, text) {
   const banner = document.getElementById("status");
   banner.dataset.state = state;
   banner.textContent = text;
+}
+
+// Every problem /health names, most severe first (the banner has room for one).
+function showProblems(problems) {
+  const list = document.getElementById("problems");
+  list.hidden = !problems.length;
+  list.querySelector("summary").textContent = `${problems.length} problem${problems.length === 1 ? "" : "s"}, most severe first`;
+  list.querySelector("ol").replaceChildren(...problems.map((text) => element("li", "", text)));
+}
+
+// A sensor /health calls stale: its last values greyed, its age said, its history ending at its last frame.
+function showStale(panel, stale, ageS) {
+  const text = !stale ? "" : `stale${ageS == null ? "" : ` · last frame ${ageS.toFixed(1)} s ago`}`;
+  if (stale === panel.stale && text === panel.staleMark.textContent) return;
+  panel.stale = stale;
+  panel.el.classList.toggle("stale", stale);
+  panel.staleMark.hidden = !stale;
+  panel.staleMark.textContent = text;
+  dirty = true;
+}
+
+// The link of a sensor's board (a service before boards were named has one, at the top).
+function boardLink(health, board) {
+  return ((health.boards || {})[board] || {}).link || health.link || {};
 }
 
 function statsText(health) {
@@ -648,11 +692,15 @@ async function pollHealth() {
     return;
   }
   showStatus(...describeStatus(health));
+  showProblems(rankedProblems(health));
   document.getElementById("stats").textContent = statsText(health);
   for (const [id, sensor] of Object.entries(health.sensors || {})) {
     const panel = panels.get(sensorKey(sensor.board, sensor.id ?? Number(id)));
     if (!panel) continue;
     showCalibration(panel, sensor.calibration, sensor.fatigue, sensor);
+    // A finished replay's sensors are all silent: the banner says so, their last frames are what is shown.
+    const finished = linkState(boardLink(health, sensor.board)) === "finished";
+    showStale(panel, Boolean(sensor.stale) && !finished, sensor.last_frame_age_s);
     if (sensor.stale && !panel.frame && !panel.recentAsked) loadRecent(panel);
   }
   const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();
