@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.chromium import VIEWPORT
+from tests.chromium import VIEWPORT, sync_api
 
 WEB = Path(__file__).resolve().parents[1] / "web"
 BASE = "http://tactile.test/"
@@ -426,3 +426,59 @@ def test_every_problem_is_listed_the_most_severe_first(service):
     service.health.update(status="ok", problems=[])
     service.poll()
     assert service.page.locator("#problems").is_hidden()
+
+
+def tare_said(service):
+    """Clicks "Tare all" and returns what the page then says of it ("" when nothing within 2 s)."""
+    said = "() => { const info = document.getElementById('tare-info'); return info && !info.hidden ? info.innerText : ''; }"
+    service.page.click("#tare")
+    try:
+        service.page.wait_for_function(f"() => ({said})() !== ''", timeout=2000)
+    except sync_api.TimeoutError:
+        return ""
+    return service.page.evaluate(said)
+
+
+def test_a_refused_tare_says_why(service):
+    """The service on --token, the page without ?token=: 401, and the page said nothing."""
+    detail = "this endpoint needs 'Authorization: Bearer <token>' (printed by tactile serve)"
+    service.tare = lambda query: (401, {"detail": detail})
+    service.open()
+    assert tare_said(service) == f"Tare failed (401): {detail}"
+
+
+@pytest.mark.parametrize("confirm", [True, False])
+def test_a_tare_of_loaded_taxels_says_what_became_of_it(service, confirm):
+    """409 (taxels loaded), the user asked: the ?force=true retry's answer was never looked at."""
+    loaded = {"detail": {"error": "taxels read loaded", "loaded_taxels": {"0": [27, 28]}}}
+    service.tare = lambda query: (500, {"detail": "the board is gone"}) if query == "force=true" else (409, loaded)
+    dialogs = []
+    service.page.on("dialog", lambda d: (dialogs.append(d.message), d.accept() if confirm else d.dismiss()))
+    service.open()
+    said = tare_said(service)
+    assert "sensor 0: taxels 27, 28" in dialogs[0]
+    if confirm:
+        assert said == "Tare failed (500): the board is gone"
+        assert [path for path, _ in service.posts] == ["/tare", "/tare"]
+    else:
+        assert said == "Not tared: sensor 0: taxels 27, 28 read loaded"
+
+
+def test_a_tare_says_which_sensors_it_tared_and_which_not(service):
+    """Board b down: the answer lists only a's sensors, and the page said nothing at all."""
+    service.sensors["sensors"] = [{"id": i, "kind": "grid", "rows": ROWS, "cols": COLS, "name": f"grid{i}", "board": board}
+                                  for board, ids in (("a", (0, 1)), ("b", (2, 3))) for i in ids]
+    note = "board b not connected: the tare takes its next frames once it is back"
+    service.tare = lambda query: (200, {"tared": ["a/0", "a/1"], "frames": 100, "note": note})
+    service.open()
+    service.page.wait_for_function("() => document.querySelectorAll('section.panel').length === 4")
+    assert tare_said(service) == f"Tared sensors a/0, a/1 · not tared: b/2, b/3 · {note}"
+
+
+def test_a_tare_on_one_board_names_the_sensors_tared(service):
+    """One board: the service answers with bare ids."""
+    service.sensors["sensors"].append({"id": 1, "kind": "quad", "rows": 2, "cols": 2, "name": "quad1"})
+    service.tare = lambda query: (200, {"tared": [0, 1], "frames": 100})
+    service.open()
+    service.page.wait_for_function("() => document.querySelectorAll('section.panel').length === 2")
+    assert tare_said(service) == "Tared sensors 0, 1"

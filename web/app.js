@@ -643,8 +643,12 @@ function showRecording(status, error) {
   document.getElementById("record-path").textContent = status.path;
 }
 
+// The API's detail of a refusal, as text (a detail may be a string, an object or a list).
 async function errorText(response) {
-  try { return (await response.json()).detail || response.statusText; } catch (err) { return response.statusText; }
+  let detail;
+  try { detail = (await response.json()).detail; } catch (err) { return response.statusText; }
+  if (!detail) return response.statusText;
+  return typeof detail === "string" ? detail : detail.error || JSON.stringify(detail);
 }
 
 function post(path, body) {
@@ -707,19 +711,66 @@ async function pollHealth() {
   if (recording) showRecording(recording);
 }
 
-// A tare with taxels loaded against their calibration's C0 is refused (409):
-// say which, and tare anyway only if the user confirms the load is the zero.
-async function tare() {
-  const answer = await fetch("/tare", { method: "POST", headers: authHeaders });
-  if (answer.status !== 409) return;
-  const detail = (await answer.json()).detail || {};
-  if (typeof detail === "string") { window.alert(detail); return; }  // e.g. a gateway's board: tare it on its service
-  const loaded = Object.entries(detail.loaded_taxels || {}).map(([s, t]) => `sensor ${s}: taxels ${t.join(", ")}`);
-  if (window.confirm(`These taxels read loaded, so a tare would make the load their zero:\n${loaded.join("\n")}\n\nTare anyway?`))
-    await fetch("/tare?force=true", { method: "POST", headers: authHeaders });
+// ---- tare -------------------------------------------------------------------
+
+const tareButton = document.getElementById("tare");
+
+function showTare(text, error) {
+  const info = document.getElementById("tare-info");
+  info.hidden = false;
+  info.textContent = text;
+  info.classList.toggle("error", error);
 }
 
-document.getElementById("tare").addEventListener("click", tare);
+// The sensors shown, in page order, as a tare's answer names them: board/id with several boards, else the id.
+function shownSensorNames() {
+  const shown = [...document.querySelectorAll("section.panel")];
+  const several = new Set(shown.map((p) => p.dataset.board)).size > 1;
+  return shown.map((p) => (several ? `${p.dataset.board}/${p.dataset.sensor}` : p.dataset.sensor));
+}
+
+// What a tare did ({tared, frames, note?}): the sensors tared, and those shown that were not.
+function tareOutcome(answer) {
+  const tared = (answer.tared || []).map(String);
+  const untouched = shownSensorNames().filter((name) => !tared.includes(name));
+  return [`Tared ${tared.length ? `sensors ${tared.join(", ")}` : "no sensor"}`,
+          untouched.length ? `not tared: ${untouched.join(", ")}` : "", answer.note || ""].filter(Boolean).join(" · ");
+}
+
+function postTare(query) {
+  return fetch(`/tare${query}`, { method: "POST", headers: authHeaders });
+}
+
+// A tare with taxels loaded against their calibration's C0 is refused (409):
+// say which, and tare anyway only if the user confirms the load is the zero.
+// Returns the forced tare's answer, or null when the user declined (said so).
+async function tareLoaded(refusal) {
+  const detail = (await refusal.clone().json()).detail;
+  if (typeof detail === "string" || !detail || !detail.loaded_taxels) return refusal; // e.g. a gateway's board: tare it on its service
+  const loaded = Object.entries(detail.loaded_taxels).map(([s, t]) => `sensor ${s}: taxels ${t.join(", ")}`);
+  if (window.confirm(`These taxels read loaded, so a tare would make the load their zero:\n${loaded.join("\n")}\n\nTare anyway?`))
+    return postTare("?force=true");
+  showTare(`Not tared: ${loaded.join("; ")} read loaded`, true);
+  return null;
+}
+
+// Every answer is said: which sensors were tared (and which not), or why none was.
+async function tare() {
+  tareButton.disabled = true;
+  try {
+    let answer = await postTare("");
+    if (answer.status === 409) answer = await tareLoaded(answer);
+    if (!answer) return;
+    if (answer.ok) showTare(tareOutcome(await answer.json()), false);
+    else showTare(`Tare failed (${answer.status}): ${await errorText(answer)}`, true);
+  } catch (err) {
+    showTare("Tare failed: service unreachable", true);
+  } finally {
+    tareButton.disabled = false;
+  }
+}
+
+tareButton.addEventListener("click", tare);
 recordButton.addEventListener("click", toggleRecording);
 
 loadSensors().then(pollHealth); // the panels first: the first poll fills those of silent sensors
