@@ -482,3 +482,35 @@ def test_a_tare_on_one_board_names_the_sensors_tared(service):
     service.open()
     service.page.wait_for_function("() => document.querySelectorAll('section.panel').length === 2")
     assert tare_said(service) == "Tared sensors 0, 1"
+
+
+def hover_taxel(page, index, sensor=0):
+    """Moves the mouse to the centre of a taxel's cell on the page."""
+    box = page.locator(f'section[data-sensor="{sensor}"] canvas.live').bounding_box()
+    cell = box["width"] / COLS
+    page.mouse.move(box["x"] + (index % COLS + 0.5) * cell, box["y"] + (index // COLS + 0.5) * cell)
+
+
+def test_a_grid_shows_each_taxels_sigma(service):
+    """The API gives each taxel's σ (1.69 ± 0.12 N); the grid showed "1.69" alone, no σ anywhere."""
+    service.open()
+    forces = pressed({27: 1.69, 45: 0.8, 5: 0.0})
+    frame = grid_frame(1, forces)
+    frame.update(sigma_N=[0.12 if i == 27 else 0.05 if i == 45 else 0.01 for i in range(ROWS * COLS)],
+                 taxel_flags={"crosstalk_corrected": [27, 45], "out_of_range": [5]})
+    frame["force_N"][5] = frame["sigma_N"][5] = None
+    service.send([frame])
+    panel = 'section[data-sensor="0"]'
+    assert "max 1.69 ± 0.12 N (taxel 27)" in service.page.text_content(f"{panel} .meta")
+    readout = f"{panel} .taxel-readout"
+    hover_taxel(service.page, 27)
+    assert service.page.inner_text(readout) == "taxel 27 (row 3, col 3): 1.69 ± 0.12 N · crosstalk corrected"
+    frame = copy.deepcopy(frame)
+    frame["header"]["seq"] = 2
+    frame["force_N"][27], frame["sigma_N"][27] = 2.0, 0.15
+    service.send([frame])  # the readout follows the frames while the mouse rests
+    assert service.page.inner_text(readout) == "taxel 27 (row 3, col 3): 2.00 ± 0.15 N · crosstalk corrected"
+    hover_taxel(service.page, 5)
+    assert service.page.inner_text(readout) == "taxel 5 (row 0, col 5): — · out of range"
+    service.page.mouse.move(0, 0)
+    assert "taxel" not in service.page.inner_text(readout).replace("a taxel", "")

@@ -138,13 +138,16 @@ function createPanel(id, info) {
   const history = makeCanvas("history");
   const meta = element("div", "meta", "waiting for data…");
   const calibration = element("div", "calibration");
+  const readout = element("div", "taxel-readout", READOUT_HINT);
   el.append(element("div", "panel-head"), live);
   el.firstChild.append(title, staleMark, flags);
-  if (info.kind === "grid") el.append(colourScale());
+  if (info.kind === "grid") el.append(readout, colourScale());
   el.append(history, meta, calibration);
-  const panel = { id, el, title, flags, staleMark, live, history, meta, calibration, board: info.board ?? null,
+  const panel = { id, el, title, flags, staleMark, live, readout, history, meta, calibration, board: info.board ?? null,
                   frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "", recentAsked: false,
-                  stale: false };
+                  stale: false, hover: null };
+  live.addEventListener("mousemove", (event) => { panel.hover = taxelAt(panel, event); showReadout(panel); });
+  live.addEventListener("mouseleave", () => { panel.hover = null; showReadout(panel); });
   describePanel(panel, info);
   placePanel(panel);
   return panel;
@@ -263,6 +266,46 @@ function drawTaxelLabels(ctx, frame, cell) {
   });
 }
 
+// ---- a taxel's force ± σ ------------------------------------------------------
+
+const READOUT_HINT = "point at a taxel: its force ± 1σ and flags";
+
+// The row-major index of the taxel under the mouse, or null (no frame, or off the grid).
+function taxelAt(panel, event) {
+  const frame = panel.frame;
+  if (!frame || panel.kind !== "grid") return null;
+  const box = panel.live.getBoundingClientRect(), cell = box.width / frame.cols;
+  const r = Math.floor((event.clientY - box.top) / cell), c = Math.floor((event.clientX - box.left) / cell);
+  return r < 0 || c < 0 || r >= frame.rows || c >= frame.cols ? null : r * frame.cols + c;
+}
+
+// "1.69 ± 0.12 N" (1σ), "5.20 N (no σ)" where the service gives none (a saturated taxel), "—" without a force.
+function forceText(frame, i) {
+  const f = frame.force_N[i], sigma = frame.sigma_N ? frame.sigma_N[i] : null;
+  if (f === null) return "—";
+  return sigma === null || sigma === undefined ? `${f.toFixed(2)} N (no σ)` : `${f.toFixed(2)} ± ${sigma.toFixed(2)} N`;
+}
+
+function taxelFlagNames(frame, i) {
+  return Object.entries(frame.taxel_flags || {}).filter(([, taxels]) => taxels.includes(i))
+    .map(([name]) => name.replaceAll("_", " "));
+}
+
+// The hovered taxel's force ± σ and flags, following the frames while the mouse rests.
+function showReadout(panel) {
+  const frame = panel.frame, i = panel.hover;
+  if (i === null || !frame || i >= frame.force_N.length) { panel.readout.textContent = READOUT_HINT; return; }
+  const where = `taxel ${i} (row ${Math.floor(i / frame.cols)}, col ${i % frame.cols})`;
+  panel.readout.textContent = [`${where}: ${forceText(frame, i)}`, ...taxelFlagNames(frame, i)].join(" · ");
+}
+
+// The most loaded taxel's force ± σ, for the panel's line; "" without any force.
+function largestTaxel(frame) {
+  let largest = -1;
+  frame.force_N.forEach((f, i) => { if (f !== null && (largest < 0 || f > frame.force_N[largest])) largest = i; });
+  return largest < 0 ? "" : `max ${forceText(frame, largest)} (taxel ${largest})`;
+}
+
 function drawGrid(panel) {
   const frame = panel.frame;
   const view = beginDraw(panel.live);
@@ -275,7 +318,9 @@ function drawGrid(panel) {
   // No contact (null while the sensor tares): no value, not 0.
   const contact = frame.contact || {};
   panel.meta.textContent = [`seq ${frame.header.seq}`, `ΣF ${shown(contact.total_N, (v) => `${v.toFixed(2)} N`)}`,
-    `contacts ${shown(contact.contacts, String)}`, `area ${shown(contact.area_mm2, (v) => `${v} mm²`)}`].join(" · ");
+    `contacts ${shown(contact.contacts, String)}`, `area ${shown(contact.area_mm2, (v) => `${v} mm²`)}`,
+    largestTaxel(frame)].filter(Boolean).join(" · ");
+  showReadout(panel);
 }
 
 // ---- quad drawing -------------------------------------------------------
