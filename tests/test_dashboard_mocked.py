@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.chromium import VIEWPORT
+from tests.chromium import VIEWPORT, sync_api
 
 WEB = Path(__file__).resolve().parents[1] / "web"
 BASE = "http://tactile.test/"
@@ -59,6 +59,7 @@ class ScriptedService:
         self.history = []  # of sensor 0
         self.record_start = lambda body: (200, {"path": f"/srv/recordings/{body['name']}", "raw_path": None, "active": True, "messages": 0})
         self.posts = []
+        self.tare = lambda query: (200, {"tared": [0], "frames": 100})  # query: the POST /tare's, e.g. "force=true"
         self.socket = None
         page.route(f"{BASE}**", self.answer)
         page.route_web_socket(re.compile(r".*/ws(\?.*)?$"), self.connected)
@@ -90,6 +91,9 @@ class ScriptedService:
         if path == "/record/stop":
             self.recording = {**self.recording, "active": False, "messages": 1234}
             return self.json(route, self.recording)
+        if path == "/tare":
+            status, answer = self.tare(route.request.url.partition("?")[2])
+            return self.json(route, answer, status)
         self.json(route, {})
 
     def open(self):
@@ -97,11 +101,11 @@ class ScriptedService:
         self.page.wait_for_function("() => document.querySelector('section.panel')")
         assert self.socket is not None
 
-    def send(self, frames):
-        """Sends frames and returns once the page has drawn them."""
-        before = int(self.page.get_attribute('section[data-sensor="0"]', "data-frames") or 0)
+    def send(self, frames, sensor=0):
+        """Sends frames (of ``sensor``) and returns once the page has drawn them."""
+        before = int(self.page.get_attribute(f'section[data-sensor="{sensor}"]', "data-frames") or 0)
         self.socket.send(json.dumps({"type": "frames", "frames": frames}))
-        self.page.wait_for_selector(f'section[data-sensor="0"][data-frames="{before + len(frames)}"]')
+        self.page.wait_for_selector(f'section[data-sensor="{sensor}"][data-frames="{before + len(frames)}"]')
         self.page.evaluate("() => new Promise(done => requestAnimationFrame(() => requestAnimationFrame(done)))")
 
     def poll(self):
@@ -245,7 +249,8 @@ def test_a_degraded_service_says_why_in_the_banner(service):
     service.poll()
     assert service.page.get_attribute("#status", "data-state") == "degraded"
     text = service.page.text_content("#status")
-    assert "service degraded · sensor 0: channels [5] have no zero" in text and "(+1 more)" in text
+    # The most severe first: a silent sensor before null channels (all are listed: the next test).
+    assert "service degraded · sensor 3 stale (+1 more)" in text
 
 
 def test_stats_have_no_stray_separators_without_a_board(service):
@@ -305,3 +310,207 @@ def test_record_button_shows_where_the_file_goes_with_either_backend(service, ba
     service.page.wait_for_selector("text=Stop recording")
     again = [body for path, body in service.posts if path == "/record/start"][len(bodies):]
     assert [list(body) for body in again] == [[backend]]
+
+
+def quad_frame(seq, force, stamp, sensor=0, flags=()):
+    """A quad frame: force (x, y, z) in N, None for a component the service could not give; σ 0.5 N each."""
+    x, y, z = force
+    return {"header": {"sensor_id": sensor, "sensor_name": f"quad{sensor}", "kind": "quad", "seq": seq,
+                       "board_time_us": seq * 1000, "stamp": stamp},
+            "wrench": {"force": {"x": x, "y": y, "z": z}},
+            "wrench_sigma": {"force": {k: None if v is None else 0.5 for k, v in zip("xyz", force)}},
+            "contact": None, "flags": list(flags), "taxel_flags": {}}
+
+
+# By hue, so a line's anti-aliased edge on the dark plot counts too; the axes and labels are grey.
+TRACE_COLOURS = {"orange": "d[i] - d[i + 2] > 60 && d[i] > d[i + 1]",    # ΣF, Fz (#ffb74d)
+                 "blue": "d[i + 2] - d[i] > 60 && d[i + 1] > d[i]"}      # |Fxy| (#4fc3f7)
+
+
+def trace_span(page, colour, sensor=0):
+    """(first, last) x of a history trace's pixels, as fractions of the plot's width (0 = −10 s, 1 = its
+    newest sample); None without any. The legend's swatches (above y = 12) are left out."""
+    return page.evaluate(
+        """([sensor, test]) => {
+            const canvas = document.querySelector(`section[data-sensor="${sensor}"] canvas.history`);
+            const scale = canvas.width / canvas.clientWidth, d = canvas.getContext("2d").getImageData(0, 0, canvas.width, canvas.height).data;
+            const plotX = 34 * scale, plotW = canvas.width - 42 * scale, hit = new Function("d", "i", `return ${test}`);
+            const xs = [];
+            for (let x = Math.ceil(plotX); x < canvas.width; x++)
+                for (let y = Math.ceil(12 * scale); y < canvas.height; y++) if (hit(d, 4 * (y * canvas.width + x))) { xs.push(x); break; }
+            return xs.length ? [(xs[0] - plotX) / plotW, (xs[xs.length - 1] - plotX) / plotW] : null;
+        }""",
+        [sensor, TRACE_COLOURS[colour]],
+    )
+
+
+def test_a_grid_taring_shows_no_total_and_its_history_a_gap(service):
+    """While a sensor tares the service gives no contact (null) and flags taring: the page said
+    "ΣF 0.00 N · contacts 0 · area 0 mm²" and drew ΣF = 0 N for those seconds."""
+    service.open()
+    loaded = [grid_frame(seq, pressed({27: 4.0}), stamp=100 + seq / 20) for seq in range(100)]  # 5 s of 4 N
+    taring = []
+    for seq in range(100, 200):  # then 5 s taring: forces and contact null
+        frame = grid_frame(seq, [0.0] * (ROWS * COLS), stamp=100 + seq / 20)
+        frame.update(force_N=[None] * (ROWS * COLS), contact=None, flags=["taring"])
+        taring.append(frame)
+    service.send(loaded + taring)
+    span = trace_span(service.page, "orange")
+    assert span[0] < 0.05 and 0.45 < span[1] < 0.55, span  # the trace ends where the taring began, half way
+    meta = service.page.text_content('section[data-sensor="0"] .meta')
+    assert "ΣF —" in meta and "contacts —" in meta and "area —" in meta, meta
+    assert "0.00" not in meta and "contacts 0" not in meta
+
+
+def test_a_quad_with_an_open_electrode_leaves_a_gap_in_its_history(service):
+    """An open electrode: wrench x, y, z null. The text said "—" while Fz and |Fxy| drew a flat 0 N line."""
+    service.sensors["sensors"] = [{"id": 0, "kind": "quad", "rows": 2, "cols": 2, "name": "quad0"}]
+    service.open()
+    good = [quad_frame(seq, (3.0, 4.0, 8.0), stamp=100 + seq / 20) for seq in range(100)]
+    opened = [quad_frame(seq, (None, None, None), stamp=100 + seq / 20, flags=["open_channel"]) for seq in range(100, 200)]
+    service.send(good + opened)
+    assert "Fz — N" in service.page.text_content('section[data-sensor="0"] .meta')
+    for colour in ("orange", "blue"):  # Fz 8 N, |Fxy| 5 N
+        span = trace_span(service.page, colour)
+        assert span[0] < 0.05 and 0.45 < span[1] < 0.55, (colour, span)
+
+
+@pytest.mark.parametrize("age, state", [(3.0, "stale"), (0.3, "ok")])
+def test_a_link_reported_up_is_not_live_once_its_data_is_older_than_the_stale_threshold(service, age, state):
+    """/health's stale threshold is link.stale_after_s (here 0.5 s): data 3 s old is stale whatever link.state says."""
+    service.health["link"].update(state="up", last_data_age_s=age, stale_after_s=0.5)
+    service.open()
+    service.poll()
+    assert service.page.get_attribute("#status", "data-state") == state
+    text = service.page.text_content("#status")
+    assert ("Live" in text) == (state == "ok"), text
+    if state == "stale":
+        assert "no data for 3.0 s" in text
+
+
+def test_a_silent_sensor_is_marked_stale_with_its_age_and_greyed(service):
+    """A quad under 8 N goes silent: /health says stale, last frame 10.8 s old. The panel went on showing
+    "Fz 8.01 ± 0.56 N" and its shear as current, its history ending at "now"."""
+    service.sensors["sensors"] = [{"id": 0, "kind": "quad", "rows": 2, "cols": 2, "name": "quad0"}]
+    service.health["sensors"] = {"0": {"id": 0, "kind": "quad", "rate_hz": 1000.0, "stale": False,
+                                       "last_frame_age_s": 0.002}}
+    service.open()
+    service.send([quad_frame(seq, (6.0, 0.0, 8.0), stamp=100 + seq / 20) for seq in range(40)])
+    service.poll()
+    panel = 'section[data-sensor="0"]'
+    live_opacity = f"() => Number(getComputedStyle(document.querySelector('{panel} canvas.live')).opacity)"
+    assert "stale" not in service.page.inner_text(panel) and service.page.evaluate(live_opacity) == 1
+    service.health["sensors"]["0"].update(rate_hz=0.0, stale=True, last_frame_age_s=10.8)
+    service.poll()
+    service.page.evaluate("() => new Promise(done => requestAnimationFrame(() => requestAnimationFrame(done)))")
+    assert "stale · last frame 10.8 s ago" in service.page.inner_text(panel)
+    assert service.page.evaluate(live_opacity) < 0.5  # the last wrench is greyed, not shown as current
+    assert service.page.get_attribute(f"{panel} canvas.history", "data-end") == "last frame"
+    service.health["sensors"]["0"].update(rate_hz=1000.0, stale=False, last_frame_age_s=0.002)  # it speaks again
+    service.poll()
+    assert "stale" not in service.page.inner_text(panel) and service.page.evaluate(live_opacity) == 1
+
+
+def test_every_problem_is_listed_the_most_severe_first(service):
+    """Two boards: the banner showed problems[0] "(+2 more)", hiding board b's stale sensor."""
+    minor = "board a: sensor 0 uses the built-in calibration: its own could not be used (no such file)"
+    null = "board a: sensor 0: channels [5] have no zero (no plausible reading while it tared): their forces are null"
+    stale = "board b: sensor 1 stale"
+    service.health.update(status="degraded", problems=[minor, null, stale])
+    service.open()
+    service.poll()
+    assert "service degraded · board b: sensor 1 stale (+2 more)" in service.page.text_content("#status")
+    items = service.page.locator("#problems li")
+    assert items.all_inner_texts() == [stale, null, minor]
+    assert all(items.nth(k).is_visible() for k in range(3))
+    service.health.update(status="ok", problems=[])
+    service.poll()
+    assert service.page.locator("#problems").is_hidden()
+
+
+def tare_said(service):
+    """Clicks "Tare all" and returns what the page then says of it ("" when nothing within 2 s)."""
+    said = "() => { const info = document.getElementById('tare-info'); return info && !info.hidden ? info.innerText : ''; }"
+    service.page.click("#tare")
+    try:
+        service.page.wait_for_function(f"() => ({said})() !== ''", timeout=2000)
+    except sync_api.TimeoutError:
+        return ""
+    return service.page.evaluate(said)
+
+
+def test_a_refused_tare_says_why(service):
+    """The service on --token, the page without ?token=: 401, and the page said nothing."""
+    detail = "this endpoint needs 'Authorization: Bearer <token>' (printed by tactile serve)"
+    service.tare = lambda query: (401, {"detail": detail})
+    service.open()
+    assert tare_said(service) == f"Tare failed (401): {detail}"
+
+
+@pytest.mark.parametrize("confirm", [True, False])
+def test_a_tare_of_loaded_taxels_says_what_became_of_it(service, confirm):
+    """409 (taxels loaded), the user asked: the ?force=true retry's answer was never looked at."""
+    loaded = {"detail": {"error": "taxels read loaded", "loaded_taxels": {"0": [27, 28]}}}
+    service.tare = lambda query: (500, {"detail": "the board is gone"}) if query == "force=true" else (409, loaded)
+    dialogs = []
+    service.page.on("dialog", lambda d: (dialogs.append(d.message), d.accept() if confirm else d.dismiss()))
+    service.open()
+    said = tare_said(service)
+    assert "sensor 0: taxels 27, 28" in dialogs[0]
+    if confirm:
+        assert said == "Tare failed (500): the board is gone"
+        assert [path for path, _ in service.posts] == ["/tare", "/tare"]
+    else:
+        assert said == "Not tared: sensor 0: taxels 27, 28 read loaded"
+
+
+def test_a_tare_says_which_sensors_it_tared_and_which_not(service):
+    """Board b down: the answer lists only a's sensors, and the page said nothing at all."""
+    service.sensors["sensors"] = [{"id": i, "kind": "grid", "rows": ROWS, "cols": COLS, "name": f"grid{i}", "board": board}
+                                  for board, ids in (("a", (0, 1)), ("b", (2, 3))) for i in ids]
+    note = "board b not connected: the tare takes its next frames once it is back"
+    service.tare = lambda query: (200, {"tared": ["a/0", "a/1"], "frames": 100, "note": note})
+    service.open()
+    service.page.wait_for_function("() => document.querySelectorAll('section.panel').length === 4")
+    assert tare_said(service) == f"Tared sensors a/0, a/1 · not tared: b/2, b/3 · {note}"
+
+
+def test_a_tare_on_one_board_names_the_sensors_tared(service):
+    """One board: the service answers with bare ids."""
+    service.sensors["sensors"].append({"id": 1, "kind": "quad", "rows": 2, "cols": 2, "name": "quad1"})
+    service.tare = lambda query: (200, {"tared": [0, 1], "frames": 100})
+    service.open()
+    service.page.wait_for_function("() => document.querySelectorAll('section.panel').length === 2")
+    assert tare_said(service) == "Tared sensors 0, 1"
+
+
+def hover_taxel(page, index, sensor=0):
+    """Moves the mouse to the centre of a taxel's cell on the page."""
+    box = page.locator(f'section[data-sensor="{sensor}"] canvas.live').bounding_box()
+    cell = box["width"] / COLS
+    page.mouse.move(box["x"] + (index % COLS + 0.5) * cell, box["y"] + (index // COLS + 0.5) * cell)
+
+
+def test_a_grid_shows_each_taxels_sigma(service):
+    """The API gives each taxel's σ (1.69 ± 0.12 N); the grid showed "1.69" alone, no σ anywhere."""
+    service.open()
+    forces = pressed({27: 1.69, 45: 0.8, 5: 0.0})
+    frame = grid_frame(1, forces)
+    frame.update(sigma_N=[0.12 if i == 27 else 0.05 if i == 45 else 0.01 for i in range(ROWS * COLS)],
+                 taxel_flags={"crosstalk_corrected": [27, 45], "out_of_range": [5]})
+    frame["force_N"][5] = frame["sigma_N"][5] = None
+    service.send([frame])
+    panel = 'section[data-sensor="0"]'
+    assert "max 1.69 ± 0.12 N (taxel 27)" in service.page.text_content(f"{panel} .meta")
+    readout = f"{panel} .taxel-readout"
+    hover_taxel(service.page, 27)
+    assert service.page.inner_text(readout) == "taxel 27 (row 3, col 3): 1.69 ± 0.12 N · crosstalk corrected"
+    frame = copy.deepcopy(frame)
+    frame["header"]["seq"] = 2
+    frame["force_N"][27], frame["sigma_N"][27] = 2.0, 0.15
+    service.send([frame])  # the readout follows the frames while the mouse rests
+    assert service.page.inner_text(readout) == "taxel 27 (row 3, col 3): 2.00 ± 0.15 N · crosstalk corrected"
+    hover_taxel(service.page, 5)
+    assert service.page.inner_text(readout) == "taxel 5 (row 0, col 5): — · out of range"
+    service.page.mouse.move(0, 0)
+    assert "taxel" not in service.page.inner_text(readout).replace("a taxel", "")

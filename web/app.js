@@ -16,7 +16,7 @@ const FZ_MAX_N = 20;              // quad bar full scale
 const HISTORY_S = 10;
 const STREAM_RATE_HZ = 30;        // frames a second per sensor, decimated server-side
 const RECENT_S = 5;               // as much as /sensors/…/history keeps
-const STALE_AFTER_S = 1;          // only for services that do not report link.state
+const STALE_AFTER_S = 1;          // only for services that do not report link.stale_after_s
 const FLAG_HOLD_MS = 1500;        // a flag raised for one frame stays long enough to be read
 const TAXEL_MARKS = [["saturated", "S"], ["out_of_range", "R"], ["crosstalk_corrected", "x"], ["stale", "?"]];
 const FLAG_SEVERITY = {
@@ -61,6 +61,11 @@ function beginDraw(canvas) {
   const scale = canvas.width / canvas.clientWidth;
   ctx.setTransform(scale, 0, 0, scale, 0, 0);
   return { ctx, w: canvas.clientWidth, h: canvas.height / scale };
+}
+
+// A value as text, "—" where the service gave none (null): never shown as 0.
+function shown(value, format) {
+  return value === null || value === undefined ? "—" : format(value);
 }
 
 function haloText(ctx, text, x, y, colour = "#fff") {
@@ -127,16 +132,22 @@ function createPanel(id, info) {
   el.dataset.board = info.board ?? "";
   const title = element("h3");
   const flags = element("span", "flags");
+  const staleMark = element("span", "stale-mark");
+  staleMark.hidden = true;
   const live = makeCanvas("live");
   const history = makeCanvas("history");
   const meta = element("div", "meta", "waiting for data…");
   const calibration = element("div", "calibration");
+  const readout = element("div", "taxel-readout", READOUT_HINT);
   el.append(element("div", "panel-head"), live);
-  el.firstChild.append(title, flags);
-  if (info.kind === "grid") el.append(colourScale());
+  el.firstChild.append(title, staleMark, flags);
+  if (info.kind === "grid") el.append(readout, colourScale());
   el.append(history, meta, calibration);
-  const panel = { id, el, title, flags, live, history, meta, calibration, board: info.board ?? null,
-                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "", recentAsked: false };
+  const panel = { id, el, title, flags, staleMark, live, readout, history, meta, calibration, board: info.board ?? null,
+                  frame: null, frames: 0, series: [], flagSeen: new Map(), shownFlags: "", recentAsked: false,
+                  stale: false, hover: null };
+  live.addEventListener("mousemove", (event) => { panel.hover = taxelAt(panel, event); showReadout(panel); });
+  live.addEventListener("mouseleave", () => { panel.hover = null; showReadout(panel); });
   describePanel(panel, info);
   placePanel(panel);
   return panel;
@@ -255,6 +266,46 @@ function drawTaxelLabels(ctx, frame, cell) {
   });
 }
 
+// ---- a taxel's force ± σ ------------------------------------------------------
+
+const READOUT_HINT = "point at a taxel: its force ± 1σ and flags";
+
+// The row-major index of the taxel under the mouse, or null (no frame, or off the grid).
+function taxelAt(panel, event) {
+  const frame = panel.frame;
+  if (!frame || panel.kind !== "grid") return null;
+  const box = panel.live.getBoundingClientRect(), cell = box.width / frame.cols;
+  const r = Math.floor((event.clientY - box.top) / cell), c = Math.floor((event.clientX - box.left) / cell);
+  return r < 0 || c < 0 || r >= frame.rows || c >= frame.cols ? null : r * frame.cols + c;
+}
+
+// "1.69 ± 0.12 N" (1σ), "5.20 N (no σ)" where the service gives none (a saturated taxel), "—" without a force.
+function forceText(frame, i) {
+  const f = frame.force_N[i], sigma = frame.sigma_N ? frame.sigma_N[i] : null;
+  if (f === null) return "—";
+  return sigma === null || sigma === undefined ? `${f.toFixed(2)} N (no σ)` : `${f.toFixed(2)} ± ${sigma.toFixed(2)} N`;
+}
+
+function taxelFlagNames(frame, i) {
+  return Object.entries(frame.taxel_flags || {}).filter(([, taxels]) => taxels.includes(i))
+    .map(([name]) => name.replaceAll("_", " "));
+}
+
+// The hovered taxel's force ± σ and flags, following the frames while the mouse rests.
+function showReadout(panel) {
+  const frame = panel.frame, i = panel.hover;
+  if (i === null || !frame || i >= frame.force_N.length) { panel.readout.textContent = READOUT_HINT; return; }
+  const where = `taxel ${i} (row ${Math.floor(i / frame.cols)}, col ${i % frame.cols})`;
+  panel.readout.textContent = [`${where}: ${forceText(frame, i)}`, ...taxelFlagNames(frame, i)].join(" · ");
+}
+
+// The most loaded taxel's force ± σ, for the panel's line; "" without any force.
+function largestTaxel(frame) {
+  let largest = -1;
+  frame.force_N.forEach((f, i) => { if (f !== null && (largest < 0 || f > frame.force_N[largest])) largest = i; });
+  return largest < 0 ? "" : `max ${forceText(frame, largest)} (taxel ${largest})`;
+}
+
 function drawGrid(panel) {
   const frame = panel.frame;
   const view = beginDraw(panel.live);
@@ -264,9 +315,12 @@ function drawGrid(panel) {
   drawContactOutline(view.ctx, frame, cell);
   drawCentreOfPressure(view.ctx, frame, cell);
   drawTaxelLabels(view.ctx, frame, cell); // last, so the numbers stay readable
+  // No contact (null while the sensor tares): no value, not 0.
   const contact = frame.contact || {};
-  panel.meta.textContent = [`seq ${frame.header.seq}`, `ΣF ${(contact.total_N ?? 0).toFixed(2)} N`,
-    `contacts ${contact.contacts ?? 0}`, `area ${contact.area_mm2 ?? 0} mm²`].join(" · ");
+  panel.meta.textContent = [`seq ${frame.header.seq}`, `ΣF ${shown(contact.total_N, (v) => `${v.toFixed(2)} N`)}`,
+    `contacts ${shown(contact.contacts, String)}`, `area ${shown(contact.area_mm2, (v) => `${v} mm²`)}`,
+    largestTaxel(frame)].filter(Boolean).join(" · ");
+  showReadout(panel);
 }
 
 // ---- quad drawing -------------------------------------------------------
@@ -367,12 +421,19 @@ function updateFlags(panel, now) {
 
 // ---- history ------------------------------------------------------------
 
+// The plotted values of a frame, N: [ΣF] of a grid, [Fz, |Fxy|] of a quad; null where the
+// service gave none (a grid taring, an open electrode), drawn as a gap.
+function historyValues(f) {
+  if (f.header.kind === "grid") return [f.contact ? f.contact.total_N ?? null : null];
+  const { x, y, z } = f.wrench.force;
+  return [z ?? null, x === null || y === null ? null : Math.hypot(x, y)];
+}
+
 function recordHistory(panel) {
   const f = panel.frame;
   const t = f.header.stamp;
   if (panel.series.length && t < panel.series[panel.series.length - 1][0]) panel.series = []; // a replay restarted
-  const values = f.header.kind === "grid" ? [f.contact ? f.contact.total_N : 0]
-    : [f.wrench.force.z || 0, Math.hypot(f.wrench.force.x || 0, f.wrench.force.y || 0)];
+  const values = historyValues(f);
   panel.series.push([t, values]);
   while (panel.series[0][0] < t - HISTORY_S) panel.series.shift();
 }
@@ -386,7 +447,8 @@ function niceScale(low, high) {
   return { step, bottom: Math.floor(Math.min(0, low * 1.2) / step) * step, top: Math.ceil(Math.max(high * 1.2, 1) / step) * step };
 }
 
-function drawHistoryAxes(ctx, plot, scale) {
+// endLabel: what the plot's right end is ("now", or "last frame" of a stale sensor).
+function drawHistoryAxes(ctx, plot, scale, endLabel) {
   ctx.strokeStyle = "#333"; ctx.fillStyle = "#999"; ctx.lineWidth = 1;
   ctx.font = "10px system-ui, sans-serif"; ctx.textAlign = "right"; ctx.textBaseline = "middle";
   for (let v = scale.bottom; v <= scale.top + scale.step / 2; v += scale.step) {
@@ -398,7 +460,7 @@ function drawHistoryAxes(ctx, plot, scale) {
   for (let s = HISTORY_S; s >= 0; s -= 2) {
     // The end labels stay inside the plot's span: clear of the y labels and of the canvas edge.
     ctx.textAlign = s === 0 ? "right" : s === HISTORY_S ? "left" : "center";
-    ctx.fillText(s === 0 ? "now" : `−${s} s`, plot.x + plot.w * (1 - s / HISTORY_S), plot.y + plot.h + 3);
+    ctx.fillText(s === 0 ? endLabel : `−${s} s`, plot.x + plot.w * (1 - s / HISTORY_S), plot.y + plot.h + 3);
   }
 }
 
@@ -421,20 +483,25 @@ function drawHistory(panel) {
   const plot = { x: 34, y: 16, w: w - 42, h: h - 34 };
   const names = panel.kind === "grid" ? ["ΣF"] : ["Fz", "|Fxy|"];
   const colours = ["#ffb74d", "#4fc3f7"];
-  const values = panel.series.flatMap(([, v]) => v);
+  const values = panel.series.flatMap(([, v]) => v).filter((v) => v !== null);
   const scale = niceScale(Math.min(0, ...values), Math.max(0, ...values));
+  const endLabel = panel.stale ? "last frame" : "now";
   panel.history.dataset.top = scale.top;
-  drawHistoryAxes(ctx, plot, scale);
+  panel.history.dataset.end = endLabel;
+  drawHistoryAxes(ctx, plot, scale, endLabel);
   drawHistoryLegend(ctx, plot, names, colours);
   if (panel.series.length < 2) return;
   const t1 = panel.series[panel.series.length - 1][0];
   names.forEach((_, k) => {
     ctx.strokeStyle = colours[k]; ctx.lineWidth = 1.5; ctx.beginPath();
-    panel.series.forEach(([t, v], i) => {
+    let gap = true; // the line starts anew after a null
+    for (const [t, v] of panel.series) {
+      if (v[k] === null) { gap = true; continue; }
       const x = plot.x + plot.w * (1 - (t1 - t) / HISTORY_S);
       const y = plot.y + plot.h - (v[k] - scale.bottom) / (scale.top - scale.bottom) * plot.h;
-      if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y);
-    });
+      if (gap) ctx.moveTo(x, y); else ctx.lineTo(x, y);
+      gap = false;
+    }
     ctx.stroke();
   });
 }
@@ -496,10 +563,13 @@ async function loadRecent(panel) {
 
 // ---- status banner --------------------------------------------------------
 
+// The link's state; "up" only while its last data is younger than /health's stale threshold,
+// whatever link.state says (a service may report up while the data has stopped).
 function linkState(link) {
-  if (link.state) return link.state;
+  const silent = link.last_data_age_s > (link.stale_after_s ?? STALE_AFTER_S);
+  if (link.state) return link.state === "up" && silent ? "stale" : link.state;
   if (!link.up) return "down";
-  return link.last_data_age_s > STALE_AFTER_S ? "stale" : "up";
+  return silent ? "stale" : "up";
 }
 
 // The board whose link is in the worst state (every board's part is under
@@ -514,6 +584,20 @@ function worstLink(health) {
   return [boards.length > 1 ? `board ${ranked[0][0]}: ` : "", ranked[0][1]];
 }
 
+// /health's problem lines, most severe first: a link down or board lost, then silence
+// (a stale link or sensor), then forces null or failing, then the rest (in /health's order).
+const PROBLEM_RANKS = [/(^|: )(lost|link down)\b/, /(^|: )(link stale|sensor \S+ stale$)/, /\bnull\b|\bfails\b/];
+
+function problemRank(text) {
+  const rank = PROBLEM_RANKS.findIndex((pattern) => pattern.test(text));
+  return rank < 0 ? PROBLEM_RANKS.length : rank;
+}
+
+function rankedProblems(health) {
+  const problems = health.status === "degraded" ? health.problems || [] : [];
+  return [...problems].sort((a, b) => problemRank(a) - problemRank(b));
+}
+
 function describeStatus(health) {
   const [which, link] = worstLink(health);
   const source = link.source ? ` · ${link.source}` : "";
@@ -526,8 +610,8 @@ function describeStatus(health) {
   }
   if (state === "stale") return ["stale", `${which}Stale: no data${age}${source}`];
   if (!streamOpen) return ["stale", `Live stream disconnected, reconnecting…${source}`];
-  // Degraded with the link up: say why (the first problem /health names, and how many more).
-  const problems = health.status === "degraded" ? health.problems || [] : [];
+  // Degraded with the link up: say why (the most severe problem, and how many more: all are listed below).
+  const problems = rankedProblems(health);
   const why = problems.length ? ` · ${problems[0]}${problems.length > 1 ? ` (+${problems.length - 1} more)` : ""}` : "";
   const degraded = health.status === "degraded" ? ` (service degraded${why})` : "";
   if (health.replay) return ["replay", `Replay${degraded}${source}`];
@@ -538,6 +622,30 @@ function showStatus(state, text) {
   const banner = document.getElementById("status");
   banner.dataset.state = state;
   banner.textContent = text;
+}
+
+// Every problem /health names, most severe first (the banner has room for one).
+function showProblems(problems) {
+  const list = document.getElementById("problems");
+  list.hidden = !problems.length;
+  list.querySelector("summary").textContent = `${problems.length} problem${problems.length === 1 ? "" : "s"}, most severe first`;
+  list.querySelector("ol").replaceChildren(...problems.map((text) => element("li", "", text)));
+}
+
+// A sensor /health calls stale: its last values greyed, its age said, its history ending at its last frame.
+function showStale(panel, stale, ageS) {
+  const text = !stale ? "" : `stale${ageS == null ? "" : ` · last frame ${ageS.toFixed(1)} s ago`}`;
+  if (stale === panel.stale && text === panel.staleMark.textContent) return;
+  panel.stale = stale;
+  panel.el.classList.toggle("stale", stale);
+  panel.staleMark.hidden = !stale;
+  panel.staleMark.textContent = text;
+  dirty = true;
+}
+
+// The link of a sensor's board (a service before boards were named has one, at the top).
+function boardLink(health, board) {
+  return ((health.boards || {})[board] || {}).link || health.link || {};
 }
 
 function statsText(health) {
@@ -580,8 +688,12 @@ function showRecording(status, error) {
   document.getElementById("record-path").textContent = status.path;
 }
 
+// The API's detail of a refusal, as text (a detail may be a string, an object or a list).
 async function errorText(response) {
-  try { return (await response.json()).detail || response.statusText; } catch (err) { return response.statusText; }
+  let detail;
+  try { detail = (await response.json()).detail; } catch (err) { return response.statusText; }
+  if (!detail) return response.statusText;
+  return typeof detail === "string" ? detail : detail.error || JSON.stringify(detail);
 }
 
 function post(path, body) {
@@ -629,30 +741,81 @@ async function pollHealth() {
     return;
   }
   showStatus(...describeStatus(health));
+  showProblems(rankedProblems(health));
   document.getElementById("stats").textContent = statsText(health);
   for (const [id, sensor] of Object.entries(health.sensors || {})) {
     const panel = panels.get(sensorKey(sensor.board, sensor.id ?? Number(id)));
     if (!panel) continue;
     showCalibration(panel, sensor.calibration, sensor.fatigue, sensor);
+    // A finished replay's sensors are all silent: the banner says so, their last frames are what is shown.
+    const finished = linkState(boardLink(health, sensor.board)) === "finished";
+    showStale(panel, Boolean(sensor.stale) && !finished, sensor.last_frame_age_s);
     if (sensor.stale && !panel.frame && !panel.recentAsked) loadRecent(panel);
   }
   const recording = "recording" in health ? health.recording : await (await fetch("/record")).json();
   if (recording) showRecording(recording);
 }
 
-// A tare with taxels loaded against their calibration's C0 is refused (409):
-// say which, and tare anyway only if the user confirms the load is the zero.
-async function tare() {
-  const answer = await fetch("/tare", { method: "POST", headers: authHeaders });
-  if (answer.status !== 409) return;
-  const detail = (await answer.json()).detail || {};
-  if (typeof detail === "string") { window.alert(detail); return; }  // e.g. a gateway's board: tare it on its service
-  const loaded = Object.entries(detail.loaded_taxels || {}).map(([s, t]) => `sensor ${s}: taxels ${t.join(", ")}`);
-  if (window.confirm(`These taxels read loaded, so a tare would make the load their zero:\n${loaded.join("\n")}\n\nTare anyway?`))
-    await fetch("/tare?force=true", { method: "POST", headers: authHeaders });
+// ---- tare -------------------------------------------------------------------
+
+const tareButton = document.getElementById("tare");
+
+function showTare(text, error) {
+  const info = document.getElementById("tare-info");
+  info.hidden = false;
+  info.textContent = text;
+  info.classList.toggle("error", error);
 }
 
-document.getElementById("tare").addEventListener("click", tare);
+// The sensors shown, in page order, as a tare's answer names them: board/id with several boards, else the id.
+function shownSensorNames() {
+  const shown = [...document.querySelectorAll("section.panel")];
+  const several = new Set(shown.map((p) => p.dataset.board)).size > 1;
+  return shown.map((p) => (several ? `${p.dataset.board}/${p.dataset.sensor}` : p.dataset.sensor));
+}
+
+// What a tare did ({tared, frames, note?}): the sensors tared, and those shown that were not.
+function tareOutcome(answer) {
+  const tared = (answer.tared || []).map(String);
+  const untouched = shownSensorNames().filter((name) => !tared.includes(name));
+  return [`Tared ${tared.length ? `sensors ${tared.join(", ")}` : "no sensor"}`,
+          untouched.length ? `not tared: ${untouched.join(", ")}` : "", answer.note || ""].filter(Boolean).join(" · ");
+}
+
+function postTare(query) {
+  return fetch(`/tare${query}`, { method: "POST", headers: authHeaders });
+}
+
+// A tare with taxels loaded against their calibration's C0 is refused (409):
+// say which, and tare anyway only if the user confirms the load is the zero.
+// Returns the forced tare's answer, or null when the user declined (said so).
+async function tareLoaded(refusal) {
+  const detail = (await refusal.clone().json()).detail;
+  if (typeof detail === "string" || !detail || !detail.loaded_taxels) return refusal; // e.g. a gateway's board: tare it on its service
+  const loaded = Object.entries(detail.loaded_taxels).map(([s, t]) => `sensor ${s}: taxels ${t.join(", ")}`);
+  if (window.confirm(`These taxels read loaded, so a tare would make the load their zero:\n${loaded.join("\n")}\n\nTare anyway?`))
+    return postTare("?force=true");
+  showTare(`Not tared: ${loaded.join("; ")} read loaded`, true);
+  return null;
+}
+
+// Every answer is said: which sensors were tared (and which not), or why none was.
+async function tare() {
+  tareButton.disabled = true;
+  try {
+    let answer = await postTare("");
+    if (answer.status === 409) answer = await tareLoaded(answer);
+    if (!answer) return;
+    if (answer.ok) showTare(tareOutcome(await answer.json()), false);
+    else showTare(`Tare failed (${answer.status}): ${await errorText(answer)}`, true);
+  } catch (err) {
+    showTare("Tare failed: service unreachable", true);
+  } finally {
+    tareButton.disabled = false;
+  }
+}
+
+tareButton.addEventListener("click", tare);
 recordButton.addEventListener("click", toggleRecording);
 
 loadSensors().then(pollHealth); // the panels first: the first poll fills those of silent sensors
