@@ -16,6 +16,7 @@ from service.protocol_decoder import Decoder
 from service.reconstruct import Reconstructor
 from service.record.mcap_reader import iter_messages, read_raw, summary
 from service.record.recorder import Recorder
+from service.record.pacing import MAX_SLEEP_S, MIN_SPEED
 from service.replay import Pacer, replay
 from service.live_service import TactileService
 
@@ -212,6 +213,24 @@ def test_pacer_follows_recorded_time_at_any_speed():
     with pytest.raises(ValueError, match="speed must be > 0"):
         Pacer(0)
     assert Pacer(math.inf, sleep=lambda dt: pytest.fail("max speed never sleeps")).wait(5.0) is None
+
+
+def test_a_wait_longer_than_time_sleep_takes_is_slept_in_pieces():
+    """An 11-day recording at the slowest speed waits 9.5e9 s, past time.sleep's 2**63 ns (OverflowError):
+    slept in pieces of MAX_SLEEP_S, the whole wait, ending on time."""
+    now, slept = [0.0], []
+
+    def sleep(dt):
+        if dt * 1e9 > 2**63:
+            raise OverflowError("timestamp too large to convert to C _PyTime_t")
+        slept.append(dt)
+        now[0] += dt
+
+    pacer = Pacer(MIN_SPEED, clock=lambda: now[0], sleep=sleep)
+    pacer.wait(0.0)
+    pacer.wait(11 * 86400.0)
+    assert max(slept) == MAX_SLEEP_S and sum(slept) == pytest.approx(11 * 86400.0 / MIN_SPEED)
+    assert now[0] == pytest.approx(11 * 86400.0 / MIN_SPEED)
 
 
 def test_replay_served_through_the_live_api(tmp_path):

@@ -67,22 +67,18 @@ ROUND_TRIP_TOLERANCE_N = 1e-6
 
 # Electrodes (C11, C12, C21, C22) → combinations X (eq 30), Y (eq 32), Z (eq 19), R (redundant).
 # Rows: electrodes; columns: their weights in X, Y, Z, R.
+_COMBINATIONS = np.array([[-1, -1, 1, 1], [1, -1, 1, -1], [-1, 1, 1, -1], [1, 1, 1, 1]], dtype=float) / 4.0
+
+
 def combinations(relative: np.ndarray) -> np.ndarray:
     """Electrode ΔC/C0 (..., 4), order C11, C12, C21, C22 → (..., 4) as
-    X = ((r12 + r22) − (r11 + r21))/4, Y = ((r21 + r22) − (r11 + r12))/4,
-    Z = (r11 + r12 + r21 + r22)/4 and the redundant R = ((r11 + r22) −
-    (r12 + r21))/4, each summed in that order. Not a matrix product: BLAS
-    sums a (1, 4) and a (16, 4) product in different orders on some CPUs
-    (AVX-512), and a quad's forces would depend on how many frames a read held."""
-    r11, r12, r21, r22 = relative[..., 0], relative[..., 1], relative[..., 2], relative[..., 3]
-    out = np.empty(relative.shape[:-1] + (4,))
-    top, left = r11 + r12, r11 + r21
-    np.subtract(r12 + r22, left, out=out[..., 0])
-    np.subtract(r21 + r22, top, out=out[..., 1])
-    np.add(top + r21, r22, out=out[..., 2])
-    np.subtract(r11 + r22, r12 + r21, out=out[..., 3])
-    out /= 4.0
-    return out
+    X = (r12 + r22 − r11 − r21)/4, Y = (r21 + r22 − r11 − r12)/4,
+    Z = (r11 + r12 + r21 + r22)/4 and the redundant R = (r11 + r22 − r12 −
+    r21)/4. Through einsum's own loop, not a matrix product: BLAS sums a
+    (1, 4) and a (16, 4) product in different orders on some CPUs (AVX-512),
+    and a quad's forces depended on how many frames a read held; einsum sums
+    every row alike (as crosstalk.py's unmixing)."""
+    return np.einsum("...j,jk->...k", relative, _COMBINATIONS)
 
 _SHEAR_SIGNS = np.array([[-1.0, 1.0, -1.0, 1.0], [-1.0, -1.0, 1.0, 1.0]])  # rows: X, Y sides of each electrode
 

@@ -5,9 +5,9 @@ import math
 import time
 from typing import Callable
 
-# The slowest speed: a recording's waits, its span / speed, must stay within time.sleep's range (2**63 ns,
-# 9.2e9 s): at 1e-4 they do for a recording of up to 10 days (a day's: 8.64e8 s).
+# The slowest speed a replay takes: slower is a typing slip (a day's recording would take 27 years).
 MIN_SPEED = 1e-4
+MAX_SLEEP_S = 1e6  # one sleep at most (11.6 days): a longer wait is slept in pieces
 
 
 def parse_speed(text: str) -> float:
@@ -22,7 +22,7 @@ def parse_speed(text: str) -> float:
     if not speed > 0:
         raise ValueError(f"speed {text!r} must be > 0")
     if speed < MIN_SPEED:
-        raise ValueError(f"speed {text!r} must be at least {MIN_SPEED} (slower, a recording's waits overflow)")
+        raise ValueError(f"speed {text!r} must be at least {MIN_SPEED}")
     return speed
 
 
@@ -49,5 +49,6 @@ class Pacer:
             return
         due = self._anchor[1] + (t_recorded - self._anchor[0]) / self.speed
         delay = due - self._clock()
-        if delay > 0:
-            self._sleep(delay)
+        while delay > 0:  # in pieces: time.sleep overflows past 2**63 ns (an 11-day recording at MIN_SPEED)
+            self._sleep(min(delay, MAX_SLEEP_S))
+            delay = due - self._clock()
