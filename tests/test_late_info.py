@@ -86,3 +86,40 @@ def test_a_late_first_info_that_gives_a_sensor_another_shape_tares_it_afresh():
     grid = run(board)[0]
     assert (grid[INFO_AT - 1].sensor.rows, grid[INFO_AT].sensor.rows) == (8, 4)
     assert ["taring" in f.flags for f in grid[INFO_AT - 1:INFO_AT + 101]] == [False] + [True] * 99 + [False] * 2
+
+
+def test_another_board_booting_on_the_port_tares_its_sensors_afresh():
+    """The service joined board A mid-stream (no INFO, seq from 5000); board
+    B then boots on the same port (protocol.md: INFO, then seq from 0, its
+    first frames flagged board_restart) with sensors of the same kind and
+    shape whose channels stand 2-6 % above A's. They are other sensors, not
+    A's named: B's unloaded quad read (-2.20, -0.67, +1.20) N unflagged (σ
+    0.16, 0.06, 0.09) on A's zero. Tared afresh, B reads 0 N within noise."""
+    rng = np.random.default_rng(3)
+    grid_b = GRID_C0 * rng.uniform(1.02, 1.06, 64)  # pF (64,): B's grid, unloaded
+    quad_b = QUAD_C0 * np.array([1.06, 1.03, 1.05, 1.02])  # pF (4,): B's quad, unloaded
+    board = {"board": "right", "fw": "1.0", "serial": "B-2", "rate_hz": 1000,
+             "sensors": [{"id": 0, "kind": "grid", "rows": 8, "cols": 8}, {"id": 1, "kind": "quad"}]}
+
+    def scan(seq: int, grid: np.ndarray, quad: np.ndarray) -> bytes:
+        grid_aF = np.round((grid + rng.normal(0, 0.002, 64)) * 1e6).astype("<u4")
+        quad_aF = np.round((quad + rng.normal(0, 0.002, 4)) * 1e6).astype("<u4")
+        return encode_frame(FrameType.GRID, 0, seq, 1000 * (seq + 1), grid_aF.tobytes()) + \
+            encode_frame(FrameType.QUAD, 1, seq, 1000 * (seq + 1) + 500, quad_aF.tobytes())
+
+    pipeline = Pipeline(Reconstructor(level="table"), map_clock=False)
+    frames = []
+    for k in range(5000, 5400, 10):  # board A, joined mid-stream
+        frames += pipeline.feed(b"".join(scan(j, GRID_C0, QUAD_C0) for j in range(k, k + 10)), 1.0)
+    boot = encode_frame(FrameType.INFO, 255, 0, 0, orjson.dumps(board))
+    for k in range(0, 600, 10):  # board B, from its power-up
+        frames += pipeline.feed(boot + b"".join(scan(j, grid_b, quad_b) for j in range(k, k + 10)), 1.0)
+        boot = b""
+    for sid in (0, 1):
+        b = [f for f in frames if f.sensor.id == sid][400:]
+        assert b[0].seq == 0 and "board_restart" in b[0].flags
+        assert ["taring" in f.flags for f in b[:101]] == [True] * 99 + [False] * 2  # B's own zero
+        unloaded = b[200:]
+        assert not any(f.flags or (f.taxel_flags is not None and f.taxel_flags.any()) for f in unloaded)
+        forces, sigma = np.array([f.forces_N for f in unloaded]), np.array([f.sigma_N for f in unloaded])
+        assert np.mean(np.abs(forces) <= 3 * sigma) >= 0.98, (sid, forces.mean(axis=0))

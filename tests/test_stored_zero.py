@@ -21,6 +21,7 @@ from service.live_service import TactileService
 from service.physics.paper_data import FIT34
 from service.protocol import BOARD_SENSOR_ID, FrameType, encode_frame
 from service.readings import SensorInfo
+from tests import test_quad_loaded_tare as quad_tare
 
 GRID_C0_PF = 10.66 * (1 + 0.01 * ((np.arange(64) * 37) % 11 - 5) / 5)  # ±1 %, as the tester's board
 QUAD_C0_PF = np.array([2.21, 2.20, 2.22, 2.21])
@@ -261,3 +262,33 @@ def test_a_save_while_the_first_tare_is_judged_never_stores_the_loaded_means(loa
     after = json.loads(sqlite3.connect(registry).execute(
         "SELECT zero_pF FROM zeros WHERE sensor_key LIKE '%sensor:0'").fetchone()[0])
     assert saved and after[27] == pytest.approx(before[27], rel=1e-4)  # not GRID_C0_PF[27] * 1.05
+
+
+def test_a_quad_restarted_under_normal_and_shear_load_keeps_the_stored_zero_on_all_four(tmp_path):
+    """Restarted under (Fx, Fy, Fz) = (2.5, 2.5, 0.5) N, 20 s after its zero
+    was saved: the load lowers electrode 0 (ΔC/C0 −1.66 %) and raises 1-3
+    (+1.69, +1.69, +5.04 %), so only 1-3 stood above the stored zero and kept
+    it; electrode 0 took the load into its tared zero, which read the held
+    load as (1.81, 1.81, 0.62) N (σ 0.13) and, after the release,
+    (−0.565, −0.562, +0.12) N (σ 0.04, ~13σ). Every force combines all four
+    (loaded_tare.py): all four keep the stored zero, and read the forces put
+    in (quad_tare.electrodes: the paper's fits 34 and 35)."""
+    registry = quad_tare.registry_with(tmp_path)
+
+    def quad_lifetime(phases, seed: int):
+        service = TactileService(boards=[BoardSpec("socket://127.0.0.1:9", level="full")],
+                                 calibrations=CalibrationBook(registry))
+        out = quad_tare.run(service.pipeline, phases, seed=seed)
+        service.stop()
+        return service, out
+
+    quad_lifetime([(600, (0.0, 0.0, 0.0), 0.0)], 1)
+    age_stored_zeros(registry, 20.0)
+    load = (2.5, 2.5, 0.5)
+    assert np.flatnonzero(quad_tare.electrodes(*load) < quad_tare.C0_PF).tolist() == [0]
+    service, (loaded, released) = quad_lifetime([(600, load, 0.0), (600, (0.0, 0.0, 0.0), 0.0)], 2)
+    assert service.primary.calibration(1)["stored_zero"]["kept"] == [0, 1, 2, 3]
+    for frames, truth in ((loaded, load), (released, (0.0, 0.0, 0.0))):
+        mean, sigma, seen = quad_tare.held(frames)
+        assert np.all(np.abs(mean - truth) <= 3 * sigma), (truth, mean, sigma)
+        assert seen == {"loaded_at_tare"}

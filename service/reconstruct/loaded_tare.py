@@ -139,6 +139,13 @@ def judge_quad(c0_pF: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray,
         return c0_margin(reference, std_pF, frames) + COMMON_MAX_DRIFT * reference
 
     loaded, mismatch, c0 = judge(c0_pF, np.ones(c0_pF.shape, dtype=bool), mean_pF, std_pF, frames, margin)
-    if loaded.any():
-        loaded = np.isfinite(mean_pF)
-    return loaded, mismatch, c0
+    return whole_quad(loaded, np.isfinite(mean_pF)), mismatch, c0
+
+
+def whole_quad(loaded: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """A quad's electrodes (4,) bool to take the reference zero: every
+    ``usable`` one (4,) bool (a tared mean and a reference to take) when any
+    is ``loaded`` (4,) bool, else none. Every force combines all four, so a
+    zero half tared, half the reference turns the load left in the tared
+    electrodes into shear (module docstring)."""
+    return usable if loaded.any() else loaded

@@ -106,7 +106,7 @@ class Reconstructor(SensorStates):
                         # A new description (an INFO) may swap its calibration in: its earlier readings first.
                         out += self._batch_done(pending, taring)
                         pending, taring = [], []
-                    state = self._state(reading.sensor)
+                    state = self._state(reading.sensor, reading.board_restart)
                 if pending and state.baseline.changes_zero(reading.capacitance_pF) and \
                         any(earlier is state for earlier, _ in pending):
                     out += self._batch_done(pending, taring)

@@ -140,9 +140,11 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
     def sensor_ids(self) -> list[int]:
         return sorted(self._sensors)
 
-    def _state(self, info: SensorInfo) -> SensorState:
+    def _state(self, info: SensorInfo, restart: bool = False) -> SensorState:
+        """The sensor's state, made anew for another sensor described at its
+        address; ``restart``: its reading is a board's first after a power-up (_same_sensor)."""
         state = self._sensors.get(info.id)
-        if state is not None and state.info is not info and _same_sensor(state.info, info):
+        if state is not None and state.info is not info and _same_sensor(state.info, info, restart):
             self._described_again(state, info)
             if not state.judged_once:  # the INFO may name it only now: its stored zero is known by its name
                 state.stored_zero = self._stored_zero(info, state.calibration.id)
@@ -352,15 +354,20 @@ def against_c0(calibration: SensorCalibration, mean_pF: np.ndarray, std_pF: np.n
     return judge(calibration.tare_c0_pF, calibration.measured, mean_pF, std_pF, frames)
 
 
-def _same_sensor(before: SensorInfo, info: SensorInfo) -> bool:
+def _same_sensor(before: SensorInfo, info: SensorInfo, restart: bool) -> bool:
     """Whether ``info`` describes the sensor ``before`` did: equal, or
     ``before`` was known only from its data frames and the board's first INFO
-    gives it the kind and shape inferred from them. That INFO names the board
-    (its address and identity change, not the sensor: identity.named), so the
-    sensor keeps its zero; re-tared there, it took the load it held as 0 N."""
+    gives it the kind and shape inferred from them, an INFO not sent at a
+    power-up (a reply to INFO?: its reading is no ``restart``). That INFO
+    names the board (its address and identity change, not the sensor:
+    identity.named), so the sensor keeps its zero; re-tared there, it took
+    the load it held as 0 N. An INFO at a power-up may be another board's
+    plugged into the port: its sensors tare afresh (on the first's zero, a
+    quad 2-6 % above it read 2.2 N unloaded)."""
     if before == info:
         return True
-    return not named(before) and (before.kind, before.rows, before.cols) == (info.kind, info.rows, info.cols)
+    return not restart and not named(before) and \
+        (before.kind, before.rows, before.cols) == (info.kind, info.rows, info.cols)
 
 
 def _listed(values: np.ndarray) -> list[float | None]:

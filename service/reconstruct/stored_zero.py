@@ -19,7 +19,10 @@ moved by the free taxels' common level, by no more than drift at the bound
 since (loaded_tare.common_c0: temperature moves every taxel alike, so a
 plate over the whole array is not taken for it); a quad has no free
 electrodes to tell temperature by (fewer than
-COMMON_MIN_TAXELS), its four are judged as they are. Channels *below* it,
+COMMON_MIN_TAXELS), its four are judged as they are, and when one keeps
+the zero all four do (loaded_tare.whole_quad: a shear lowers some under
+the load, and a zero half stored, half tared read it as phantom shear:
+−0.57 N after the release, ~13σ). Channels *below* it,
 as many as loaded_tare.judge takes for a mismatch (2, or 5 % of a grid's),
 say it is not this sensor's zero as it is now (another sensor without a
 serial at the address, or cooler than the bound allows): it is not used.
@@ -42,7 +45,7 @@ from ..readings import SensorInfo
 from .drift import MIN_REFERENCE_TAXELS
 from .grid import GridProcessor
 from .identity import named
-from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, mean_noise, judge
+from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, judge, mean_noise, whole_quad
 
 DRIFT_PER_S = 0.01 / 60.0  # the tracked drift bound: 1 % ΔC/C0 per minute (docs/reconstruction.md)
 MAX_AGE_S = COMMON_MAX_DRIFT / DRIFT_PER_S  # 120 s
@@ -121,10 +124,14 @@ class StoredZeros:
 
     def _judge_stored(self, state, stored: StoredZero) -> bool:
         """A first tare against the stored zero: the channels above it keep it
-        (``loaded_at_tare``); whether it judged the tare (else the calibration's C0 does)."""
+        (``loaded_at_tare``), a quad's four together (loaded_tare.whole_quad:
+        a shear lowers some electrodes under a load); whether it judged the
+        tare (else the calibration's C0 does)."""
         baseline = state.baseline
         report = judged(stored, baseline.value, baseline.std, baseline.frames, time.time())
         kept = report.pop("kept")
+        if state.info.kind == "quad":
+            kept = whole_quad(kept, np.isfinite(baseline.value) & np.isfinite(report["zero_pF"]))
         state.zero_kept = {**{k: v for k, v in report.items() if k != "zero_pF"}, "kept": np.flatnonzero(kept).tolist()}
         if report["not_used"]:
             log.warning("sensor %d: its stored zero is not used (%s)", state.info.id, report["not_used"])
