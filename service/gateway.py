@@ -157,6 +157,10 @@ class GatewayService:
         board = self._remote(name, now)
         if board is None:
             return
+        if board.alive is False and (alive := self.claims.liveliness(name)) is not False:
+            # The name passed to a successor (board_claims.py) whose token came while it was refused: its
+            # liveliness, not its predecessor's withdrawn one, is the board's.
+            board.on_alive(alive, now)
         board.receive(frames, now)
         self.published_latency.add(now - frames[0].t_host)
         self.hub.publish(frames)

@@ -110,3 +110,18 @@ def test_forgetting_a_name_keeps_a_live_refused_service_refused():
     assert report["publisher"] is None
     assert [(p["instance"], p["served"]) for p in report["publishers"]] == [(B, False)]
     assert claims.heard("arm", "arm-pc:404:dddddd", 63.0, alive=True)  # A restarted: served
+
+
+def test_the_liveliness_told_is_the_served_instance_s():
+    claims = BoardClaims()
+    assert claims.liveliness("arm") is None  # none served
+    claims.heard("arm", A, 0.0, alive=True)
+    claims.heard("arm", C, 1.0, alive=True)  # A's successor, refused while A lives
+    assert claims.liveliness("arm") is True
+    claims.heard("arm", A, 1.1, alive=False)
+    assert claims.liveliness("arm") is False
+    assert claims.heard("arm", C, 1.2) and claims.liveliness("arm") is True  # C's token, heard while refused
+    other = BoardClaims()
+    other.heard("arm", A, 0.0, alive=True)
+    other.heard("arm", A, 1.0, alive=False)
+    assert other.heard("arm", C, 1.5) and other.liveliness("arm") is None  # C's token not heard

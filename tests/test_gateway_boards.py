@@ -225,3 +225,41 @@ def test_a_lost_board_s_name_never_goes_to_the_service_it_refused(clock):
     alive("arm-pc:300:cccccc", True)  # the arm-pc's service restarted
     sample("arm-pc:300:cccccc", range(3))
     assert names(gateway) == ["arm"] and gateway.board("arm").latest[0].seq == 2
+
+
+def test_a_successor_declared_before_its_predecessor_left_is_served_alive_and_kept(clock):
+    """A service restarted on its host: the new token declared 1 s before the
+    old one's withdrawal, so the new one was refused until then and takes
+    the name at its first sample after (board_claims.py). Its board is not
+    lost, and keeps its history a minute on. Before, no token of the new one
+    reached the board: /health said "lost … liveliness token is gone" for
+    59 s while it streamed, then the board was forgotten and made again."""
+    gateway = GatewayService(None)
+    claims = gateway.claims
+    old, new = "arm-pc:100:aaaaaa", "arm-pc:200:bbbbbb"
+
+    def alive(instance, up):
+        if claims.heard("left", instance, clock.now, up):
+            gateway._on_alive("left", up)
+
+    def sample(instance, seqs):
+        if claims.heard("left", instance, clock.now):
+            gateway._receive("left", frames("left", seqs))
+
+    alive(old, True)
+    sample(old, range(10))
+    clock.now += 1.0
+    alive(new, True)
+    clock.now += 0.1
+    alive(old, False)
+    assert gateway.board("left").lost(clock.now)  # the old one gone, the new one not yet heard since
+    board = gateway.board("left")
+    for t in range(int(FORGET_S) + 10):
+        clock.now += 1.0
+        sample(new, range(10 * t, 10 * t + 10))
+        gateway._prune(clock.now)
+        assert not board.lost(clock.now), (t, gateway.health()["problems"])
+    health = gateway.health()
+    assert gateway.board("left") is board and health["status"] == "ok", health["problems"]
+    assert board.alive is True and board.latest[0].seq == 10 * (int(FORGET_S) + 10) - 1
+    assert health["boards"]["left"]["remote"]["publisher"] == new

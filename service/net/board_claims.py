@@ -96,6 +96,13 @@ class BoardClaims:
         with self._lock:
             return self._holders.get(board)
 
+    def liveliness(self, board: str) -> bool | None:
+        """The token of the instance served under ``board``: True declared,
+        False withdrawn, None not heard (or none served)."""
+        with self._lock:
+            holder = self._publishers.get(board, {}).get(self._holders.get(board))
+            return None if holder is None else holder.alive
+
     def report(self, board: str, now: float) -> dict:
         """The board's ``publisher`` (the instance served), ``publishers``
         (each with whether it is served, alive and how many samples were
