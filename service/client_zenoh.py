@@ -151,14 +151,21 @@ class ZenohClient:
         return {} if self.following is None else self.following.clashes()
 
     def _on_health(self, sample: zenoh.Sample) -> None:
-        if not self._admit(_board_of(sample.key_expr), instance_of_sample(sample)):
+        """A board's health document; ``{"renamed_to": NAME}`` is its service
+        saying the name is gone (a bare board's provisional one, at its first
+        INFO: zenoh_publisher.py), which drops it."""
+        board = _board_of(sample.key_expr)
+        if not self._admit(board, instance_of_sample(sample)):
             return
         try:
             document = orjson.loads(sample.payload.to_bytes())
         except orjson.JSONDecodeError:
             return  # not a health document: nothing to learn from it
         with self._lock:
-            self._health[_board_of(sample.key_expr)] = (time.monotonic(), document)
+            if isinstance(document, dict) and isinstance(document.get("renamed_to"), str):
+                self._health.pop(board, None)
+            else:
+                self._health[board] = (time.monotonic(), document)
 
     def boards(self) -> list[str]:
         """Boards whose health was heard since the client started."""

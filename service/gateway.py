@@ -6,7 +6,8 @@ declared its liveliness token or sent frames (a health sample alone makes no
 board), and publishes their frames to the same fan-out hub as a live
 service, so the API's routes serve it unchanged. A board lost (its token
 withdrawn, or silent: remote_board.py) is reported lost for
-``FORGET_AFTER_S`` and then forgotten, its sensors and history with it; a
+``FORGET_AFTER_S`` and then forgotten, its sensors and history with it
+(not while a service refused its name lives: the clash stays reported); a
 name its service renamed (a bare board's provisional ``board``, at its first
 INFO) is forgotten as soon as the service says so. At most ``MAX_BOARDS``
 boards are live at once: a lost one gives its place to a new one, and a
@@ -117,26 +118,28 @@ class GatewayService:
                 del self._refused[next(iter(self._refused))]
             return None
         for _, gone in lost[:max(0, len(self._boards) - self.max_boards + 1)]:
-            self._forget(gone)
+            self._forget(gone, now)
         self._refused.pop(name, None)
         board = self._boards[name] = RemoteBoard(name, Histories(self.history_share),
                                                  publishers=lambda at, n=name: self.claims.report(n, at))
         return board
 
-    def _forget(self, name: str) -> None:
-        """The board, its sensors and history gone from the API; its name free for whichever service comes."""
+    def _forget(self, name: str, now: float) -> None:
+        """The board, its sensors and history gone from the API; its name free
+        for whichever service comes, bar one it refused that still lives."""
         self._boards.pop(name, None)
-        self.claims.forget(name)
+        self.claims.forget(name, now)
         if self.zenoh is not None:
             self.zenoh.forget(name)
 
     def _prune(self, now: float) -> None:
-        """Forget boards lost for more than FORGET_AFTER_S, refusals as old, and
-        the claims of names that never became a board (a health sample alone)."""
+        """Forget boards lost for more than FORGET_AFTER_S (but one whose name a
+        live service was refused: its clash stays reported), refusals as old,
+        and the claims of names that never became a board (a health sample alone)."""
         for board in list(self._boards.values()):
             since = board.lost_since(now)
-            if since is not None and now - since > FORGET_AFTER_S:
-                self._forget(board.name)
+            if since is not None and now - since > FORGET_AFTER_S and not self.claims.contested(board.name, now):
+                self._forget(board.name, now)
         for name in [n for n, (_, at) in self._refused.items() if now - at > FORGET_AFTER_S]:
             del self._refused[name]
         for name in self.claims.prune(now, keep=set(self._boards), after_s=FORGET_AFTER_S):
@@ -154,6 +157,10 @@ class GatewayService:
         board = self._remote(name, now)
         if board is None:
             return
+        if board.alive is False and (alive := self.claims.liveliness(name)) is not False:
+            # The name passed to a successor (board_claims.py) whose token came while it was refused: its
+            # liveliness, not its predecessor's withdrawn one, is the board's.
+            board.on_alive(alive, now)
         board.receive(frames, now)
         self.published_latency.add(now - frames[0].t_host)
         self.hub.publish(frames)
@@ -162,7 +169,7 @@ class GatewayService:
         """A health sample updates a board; it makes none (anyone may put one
         under any name). One saying its board was renamed forgets the old name."""
         if isinstance(document.get("renamed_to"), str):
-            self._forget(name)
+            self._forget(name, time.time())
             return
         board = self._boards.get(name)
         if board is not None:

@@ -9,7 +9,8 @@ or when neither frames nor health came for ``LOST_AFTER_S`` (a network that
 went silent, before Zenoh's lease expires); ``lost_since`` says since when
 (the gateway forgets a board lost for a while). Liveliness and data are the
 served service's only (``publishers``: net/board_claims.py), so another
-service of the same name neither keeps it alive nor feeds it.
+service of the same name neither keeps it alive nor feeds it; when the name
+passes to a successor, the gateway gives the board the successor's token.
 """
 from __future__ import annotations
 
@@ -57,9 +58,11 @@ class RemoteBoard:
     def on_health(self, document: dict, now: float) -> None:
         self.health_document, self.health_at = document, now
 
-    def on_alive(self, alive: bool, now: float) -> None:
+    def on_alive(self, alive: bool | None, now: float) -> None:
+        """Its service's token declared (True) or withdrawn (False); None: the
+        name passed to a service whose token was not heard (silence decides)."""
         self.alive = alive
-        self.lost_at = None if alive else now
+        self.lost_at = now if alive is False else None
         if alive:
             self.alive_at = now
 

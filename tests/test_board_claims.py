@@ -91,3 +91,37 @@ def test_a_service_restarted_on_its_host_before_its_predecessor_is_declared_gone
     clash.heard("arm", A, 1.5)
     clash.heard("arm", A, 1.6, alive=False)
     assert not clash.heard("arm", C, 2.0)
+
+
+def test_forgetting_a_name_keeps_a_live_refused_service_refused():
+    """The gateway forgets a board lost for a minute: its holder and the
+    services gone go, a refused one still alive stays refused. Before, every
+    publisher went and the refused one took the name at its next sample."""
+    claims = BoardClaims()
+    claims.heard("arm", A, 0.0, alive=True)
+    claims.heard("arm", B, 0.1, alive=True)  # refused: another host
+    claims.heard("arm", C, 0.2, alive=True)  # refused, then gone
+    claims.heard("arm", C, 0.3, alive=False)
+    claims.heard("arm", A, 1.0, alive=False)
+    claims.heard("arm", B, 60.5)  # B publishes on
+    claims.forget("arm", 61.0)
+    assert not claims.heard("arm", B, 62.0)
+    report = claims.report("arm", 62.0)
+    assert report["publisher"] is None
+    assert [(p["instance"], p["served"]) for p in report["publishers"]] == [(B, False)]
+    assert claims.heard("arm", "arm-pc:404:dddddd", 63.0, alive=True)  # A restarted: served
+
+
+def test_the_liveliness_told_is_the_served_instance_s():
+    claims = BoardClaims()
+    assert claims.liveliness("arm") is None  # none served
+    claims.heard("arm", A, 0.0, alive=True)
+    claims.heard("arm", C, 1.0, alive=True)  # A's successor, refused while A lives
+    assert claims.liveliness("arm") is True
+    claims.heard("arm", A, 1.1, alive=False)
+    assert claims.liveliness("arm") is False
+    assert claims.heard("arm", C, 1.2) and claims.liveliness("arm") is True  # C's token, heard while refused
+    other = BoardClaims()
+    other.heard("arm", A, 0.0, alive=True)
+    other.heard("arm", A, 1.0, alive=False)
+    assert other.heard("arm", C, 1.5) and other.liveliness("arm") is None  # C's token not heard

@@ -181,3 +181,85 @@ def test_a_renamed_board_s_old_name_is_told_by_its_service_as_its_token_goes():
                      publisher.instance)]
     assert tokens[0] == ("token", "board", True)
     assert sorted(tokens[1:]) == [("token", "LATE-1", True), ("token", "board", False)]
+
+
+def test_a_lost_board_s_name_never_goes_to_the_service_it_refused(clock):
+    """Two hosts both call their board `arm`: the hand-pc's service is refused
+    while the arm-pc's holds it. The arm-pc's service ends; its board is
+    lost, and stays so, the clash named, while the refused one lives; none
+    of the refused one's frames is served, a minute on or later. Before, the
+    board was forgotten 60 s after the loss with every claim, and the
+    refused one's next sample took the name: at 62 s `arm` served the
+    hand-pc's sensor, /health `ok`."""
+    gateway = GatewayService(None)
+    claims = gateway.claims
+    arm_pc, hand_pc = "arm-pc:100:aaaaaa", "hand-pc:200:bbbbbb"
+
+    def alive(instance, up):  # as ZenohFeed._take passes tokens and samples on
+        if claims.heard("arm", instance, clock.now, up):
+            gateway._on_alive("arm", up)
+
+    def sample(instance, seqs):
+        if claims.heard("arm", instance, clock.now):
+            gateway._receive("arm", frames("arm", seqs))
+
+    alive(arm_pc, True)
+    sample(arm_pc, range(5))
+    alive(hand_pc, True)
+    sample(hand_pc, range(100, 105))
+    clock.now += 1.0
+    alive(arm_pc, False)
+    for t in range(1, 3 * int(FORGET_S)):
+        clock.now += 1.0
+        sample(hand_pc, range(100 + 10 * t, 105 + 10 * t))
+        gateway._prune(clock.now)
+    health = gateway.health()
+    assert names(gateway) == ["arm"] and gateway.board("arm").latest[0].seq == 4  # the arm-pc's last frame
+    assert [p for p in health["problems"] if "lost: the service of board arm" in p]
+    [clash] = [p for p in health["problems"] if "name clash" in p]
+    assert f"{hand_pc} (refused, 180 samples ignored)" in clash
+    alive(hand_pc, False)  # the refused one ends too: the name is forgotten, free for whichever comes
+    clock.now += 1.0
+    gateway._prune(clock.now)
+    assert names(gateway) == [] and gateway.health()["problems"] == []
+    alive("arm-pc:300:cccccc", True)  # the arm-pc's service restarted
+    sample("arm-pc:300:cccccc", range(3))
+    assert names(gateway) == ["arm"] and gateway.board("arm").latest[0].seq == 2
+
+
+def test_a_successor_declared_before_its_predecessor_left_is_served_alive_and_kept(clock):
+    """A service restarted on its host: the new token declared 1 s before the
+    old one's withdrawal, so the new one was refused until then and takes
+    the name at its first sample after (board_claims.py). Its board is not
+    lost, and keeps its history a minute on. Before, no token of the new one
+    reached the board: /health said "lost … liveliness token is gone" for
+    59 s while it streamed, then the board was forgotten and made again."""
+    gateway = GatewayService(None)
+    claims = gateway.claims
+    old, new = "arm-pc:100:aaaaaa", "arm-pc:200:bbbbbb"
+
+    def alive(instance, up):
+        if claims.heard("left", instance, clock.now, up):
+            gateway._on_alive("left", up)
+
+    def sample(instance, seqs):
+        if claims.heard("left", instance, clock.now):
+            gateway._receive("left", frames("left", seqs))
+
+    alive(old, True)
+    sample(old, range(10))
+    clock.now += 1.0
+    alive(new, True)
+    clock.now += 0.1
+    alive(old, False)
+    assert gateway.board("left").lost(clock.now)  # the old one gone, the new one not yet heard since
+    board = gateway.board("left")
+    for t in range(int(FORGET_S) + 10):
+        clock.now += 1.0
+        sample(new, range(10 * t, 10 * t + 10))
+        gateway._prune(clock.now)
+        assert not board.lost(clock.now), (t, gateway.health()["problems"])
+    health = gateway.health()
+    assert gateway.board("left") is board and health["status"] == "ok", health["problems"]
+    assert board.alive is True and board.latest[0].seq == 10 * (int(FORGET_S) + 10) - 1
+    assert health["boards"]["left"]["remote"]["publisher"] == new

@@ -131,3 +131,47 @@ def test_a_client_follows_one_of_two_services_of_one_name_and_moves_to_the_other
     [message] = moved_warnings
     assert f"board arm: following {other.instance} now, {first.instance} having gone (its liveliness token went)" \
         in message
+
+
+def test_a_client_drops_a_board_name_its_service_renamed():
+    """A bare board's provisional name `board` is renamed `LATE-1` at its first
+    INFO; its service says so with {"renamed_to": "LATE-1"} under the old
+    name's health key. The client forgets `board`. Before, it kept that notice
+    as `board`'s health document (no status) and listed `board` for good."""
+
+    class Board:
+        name = "board"
+
+    class Service:
+        all_boards = [Board()]
+
+    endpoint = "tcp/127.0.0.1:9981"
+    publisher = ZenohPublisher(session_config(listen=[endpoint], multicast=False))
+
+    def put_health(name: str) -> None:
+        publisher.session.put(health_key(name), orjson.dumps({"status": "ok", "board": name}),
+                              attachment=publisher._attachment)
+
+    def wait_for(condition) -> None:
+        deadline = time.monotonic() + 5.0
+        while not condition() and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    try:
+        with ZenohClient([endpoint], timeout=3) as client:
+            time.sleep(0.3)  # the client's subscriptions reach the publisher's session
+            publisher._service = Service()
+            publisher._declare_boards()
+            put_health("board")
+            wait_for(lambda: client.boards() == ["board"])
+            assert client.health("board") == {"status": "ok", "board": "board"}
+            Board.name = "LATE-1"
+            publisher._declare_boards()  # tells {"renamed_to": "LATE-1"} under board's health key
+            put_health("LATE-1")
+            wait_for(lambda: client.boards() == ["LATE-1"])
+            assert client.boards() == ["LATE-1"] and client.health("board") is None
+            assert client.last_health_age_s("board") is None
+            assert client.health("LATE-1") == {"status": "ok", "board": "LATE-1"}
+    finally:
+        publisher._service = None
+        publisher.session.close()

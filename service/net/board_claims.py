@@ -96,6 +96,13 @@ class BoardClaims:
         with self._lock:
             return self._holders.get(board)
 
+    def liveliness(self, board: str) -> bool | None:
+        """The token of the instance served under ``board``: True declared,
+        False withdrawn, None not heard (or none served)."""
+        with self._lock:
+            holder = self._publishers.get(board, {}).get(self._holders.get(board))
+            return None if holder is None else holder.alive
+
     def report(self, board: str, now: float) -> dict:
         """The board's ``publisher`` (the instance served), ``publishers``
         (each with whether it is served, alive and how many samples were
@@ -121,12 +128,23 @@ class BoardClaims:
              "gone_for_s": None if p.gone_since(now) is None else round(now - p.gone_since(now), 3),
              "samples_refused": p.samples_refused} for p in publishers]}
 
-    def forget(self, board: str) -> None:
-        """Every publisher of ``board``, the one served too (the gateway forgot
-        the board: lost for long, or renamed by its service)."""
+    def forget(self, board: str, now: float) -> None:
+        """The gateway forgot ``board`` (lost for long, or renamed by its
+        service): its holder and the publishers gone go; a refused one still
+        alive stays, refused, so that it never takes the name it was refused."""
         with self._lock:
-            self._publishers.pop(board, None)
-            self._holders.pop(board, None)
+            publishers = self._publishers.get(board, {})
+            holder = self._holders.pop(board, None)
+            for p in list(publishers.values()):
+                if p.instance == holder or not p.refused or p.gone_since(now) is not None:
+                    del publishers[p.instance]
+            if not publishers:
+                self._publishers.pop(board, None)
+
+    def contested(self, board: str, now: float) -> bool:
+        """Whether a service refused ``board`` still lives (its clash is still to be reported)."""
+        with self._lock:
+            return any(p.refused and p.gone_since(now) is None for p in self._publishers.get(board, {}).values())
 
     def prune(self, now: float, keep: set[str], after_s: float) -> list[str]:
         """Forget the names outside ``keep`` whose publishers are all gone for

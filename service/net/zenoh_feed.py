@@ -37,6 +37,7 @@ import numpy as np
 import orjson
 import zenoh
 
+from ..board_info import _is_int
 from ..fanout.encoding import decode_binary
 from ..readings import MAX_CHANNELS, MAX_SENSOR_ID, SensorInfo
 from ..reconstruct import ForceFrame
@@ -312,10 +313,6 @@ def _announced(entry, board: str) -> SensorInfo | str | None:
         return f"sensor {sid} announced as a {shape}: no frame has that shape (each 1 or more, at most " \
                f"{MAX_CHANNELS} channels)"
     return SensorInfo(sid, kind, rows, cols, board=board)
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _misfit(info: SensorInfo, record: dict) -> str | None:
