@@ -183,6 +183,20 @@ def test_a_renamed_board_s_old_name_is_told_by_its_service_as_its_token_goes():
     assert sorted(tokens[1:]) == [("token", "LATE-1", True), ("token", "board", False)]
 
 
+def feeder(gateway, board, clock):
+    """(alive(instance, up), sample(instance, seqs)): tokens and frames of ``board`` from
+    service instances, passed on to the gateway as ZenohFeed._take does (through its claims)."""
+    def alive(instance, up):
+        if gateway.claims.heard(board, instance, clock.now, up):
+            gateway._on_alive(board, up)
+
+    def sample(instance, seqs):
+        if gateway.claims.heard(board, instance, clock.now):
+            gateway._receive(board, frames(board, seqs))
+
+    return alive, sample
+
+
 def test_a_lost_board_s_name_never_goes_to_the_service_it_refused(clock):
     """Two hosts both call their board `arm`: the hand-pc's service is refused
     while the arm-pc's holds it. The arm-pc's service ends; its board is
@@ -192,17 +206,9 @@ def test_a_lost_board_s_name_never_goes_to_the_service_it_refused(clock):
     refused one's next sample took the name: at 62 s `arm` served the
     hand-pc's sensor, /health `ok`."""
     gateway = GatewayService(None)
-    claims = gateway.claims
     arm_pc, hand_pc = "arm-pc:100:aaaaaa", "hand-pc:200:bbbbbb"
 
-    def alive(instance, up):  # as ZenohFeed._take passes tokens and samples on
-        if claims.heard("arm", instance, clock.now, up):
-            gateway._on_alive("arm", up)
-
-    def sample(instance, seqs):
-        if claims.heard("arm", instance, clock.now):
-            gateway._receive("arm", frames("arm", seqs))
-
+    alive, sample = feeder(gateway, "arm", clock)
     alive(arm_pc, True)
     sample(arm_pc, range(5))
     alive(hand_pc, True)
@@ -235,17 +241,9 @@ def test_a_successor_declared_before_its_predecessor_left_is_served_alive_and_ke
     reached the board: /health said "lost … liveliness token is gone" for
     59 s while it streamed, then the board was forgotten and made again."""
     gateway = GatewayService(None)
-    claims = gateway.claims
     old, new = "arm-pc:100:aaaaaa", "arm-pc:200:bbbbbb"
 
-    def alive(instance, up):
-        if claims.heard("left", instance, clock.now, up):
-            gateway._on_alive("left", up)
-
-    def sample(instance, seqs):
-        if claims.heard("left", instance, clock.now):
-            gateway._receive("left", frames("left", seqs))
-
+    alive, sample = feeder(gateway, "left", clock)
     alive(old, True)
     sample(old, range(10))
     clock.now += 1.0
