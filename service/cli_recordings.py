@@ -119,27 +119,24 @@ def _unlink(path: Path) -> bool:
 
 
 class _ProgressPacer:
-    """A Pacer that also moves a bar by bytes of the file: a raw capture is read
-    in CHUNK_BYTES chunks (BULK_BYTES unpaced), one wait each; an MCAP
-    recording's progress is its recorded time against the span its summary
-    gives, scaled to the file's size."""
+    """A Pacer that also moves a bar by bytes of the file: a raw capture's
+    by the bytes each wait releases (its chunks are cut by board time, of
+    any size); an MCAP recording's progress is its recorded time against
+    the span its summary gives, scaled to the file's size."""
 
     def __init__(self, pacer, bar, path: Path) -> None:
-        import math
-
-        from .record.readers import BULK_BYTES, CHUNK_BYTES, is_timed_by_host
+        from .record.readers import is_timed_by_host
 
         self._pacer, self._bar = pacer, bar
         self.speed = pacer.speed
         self._size = path.stat().st_size
-        self._chunk = BULK_BYTES if math.isinf(pacer.speed) else CHUNK_BYTES
         self._span = _mcap_span(path) if is_timed_by_host(path) else None
         self._timed = is_timed_by_host(path)
 
-    def wait(self, t_recorded: float) -> None:
-        self._pacer.wait(t_recorded)
+    def wait(self, t_recorded: float, size: int = 0) -> None:
+        self._pacer.wait(t_recorded, size)
         if not self._timed:
-            done = self._bar.n + self._chunk
+            done = self._bar.n + size
         elif self._span is not None:
             t0, t1 = self._span
             done = self._size * min(max((t_recorded - t0) / (t1 - t0), 0.0), 1.0) if t1 > t0 else self._bar.n

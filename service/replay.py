@@ -151,7 +151,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
                 start = starts[board] = start_of(board, number)
             if number < start:
                 continue
-            pacer.wait(pacing_time(board, t_recorded, chunk))
+            pacer.wait(pacing_time(board, t_recorded, chunk), len(chunk))
             pending = changes.get(board)
             redo = bool(pending) and pending[0][0] <= number  # made live before this read was decoded
             if hold or board != joined_board or redo or len(joined) >= JOIN_READS:

@@ -5,7 +5,7 @@ import numpy as np
 import orjson
 import pytest
 
-from firmware_sim.board import BoardConfig, capture
+from firmware_sim.board import Board, BoardConfig, capture
 from firmware_sim.faults import inject
 from service.cli import main
 from service.protocol import FrameType
@@ -182,6 +182,91 @@ def test_a_paced_raw_capture_emits_each_chunk_at_its_own_board_time(tmp_path):
     late = [w - (t - first) for w, t in emitted if t > 2.0]  # after the tare (held frames go out with it)
     assert len(late) == 2 * 200 and 0.1 < span < 0.2  # two sensors, 2 s at 100 Hz
     assert min(late) >= -1e-9 and max(late) <= span
+
+
+def pause_capture(tmp_path):
+    """A 100 Hz board, silent for 1.5 s (STOP at 2.5 s, START at 4.0 s,
+    seq going on), 6 s in all: its path and {scan t_us: the byte offset
+    where that scan's frames end}, built scan by scan."""
+    board = Board(BoardConfig(scene="press", rate_hz=100, seed=3))
+    data, ends = bytearray(board.power_up()), {}
+    for k in range(1, 601):
+        board.streaming = not 250 < k <= 400
+        scan = board.advance(k / 100)
+        data += scan
+        if scan:
+            ends[k * 10_000] = len(data)
+    path = tmp_path / "pause.bin"
+    path.write_bytes(data)
+    return path, ends
+
+
+def test_a_paced_raw_capture_emits_each_frame_at_its_own_board_time_across_a_pause(tmp_path):
+    """A board silent for 1.5 s (STOP at 2.5 s, START at 4.0 s, seq going
+    on): paced at speed 1 on a virtual clock, every frame after the tare
+    goes out no earlier than its own scan (t_us against the pacing's
+    anchor) and at most 25 ms after it. The 4 KiB chunk straddling the
+    pause went out whole at its newest scan's time: its frames from before
+    the pause up to 1.62 s late. The forces equal an unpaced replay's, bit for bit."""
+    from service.record.export import export_line
+    from service.record.pacing import Pacer
+
+    path, _ = pause_capture(tmp_path)
+    now, anchor = [0.0], []
+
+    class Anchored(Pacer):
+        def wait(self, t_recorded, *args):
+            anchor.append(t_recorded)  # the first is the board time the clock's 0 stands for
+            super().wait(t_recorded, *args)
+
+    class Lines:
+        def __init__(self, clock=None):
+            self.lines, self.times, self._clock = [], [], clock
+
+        def write(self, frames):
+            self.lines += [export_line(frame) for frame in frames]
+            self.times += [(self._clock[0], frame.t_us * 1e-6) for frame in frames] if self._clock else []
+
+    paced, fast = Lines(now), Lines()
+    replay(path, pacer=Anchored(1.0, clock=lambda: now[0], sleep=lambda dt: now.__setitem__(0, now[0] + dt)),
+           writer=paced)
+    replay(path, writer=fast)
+    late = [w - (t - anchor[0]) for w, t in paced.times if t > 2.0]  # after the tare (held frames go out with it)
+    assert len(late) == 2 * (50 + 200)  # two sensors at 100 Hz: 2.01-2.5 s, 4.01-6.0 s
+    assert min(late) >= -1e-9 and max(late) <= 0.025, (min(late), max(late))
+    assert 0.01 <= anchor[0] <= 0.035  # the first scan at 10 ms
+    assert paced.lines == fast.lines and len(fast.lines) == 2 * 450
+
+
+def test_a_paced_raw_replays_progress_bar_stands_at_the_bytes_released(tmp_path):
+    """The progress bar of a paced raw replay moves by the bytes each wait
+    releases: after the wait for board time t it stands past t's grid
+    frame (272 bytes; its 32-byte quad may end in the next 4 KiB read) and
+    short of the next scan's grid, and at the file's size at the end. It
+    moved 4 KiB a wait, running ahead of chunks cut shorter (by 109 kB)."""
+    from service.cli_recordings import _ProgressPacer
+    from service.record.pacing import Pacer
+
+    path, ends = pause_capture(tmp_path)
+    now, positions = [0.0], []
+
+    class Bar:
+        n = 0
+
+        def update(self, k):
+            self.n += k
+
+    class Watched(_ProgressPacer):
+        def wait(self, t_recorded, *args):
+            super().wait(t_recorded, *args)
+            positions.append((round(t_recorded * 1e6), bar.n))
+
+    bar = Bar()
+    replay(path, pacer=Watched(Pacer(1.0, clock=lambda: now[0], sleep=lambda dt: now.__setitem__(0, now[0] + dt)),
+                               bar, path))
+    ahead = [n - ends[t_us] for t_us, n in positions if t_us in ends]
+    assert len(positions) > 2 * path.stat().st_size / 4096 and bar.n == path.stat().st_size == ends[6_000_000]
+    assert min(ahead) >= -32 and max(ahead) < 272, (min(ahead), max(ahead))  # against the end of t's scan
 
 
 def test_a_raw_capture_cut_inside_a_frame_is_said_with_the_bytes_left_over(tmp_path, caplog):

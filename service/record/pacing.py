@@ -41,7 +41,9 @@ class Pacer:
         self._sleep = sleep
         self._anchor: tuple[float, float] | None = None
 
-    def wait(self, t_recorded: float) -> None:
+    def wait(self, t_recorded: float, size: int = 0) -> None:
+        """Until ``t_recorded`` (s) is due; ``size``: the bytes this wait
+        releases, for a progress display (pacing goes by time alone)."""
         if math.isinf(self.speed):
             return
         if self._anchor is None:

@@ -17,11 +17,12 @@ from collections.abc import Iterable, Iterator
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..protocol import DATA_TYPES, T_US_MODULUS, Frame
+from ..protocol import DATA_TYPES, SYNC, T_US_MODULUS, Frame
 from ..protocol_decoder import Decoder
 from .mcap_reader import read_raw
 
 CHUNK_BYTES = 4096
+PACE_S = 0.02  # board time one paced chunk of a raw capture spans at most: how late its first frames go out
 BULK_BYTES = 1 << 20  # untimed reads: as fast as possible, few calls per stage
 WRAP_S = T_US_MODULUS * 1e-6  # the board clock's range: 71.6 min
 STEP_S = 1.0  # receive times apart from the board clock by more than this between two reads: the host clock stepped
@@ -134,12 +135,39 @@ class HostTime:
 
 
 def raw_chunks(path: str | Path) -> Iterator[tuple[float, bytes]]:
-    """4 KiB chunks of a raw capture, each timed (s) by the latest board
-    time it completes (``BoardClock``), or by the previous chunk's time."""
+    """Chunks of a raw capture, read 4 KiB at a time, each timed (s) by the
+    latest board time it completes (``BoardClock``), or by the previous
+    chunk's time; cut at frame starts so that none spans more than PACE_S of
+    board time (``_paced_cuts``)."""
     decoder, clock = Decoder(), BoardClock()
     with open(path, "rb") as source:
-        while chunk := source.read(CHUNK_BYTES):
-            yield clock.feed(decoder.feed(chunk)), chunk
+        while block := source.read(CHUNK_BYTES):
+            yield from _paced_cuts(block, decoder, clock)
+
+
+def _paced_cuts(block: bytes, decoder: Decoder, clock: BoardClock) -> Iterator[tuple[float, bytes]]:
+    """``block`` as (board time s, bytes) chunks, cut before a frame whose
+    time is more than PACE_S after the chunk's first frame: a frame goes out
+    at most PACE_S after its own time, never before it (a 4 KiB chunk
+    across a 1.5 s pause released its frames from before the pause 1.5 s
+    late). Each piece from one sync pattern to the next completes the frame
+    it starts (a sync inside a payload only makes a piece that completes
+    none); ``decoder`` and ``clock`` go on from block to block."""
+    start = piece = 0  # the chunk's and the piece's first byte in the block
+    first = None  # the board time of the chunk's first data frames
+    while piece < len(block):
+        end = block.find(SYNC, piece + 1)
+        end = len(block) if end < 0 else end
+        t_before = clock.t
+        frames = [frame for frame in decoder.feed(block[piece:end]) if frame.type in DATA_TYPES]
+        t = clock.feed(frames)
+        if first is not None and t > first + PACE_S:
+            yield t_before, block[start:piece]
+            start, first = piece, None
+        if first is None and frames:
+            first = t
+        piece = end
+    yield clock.t, block[start:]
 
 
 def bulk_chunks(path: str | Path, size: int = BULK_BYTES) -> Iterator[tuple[float, bytes]]:
