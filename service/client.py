@@ -18,7 +18,7 @@ One frame shape, whichever the encoding (``latest``, ``history`` and
 ``subscribe`` with ``binary`` False or True all give it):
 
     {"header": {"board", "sensor_id", "sensor_name", "kind", "seq", "board_time_us", "stamp",
-                "scan_stamp", "calibration"},
+                "scan_stamp", "calibration", "age_s"},  # age_s: latest() only (below)
      "rows", "cols",                          # grids
      "force_N",                               # grid: rows*cols taxels, row-major;
                                               # quad: [fx, fy, fz] (also as "wrench")
@@ -34,6 +34,12 @@ not carry the contact summary: a binary grid frame has no ``contact`` key —
 subscribe in JSON (or ask ``contact(id)``) where it is needed. ``subscribe`` counts the frames the
 server dropped for this client in ``dropped`` and keeps its notices (e.g. a
 subscription to sensors not announced yet) in ``notices``.
+
+``latest`` (and ``contact``) give the sensor's last frame however old:
+``age_s`` (the header's; ``contact``'s at its top level) is the seconds
+from its read to the answer, and a frame of a sensor /health calls stale
+(no frame for max(0.5 s, 20 scan periods)) has ``sensor_stale`` in its
+``flags`` (``contact``: ``"stale": true``) — its forces are not current.
 """
 from __future__ import annotations
 
@@ -53,6 +59,7 @@ from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 
 DEFAULT_MAX_LAG_S = 0.25  # subscribe: frames further behind the newest arrived are skipped
 LAGGING_QUEUE = 1024  # messages read ahead when trimming by lag: up to ~10 MB of a loop that stalled
+AGE_HEADER = "X-Frame-Age-S"  # as api/routes_sensors.py sends it (the client does not import the API's FastAPI)
 SHAPES_RETRY_S = 1.0  # GET /sensors again for a grid whose records changed size at most this often
 
 
@@ -98,6 +105,15 @@ def _skip_lagging(pending: deque[dict], max_lag_s: float) -> int:
     return skipped
 
 
+def _age_s(headers: dict) -> float | None:
+    """Seconds from the latest frame's read to the answer (``X-Frame-Age-S``;
+    None from a service that does not say)."""
+    try:
+        return float(headers[AGE_HEADER.lower()])
+    except (KeyError, ValueError):
+        return None
+
+
 def _none_if_nan(value) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
@@ -123,7 +139,8 @@ class TactileClient:
         self._sensors: dict[int, dict] = {}
         self._shapes_asked = -SHAPES_RETRY_S  # when GET /sensors was last asked for a changed shape
 
-    def _request(self, method: str, path: str, body: dict | None = None):
+    def _request(self, method: str, path: str, body: dict | None = None, replied: dict | None = None):
+        """The answer's JSON; ``replied``, if given, gets the answer's headers (names lower-cased)."""
         headers = {"Content-Type": "application/json"}
         if self.token:
             headers["Authorization"] = f"Bearer {self.token}"
@@ -137,6 +154,8 @@ class TactileClient:
                     left = max(deadline - time.monotonic(), 0.001)  # a retry has what is left of the timeout
                     with urllib.request.urlopen(request, timeout=left) as response:
                         payload = response.read()
+                        if replied is not None:
+                            replied.update((name.lower(), value) for name, value in response.headers.items())
                     break
                 except urllib.error.HTTPError as exc:
                     # The service admits history reads at a bounded rate (docs/api.md): a read refused for now
@@ -185,10 +204,17 @@ class TactileClient:
     def latest(self, sensor: int | str) -> dict:
         """``sensor``: an id (on a one-board service, or the only board with
         it) or an address ``"board/id"``; likewise below."""
-        return _normalized(self._request("GET", f"{_sensor_path(sensor)}/latest"))
+        replied: dict = {}
+        frame = _normalized(self._request("GET", f"{_sensor_path(sensor)}/latest", replied=replied))
+        frame["header"]["age_s"] = _age_s(replied)
+        return frame
 
     def contact(self, sensor: int | str) -> dict:
-        return self._request("GET", f"{_sensor_path(sensor)}/contact")
+        """The latest frame's contact summary, with ``stale`` and ``age_s`` as ``latest``'s."""
+        replied: dict = {}
+        summary = self._request("GET", f"{_sensor_path(sensor)}/contact", replied=replied)
+        summary["age_s"] = _age_s(replied)
+        return summary
 
     def history(self, sensor: int | str, seconds: float = 2.0, max_points: int = 200) -> list[dict]:
         frames = self._request("GET", f"{_sensor_path(sensor)}/history?seconds={seconds}&max_points={max_points}")

@@ -20,6 +20,17 @@ def stale_after_s(board: dict) -> float:
     return MIN_STALE_S
 
 
+def frame_stale(board, frame, now: float) -> bool:
+    """Whether /health calls ``frame``'s sensor stale when ``frame`` is its
+    last (``now``: s since the epoch): a board.Board's sensor after
+    stale_after_s without a frame, a gateway's remote board by its own rule
+    (RemoteBoard.sensor_stale)."""
+    age = now - frame.t_host
+    if isinstance(board, Board):
+        return age > stale_after_s(board.info)
+    return board.sensor_stale(frame.sensor.id, age, now)
+
+
 def _sensors(pipeline, now: float, counters: dict, stale_after: float, book=None) -> dict:
     sensors = {}
     name = pipeline.interpreter.name

@@ -99,6 +99,13 @@ class RemoteBoard:
             return None
         return {**sensor["calibration"], "document": None, "note_gateway": "the document is on the board's service"}
 
+    def sensor_stale(self, sensor_id: int, age: float | None, now: float) -> bool:
+        """Whether the sensor is stale, its last frame ``age`` s old (None: none
+        yet): the board lost, no frame for LOST_AFTER_S, or its service says so
+        (as of its last health document)."""
+        remote = ((self.health_document or {}).get("sensors") or {}).get(str(sensor_id), {})
+        return self.lost(now) or age is None or age > LOST_AFTER_S or bool(remote.get("stale"))
+
     def health_part(self, now: float) -> dict:
         """This board's part of the gateway's /health: the remote service's
         own (as of its last health document), with what the gateway sees."""
@@ -110,7 +117,7 @@ class RemoteBoard:
             latest = self.latest.get(sid)
             age = None if latest is None else now - latest.t_host
             meter = self.rates.get(sid)
-            stale = lost or age is None or age > LOST_AFTER_S or bool(remote.get("stale"))
+            stale = self.sensor_stale(sid, age, now)
             sensors[str(sid)] = {**remote, "board": self.name, "id": sid, "kind": info.kind,
                                  "rate_hz": 0.0 if stale or meter is None else round(meter.rate_hz, 1),
                                  "stale": stale, "last_frame_age_s": None if age is None else round(age, 3)}

@@ -104,7 +104,8 @@ def test_latest_message_shape(client):
 
 
 def test_contact_and_history(client):
-    assert set(client.get("/sensors/0/contact").json()) == {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts"}
+    assert set(client.get("/sensors/0/contact").json()) == {"total_N", "cop_x_mm", "cop_y_mm", "area_mm2", "contacts",
+                                                            "stale"}
     assert client.get("/sensors/1/contact").status_code == 400
     history = get_history(client, "/sensors/0/history?seconds=0.5&max_points=50").json()
     assert 2 <= len(history) <= 50

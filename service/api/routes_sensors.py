@@ -12,21 +12,25 @@ from fastapi.responses import StreamingResponse
 
 from ..fanout.encoding import FIELDS, to_json_dict
 from ..fanout.history_json import RecentRings
+from ..health import frame_stale
 from .deps import (
     ALL_FIELDS,
+    Addressed,
     JSONResponse,
     find_sensor,
     get_service,
+    known_sensor,
     latest_frame,
     parse_fields,
 )
-from .schemas import Contact, FrameMessage
+from .schemas import ContactReply, FrameMessage
 
 if TYPE_CHECKING:
     from ..live_service import TactileService
     from ..reconstruct import ForceFrame
 
 AGE_HEADER = "X-Frame-Age-S"
+STALE_FLAG = "sensor_stale"  # a latest frame whose sensor /health calls stale; not "stale", a stuck channel's flag
 router = APIRouter()
 
 MAX_HEAVY_READS = 2
@@ -64,24 +68,31 @@ def sensors(service: TactileService = Depends(get_service)) -> JSONResponse:
 
 @router.get("/sensors/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
 @router.get("/sensors/{board}/{sensor_id}/latest", responses={200: {"model": FrameMessage}})
-def latest(frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
-    # How old it is, beside the frame (whose shape is every frame's): a board gone quiet still has a latest frame.
-    return JSONResponse(to_json_dict(frame, ALL_FIELDS), headers={AGE_HEADER: _age(frame)})
+def latest(found: Addressed = Depends(known_sensor)) -> JSONResponse:
+    # A board gone quiet still has a latest frame: its age beside it, and in its flags that it is no longer current
+    # (a controller polling saw a 6 s old frame's forces, flags [], as if read now).
+    frame, now = latest_frame(found), time.time()
+    message = to_json_dict(frame, ALL_FIELDS)
+    if frame_stale(found.board, frame, now):
+        message["flags"] = [*frame.flags, STALE_FLAG]  # a new list: the frame's own is the live stream's
+    return JSONResponse(message, headers={AGE_HEADER: _age(frame, now)})
 
 
-@router.get("/sensors/{sensor_id}/contact", responses={200: {"model": Contact}})
-@router.get("/sensors/{board}/{sensor_id}/contact", responses={200: {"model": Contact}})
-def contact(frame: ForceFrame = Depends(latest_frame)) -> JSONResponse:
+@router.get("/sensors/{sensor_id}/contact", responses={200: {"model": ContactReply}})
+@router.get("/sensors/{board}/{sensor_id}/contact", responses={200: {"model": ContactReply}})
+def contact(found: Addressed = Depends(known_sensor)) -> JSONResponse:
+    frame, now = latest_frame(found), time.time()
     if frame.sensor.kind != "grid":
         raise HTTPException(400, f"sensor {frame.sensor.address} is a {frame.sensor.kind}; contact summaries are for grids")
     if frame.contact is None:
         raise HTTPException(404, f"sensor {frame.sensor.address} is still taring")
-    return JSONResponse(frame.contact, headers={AGE_HEADER: _age(frame)})
+    return JSONResponse({**frame.contact, "stale": frame_stale(found.board, frame, now)},
+                        headers={AGE_HEADER: _age(frame, now)})
 
 
-def _age(frame: ForceFrame) -> str:
-    """Seconds since the frame's read was received, for AGE_HEADER."""
-    return f"{max(0.0, time.time() - frame.t_host):.3f}"
+def _age(frame: ForceFrame, now: float) -> str:
+    """Seconds from the frame's read being received to ``now``, for AGE_HEADER."""
+    return f"{max(0.0, now - frame.t_host):.3f}"
 
 
 @router.get("/sensors/{sensor_id}/history", responses={200: {"model": list[FrameMessage]}, 429: {}})

@@ -69,6 +69,12 @@ class Contact(BaseModel):
     contacts: int = Field(description="4-connected regions above 0.05 N")
 
 
+class ContactReply(Contact):
+    """``GET /sensors/{id}/contact``: the latest frame's contact summary."""
+
+    stale: bool = Field(description="the sensor sent no frame for /health's stale threshold: the summary is not current")
+
+
 class Raw(BaseModel):
     capacitance_pF: list[float | None]
 
