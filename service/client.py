@@ -32,8 +32,9 @@ Numbers: JSON gives lists with None for no value, binary numpy float32
 arrays with NaN (``wrench`` has None either way). The binary encoding does
 not carry the contact summary: a binary grid frame has no ``contact`` key —
 subscribe in JSON (or ask ``contact(id)``) where it is needed. ``subscribe`` counts the frames the
-server dropped for this client in ``dropped`` and keeps its notices (e.g. a
-subscription to sensors not announced yet) in ``notices``.
+server dropped for this client and those it skipped for a loop behind in
+``dropped`` (the skipped also per sensor in ``dropped_by_sensor``) and keeps
+its notices (e.g. a subscription to sensors not announced yet) in ``notices``.
 
 ``latest`` (and ``contact``) give the sensor's last frame however old:
 ``age_s`` (the header's; ``contact``'s at its top level) is the seconds
@@ -44,6 +45,7 @@ from its read to the answer, and a frame of a sensor /health calls stale
 from __future__ import annotations
 
 import http.client
+import itertools
 import math
 import socket
 import time
@@ -57,7 +59,7 @@ import orjson
 
 from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 
-DEFAULT_MAX_LAG_S = 0.25  # subscribe: frames further behind the newest arrived are skipped
+DEFAULT_MAX_LAG_S = 0.25  # subscribe: a loop further behind the newest arrived gets each sensor's newest
 LAGGING_QUEUE = 1024  # messages read ahead when trimming by lag: up to ~10 MB of a loop that stalled
 AGE_HEADER = "X-Frame-Age-S"  # as api/routes_sensors.py sends it (the client does not import the API's FastAPI)
 SHAPES_RETRY_S = 1.0  # GET /sensors again for a grid whose records changed size at most this often
@@ -81,27 +83,40 @@ def _retry_after(error: urllib.error.HTTPError) -> float | None:
         return None
 
 
-def _skip_lagging(pending: deque[dict], max_lag_s: float) -> int:
-    """Drop the frames of ``pending`` whose stamp lies more than ``max_lag_s``
-    before the newest of their own board's (a stamp is its service's host
-    clock: a gateway's boards come from hosts whose clocks may differ by
-    more; a frame without one is kept); how many."""
+def _lagging(pending: deque[dict], max_lag_s: float) -> bool:
+    """Whether a frame of ``pending`` lies more than ``max_lag_s`` before the
+    newest of its own board's (a stamp is its service's host clock: a
+    gateway's boards come from hosts whose clocks may differ by more; a
+    frame without one is never behind)."""
     newest: dict = {}
     for frame in pending:
         header = frame["header"]
         stamp, board = header.get("stamp"), header.get("board")
         if stamp is not None and stamp > newest.get(board, -math.inf):  # NaN compares False
             newest[board] = stamp
+    return any(newest.get(h.get("board"), stamp) - stamp > max_lag_s
+               for h in (frame["header"] for frame in pending) if (stamp := h.get("stamp")) is not None)
 
-    def lagging(header: dict) -> bool:
-        stamp = header.get("stamp")
-        return stamp is not None and newest.get(header.get("board"), stamp) - stamp > max_lag_s
 
-    kept = [frame for frame in pending if not lagging(frame["header"])]
-    skipped = len(pending) - len(kept)
+def _address(frame: dict) -> str:
+    """A frame's sensor as ``"board/id"``."""
+    header = frame["header"]
+    return f"{header.get('board')}/{header.get('sensor_id')}"
+
+
+def _keep_newest(pending: deque[dict]) -> dict[str, int]:
+    """Keep only the last arrived frame of each sensor in ``pending``, in
+    arrival order; how many of each sensor's (``"board/id"``) went."""
+    last = {_address(frame): i for i, frame in enumerate(pending)}
+    kept = sorted(last.values())
+    skipped: dict[str, int] = {}
+    for i, frame in enumerate(pending):
+        if last[address := _address(frame)] != i:
+            skipped[address] = skipped.get(address, 0) + 1
     if skipped:
+        frames = list(pending)
         pending.clear()
-        pending.extend(kept)
+        pending.extend(frames[i] for i in kept)
     return skipped
 
 
@@ -112,6 +127,16 @@ def _age_s(headers: dict) -> float | None:
         return float(headers[AGE_HEADER.lower()])
     except (KeyError, ValueError):
         return None
+
+
+def _least_recently_served(pending: deque[dict], served: dict[str, int]) -> dict:
+    """Take from ``pending`` the frame of the sensor handed out longest ago
+    (``served``: address → when, by count; never: first), the earlier arrived
+    on a tie: a loop behind gets each sensor's newest in turn."""
+    index = min(range(len(pending)), key=lambda i: served.get(_address(pending[i]), -1))
+    frame = pending[index]
+    del pending[index]
+    return frame
 
 
 def _none_if_nan(value) -> float | None:
@@ -135,6 +160,7 @@ class TactileClient:
         self.token = token
         self.timeout = timeout
         self.dropped = 0
+        self.dropped_by_sensor: dict[str, int] = {}  # "board/id" → frames subscribe skipped for a loop behind
         self.notices: list[str] = []
         self._sensors: dict[int, dict] = {}
         self._shapes_asked = -SHAPES_RETRY_S  # when GET /sensors was last asked for a changed shape
@@ -272,13 +298,19 @@ class TactileClient:
         A controller must not wait forever on a silent stream: TactileError
         when no message comes within ``timeout`` s, and when the stream ends
         (the service stopped, the network failed). ``sensors``: ids and
-        "board/id" addresses. A loop slower than the stream is given the
-        frames at most ``max_lag_s`` older (by ``stamp``) than the newest
-        that has arrived, the older ones skipped and counted in ``dropped``
-        (a message holds up to 32 frames and 16 wait in the socket's queue:
-        a loop reading one frame a second got them all, in order, a minute
-        old); None: every frame, for a logger (the service then drops for it
-        once its own queue is full, also counted)."""
+        "board/id" addresses. Frames come in order while the loop keeps
+        within ``max_lag_s`` (by ``stamp``) of the newest that has arrived;
+        once it falls further behind, each read keeps only the newest
+        arrived frame of each sensor and hands out that of the sensor served
+        longest ago, until the loop catches up (finds nothing waiting): a
+        loop behind acts on every sensor's freshest data in turn. The
+        skipped are counted in ``dropped`` (with the service's) and per
+        sensor in ``dropped_by_sensor`` ("board/id" → frames). Taking the
+        oldest frame within the window gave a 50 Hz loop on a grid and a
+        quad at 1 kHz 276 quad and 6 grid frames in 6 s, each ~250 ms old.
+        None: every frame, in order, for a logger (the service then drops
+        for it once its own queue is full, counted in ``dropped`` only: its
+        notice gives no sensor)."""
         from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
 
         query = {"encoding": "binary" if binary else "json"}
@@ -313,19 +345,34 @@ class TactileClient:
             except ConnectionClosed as exc:
                 raise TactileError(f"stream {url} lost: {exc}") from None
 
+        behind = False  # the loop fell more than max_lag_s behind and has not caught up since
+        served: dict[str, int] = {}  # address → the count of frames handed out when its last one was
         with ws:
-            while True:
-                arrived = not pending
-                if arrived:
+            for count in itertools.count():
+                arrived = False
+                while max_lag_s is not None and (message := receive(0)) is not None:  # what has come meanwhile
+                    pending.extend(self._frames_in(message, url, wanted))
+                    arrived = True
+                if not pending:  # nothing waiting: the loop keeps up with the stream
+                    behind = False
                     pending.extend(self._frames_in(receive(timeout), url, wanted))
-                if max_lag_s is not None:  # what else has come meanwhile, so that the oldest can be told old
-                    while (message := receive(0)) is not None:
-                        pending.extend(self._frames_in(message, url, wanted))
-                        arrived = True
-                    if arrived:
-                        self.dropped += _skip_lagging(pending, max_lag_s)
-                if pending:
-                    yield pending.popleft()
+                    arrived = True
+                if max_lag_s is not None and arrived:
+                    behind = behind or _lagging(pending, max_lag_s)
+                    if behind:
+                        self._count_skipped(_keep_newest(pending))
+                if not pending:
+                    continue
+                frame = _least_recently_served(pending, served) if behind else pending.popleft()
+                served[_address(frame)] = count
+                yield frame
+
+    def _count_skipped(self, skipped: dict[str, int]) -> None:
+        """Add the frames ``subscribe`` skipped (``"board/id"`` → how many) to
+        ``dropped`` and ``dropped_by_sensor``."""
+        for address, n in skipped.items():
+            self.dropped += n
+            self.dropped_by_sensor[address] = self.dropped_by_sensor.get(address, 0) + n
 
     def _connect(self, url: str, max_queue: int = 16):
         """The stream's WebSocket, open; TactileError naming why not."""

@@ -299,13 +299,51 @@ def test_frames_are_told_old_against_their_own_boards_newest_not_another_hosts()
     was skipped from a client that kept up (a review's skew.py: 197 of 400)."""
     from collections import deque
 
-    from service.client import _skip_lagging
+    from service.client import _lagging
 
     def frame(board, stamp):
         return {"header": {"board": board, "stamp": stamp}}
 
-    pending = deque([frame("a", 100.00), frame("b", 100.40), frame("a", 100.02), frame("b", 100.42)])
-    assert _skip_lagging(pending, 0.25) == 0 and len(pending) == 4
-    pending = deque([frame("a", 99.0), frame("b", 100.4), frame("a", 99.9), frame("a", 100.0), frame("b", float("nan"))])
-    assert _skip_lagging(pending, 0.25) == 1  # a's 99.0, 1 s behind a's newest; a NaN stamp is kept
-    assert [(f["header"]["board"], f["header"]["stamp"]) for f in pending][:3] == [("b", 100.4), ("a", 99.9), ("a", 100.0)]
+    assert not _lagging(deque([frame("a", 100.00), frame("b", 100.40), frame("a", 100.02), frame("b", 100.42)]), 0.25)
+    assert not _lagging(deque([frame("b", 100.4), frame("a", 99.9), frame("a", 100.0), frame("b", float("nan"))]), 0.25)
+    assert _lagging(deque([frame("a", 99.0), frame("b", 100.4), frame("a", 100.0)]), 0.25)  # a's 99.0: 1 s behind a's newest
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_a_loop_behind_two_sensors_gets_each_ones_newest_in_turn(served, binary):
+    """A 50 Hz loop on the grid and the quad (1 kHz each, one message a scan,
+    the quad's frame before the grid's): it took the oldest frame within
+    the 0.25 s window, the quad's, by when the grid's of that stamp had
+    fallen out: 276 quad and 6 grid frames in 6 s, each ~250 ms old (a
+    tester's slow_starve.py). Now, past the first 0.25 s, both sensors in
+    turn, each frame the newest its sensor had when the loop asked: no older
+    than one loop period plus the transfer; the skipped counted per sensor."""
+    period = 0.02
+    client = TactileClient(served[0])
+    got = []  # (sensor, age when handed out, when)
+    started = time.monotonic()
+    for frame in client.subscribe(sensors=[0, 1], binary=binary):
+        got.append((frame["header"]["sensor_id"], time.time() - frame["header"]["stamp"], time.monotonic() - started))
+        time.sleep(period)
+        if time.monotonic() - started > 2.0:
+            break
+    settled = [(sensor, age) for sensor, age, at in got if at > 0.5]
+    steps = np.diff([at for _, _, at in got])
+    loop_s = float(np.median(steps))  # the loop's own period, sleep and all
+    counts = {s: sum(1 for sensor, _ in settled if sensor == s) for s in (0, 1)}
+    assert len(settled) > 40 and min(counts.values()) > 0.35 * len(settled), counts  # in turn (a stalled service may skew it)
+    ages = np.array([age for _, age in settled])
+    assert np.median(ages) < loop_s + 0.01 and np.percentile(ages, 95) < 2 * loop_s + 0.02, (loop_s, sorted(ages)[-5:])
+    assert set(client.dropped_by_sensor) == {f"{frame['header']['board']}/{s}" for s in (0, 1)}
+    assert client.dropped >= sum(client.dropped_by_sensor.values()) > 1000  # 2 kHz of frames, 50 a second taken
+
+
+def test_a_loop_that_keeps_up_gets_every_frame_of_each_sensor_in_order(served):
+    """The default max_lag_s skips nothing for a loop that keeps up: 400
+    frames of the grid and the quad, each sensor's seq one by one."""
+    client = TactileClient(served[0])
+    frames = list(itertools.islice(client.subscribe(sensors=[0, 1], binary=True), 400))
+    for sensor in (0, 1):
+        seqs = [f["header"]["seq"] for f in frames if f["header"]["sensor_id"] == sensor]
+        assert len(seqs) > 150 and list(np.diff(seqs)) == [1] * (len(seqs) - 1)
+    assert client.dropped == 0 and client.dropped_by_sensor == {}
