@@ -4,6 +4,7 @@ raw bytes are read through its index instead (``read_boards``)."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import io
 import logging
 import struct
@@ -15,10 +16,15 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Chunk, Message, MessageIndex
-from mcap.stream_reader import StreamReader, get_chunk_data_stream
+from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 from mcap.writer import MCAP0_MAGIC
 
 log = logging.getLogger(__name__)
+
+# A chunk's records, inflated, at most this: ours hold 64 KiB (mcap_writer.CHUNK_BYTES) or one message
+# a little larger (a read of the port, the calibrations in force); mcap's own reader inflates whatever
+# size a chunk declares, and a crafted 17 KB file took a replay to 2.5 GB.
+MAX_CHUNK_BYTES = 64 << 20
 
 
 def check_mcap(path: str | Path) -> None:
@@ -47,9 +53,9 @@ def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[
 def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, Message]]:
     channels: dict[int, str] = {}
     with open(path, "rb") as stream:
-        reader = StreamReader(stream, validate_crcs=True)
+        reader = StreamReader(stream, validate_crcs=True, emit_chunks=True)
         try:
-            for record in reader.records:
+            for record in _unchunked(reader.records):
                 kind = type(record).__name__
                 if kind == "Channel":
                     channels[record.id] = record.topic
@@ -64,6 +70,48 @@ def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, 
                 lost = "" if size - at < 4096 else f"; the {size - at} bytes after it are not read"
                 log.warning("%s cannot be read past byte %d of %d (%s): read what came before it, as after a "
                             "crash%s", path, at, size, str(exc) or type(exc).__name__, lost)
+
+
+def _unchunked(records: Iterator) -> Iterator:
+    """``records`` with each chunk's own records in its place (inflated within MAX_CHUNK_BYTES)."""
+    for record in records:
+        if isinstance(record, Chunk):
+            yield from breakup_chunk(inflated(record), validate_crc=True)
+        else:
+            yield record
+
+
+def inflated(chunk: Chunk) -> Chunk:
+    """``chunk`` with its records decompressed (compression ""), read no
+    further than MAX_CHUNK_BYTES and the size it declares: ValueError naming
+    either, rather than memory for whatever a crafted file claims."""
+    declared = chunk.uncompressed_size
+    if declared > MAX_CHUNK_BYTES:
+        raise ValueError(f"a chunk declares {declared} bytes of records, more than a recording's chunk holds "
+                         f"({MAX_CHUNK_BYTES})")
+    if chunk.compression == "":
+        return chunk
+    if chunk.compression == "zstd":
+        import zstandard
+
+        source = zstandard.ZstdDecompressor().stream_reader(chunk.data)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        source = lz4.frame.open(io.BytesIO(chunk.data))
+    else:
+        raise ValueError(f"a chunk is compressed with {chunk.compression!r}, not zstd or lz4")
+    parts, size = [], 0
+    while size <= declared:
+        part = source.read(min(1 << 20, declared + 1 - size))
+        if not part:
+            break
+        parts.append(part)
+        size += len(part)
+    if size != declared:
+        raise ValueError(f"a chunk inflates to {'more than ' if size > declared else ''}{size} bytes, not the "
+                         f"{declared} it declares")
+    return dataclasses.replace(chunk, compression="", data=b"".join(parts))
 
 
 def raw_board(topic: str, channel: str = "raw") -> str | None | bool:
@@ -216,7 +264,8 @@ def _chunk_messages(path: str | Path, chunk_indexes: list, topics: dict[int, str
                 if not found:
                     continue
                 stream.seek(chunk_index.chunk_start_offset + 9)
-                chunk_stream, size = get_chunk_data_stream(Chunk.read(ReadDataStream(stream)), validate_crc=True)
+                chunk_stream, size = get_chunk_data_stream(inflated(Chunk.read(ReadDataStream(stream))),
+                                                           validate_crc=True)
                 data = memoryview(chunk_stream.read(size))
                 messages = []
                 for at, cid in sorted(found):
