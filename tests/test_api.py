@@ -233,6 +233,41 @@ def test_a_stream_client_past_the_limit_is_refused_and_the_others_keep_theirs(cl
         assert orjson.loads(second.receive_text())["type"] == "frames"
 
 
+def test_a_client_with_the_token_is_let_in_past_the_limit_in_the_place_of_the_last_anonymous(monkeypatch):
+    """Reads need no token, so 64 idle anonymous streams locked every
+    controller out (1013 for as long as they stayed). With a token, a client
+    presenting it takes the place of the anonymous client that came last;
+    one without it is still refused, and the first anonymous keeps its stream."""
+    from starlette.websockets import WebSocketDisconnect
+
+    from service.api import routes_stream
+
+    monkeypatch.setattr(routes_stream, "MAX_STREAM_CLIENTS", 2)
+    service = TactileService("sim://?sensors=quad&rate=1000")
+    with TestClient(create_app(service, token="s3cret"), base_url="http://localhost") as client:
+        wait_for_frames(service)
+        with client.websocket_connect("ws://localhost/ws?sensors=0") as first, \
+                client.websocket_connect("ws://localhost/ws?sensors=0") as last:
+            assert orjson.loads(last.receive_text())["type"] == "frames"
+            with client.websocket_connect("ws://localhost/ws?sensors=0") as third:
+                reply = orjson.loads(third.receive_text())
+                assert reply["type"] == "error" and "a client with the service's token is always let in" in reply["detail"]
+            with client.websocket_connect("ws://localhost/ws?sensors=0",
+                                          headers={"Authorization": "Bearer wrong"}) as guessing:
+                assert orjson.loads(guessing.receive_text())["type"] == "error"
+            with client.websocket_connect("ws://localhost/ws?sensors=0",
+                                          headers={"Authorization": "Bearer s3cret"}) as controller:
+                assert orjson.loads(controller.receive_text())["type"] == "frames"
+                while (message := orjson.loads(last.receive_text()))["type"] == "frames":
+                    pass
+                assert message["type"] == "error" and "make room for a client with the service's token" in message["detail"]
+                with pytest.raises(WebSocketDisconnect) as closed:
+                    last.receive_text()
+                assert closed.value.code == 1013
+                assert orjson.loads(first.receive_text())["type"] == "frames"
+                assert len(service.hub.subscribers) == 2
+
+
 def test_dashboard_is_served(client):
     page = client.get("/")
     assert page.status_code == 200 and "/static/app.js" in page.text

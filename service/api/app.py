@@ -58,6 +58,7 @@ def create_app(service: TactileService, token: str | None = None, bind_host: str
     app.state.history_sending = 0  # bytes of history answers not sent yet (routes_sensors.MAX_SENDING_BYTES)
     app.state.recent_reads = routes_sensors.RecentReads()
     app.state.recent_rings = RecentRings(routes_sensors.RECENT_RING_BYTES)
+    app.state.stream_sessions = []  # routes_stream.StreamSession, oldest first
     for routes in (routes_health, routes_sensors, routes_calibration, routes_recording):
         app.include_router(routes.router, dependencies=[Depends(known_query)])
     app.include_router(routes_stream.router)  # a WebSocket's query is checked by its subscription

@@ -7,8 +7,9 @@
   cancels it, so 1 100 connections each sending a header byte every 5 s
   stayed open for ever.
 * At most ``max_connections`` connections (HTTP and WebSocket) are open at
-  once, below the open-file limit by a reserve for the service's own files
-  and for a burst of accepts (connection_cap). A connection past the cap
+  once, each with room for a file it is answered from, below the open-file
+  limit by a reserve for the service's own files and for a burst of accepts
+  (connection_cap). A connection past the cap
   closes the oldest one still waiting for its request (a client that has
   sent one is never waiting more than a round trip), else, when every
   connection is a WebSocket or a request being answered, itself: an
@@ -33,6 +34,9 @@ BACKLOG = 128  # connections one accept burst takes before any is looked at (uvi
 OWN_FILES = 128  # serial ports, registry, recordings, zenoh's sockets, the interpreter's: about 30 with one board
 SELECT_LIMIT = 1024  # pyserial waits on a port with select(), which fails on a descriptor past 1023
 MIN_CONNECTIONS = 16
+# Its socket and the file a response streams from (the dashboard's and the API docs' static files: held
+# while a slow reader takes 1.5 MB): 760 connections under a cap of one each held all 1024 descriptors.
+DESCRIPTORS_PER_CONNECTION = 2
 WS_SEND_BUFFER = 32 << 10  # bytes (the kernel doubles it): ~50 JSON grid frames, ~0.1 s of a quad's
 
 # Per server (its uvicorn ServerState): its connections waiting for a request, oldest first.
@@ -42,12 +46,12 @@ _WAITING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 def connection_cap(soft_limit: int | None = None) -> int:
     """Connections to allow under the soft open-file limit (this process's
     by default): what leaves OWN_FILES + BACKLOG descriptors, all below
-    SELECT_LIMIT; MIN_CONNECTIONS under a limit too low for that (macOS's
-    default 256: raise it)."""
+    SELECT_LIMIT, with DESCRIPTORS_PER_CONNECTION each; MIN_CONNECTIONS
+    under a limit too low for that (macOS's default 256: raise it)."""
     if soft_limit is None:
         soft_limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
     usable = SELECT_LIMIT if soft_limit == resource.RLIM_INFINITY else min(soft_limit, SELECT_LIMIT)
-    return max(MIN_CONNECTIONS, usable - OWN_FILES - BACKLOG)
+    return max(MIN_CONNECTIONS, (usable - OWN_FILES - BACKLOG) // DESCRIPTORS_PER_CONNECTION)
 
 
 class BoundedH11(H11Protocol):

@@ -6,9 +6,17 @@ queue and sends it; the receiver waits for the client to leave (noticed even
 when nothing is being sent to it, a subscription that matches no frame).
 Whichever ends first cancels the other, and the subscription is removed from
 the hub whatever happened.
+
+At most MAX_STREAM_CLIENTS stream at once. Reads need no token, so on a
+service reachable from the LAN anyone could hold every place and lock out a
+controller that reconnects: when the service has a token, a client that
+presents it (``Authorization: Bearer``, as the Python client sends it) is
+let in past the cap by closing the anonymous client that came last (1013,
+try again later), so a place is always there for those with the token.
 """
 from __future__ import annotations
 
+import hmac
 import time
 from typing import TYPE_CHECKING
 
@@ -72,13 +80,17 @@ class StreamSession:
         self.websocket = websocket
         self.service = service
         self.subscriber: Subscriber | None = None
-        self.ended_by: str | None = None  # "sender" or "receiver": the loop that ended first
+        self.ended_by: str | None = None  # "sender" or "receiver": the loop that ended first, or "evicted"
+        self.holds_token = _holds_token(websocket)
+        self._group: TaskGroup | None = None
 
     async def run(self) -> None:
         await self.websocket.accept()
-        if len(self.service.hub.subscribers) >= MAX_STREAM_CLIENTS:
-            await self.reject(f"too many stream clients ({MAX_STREAM_CLIENTS}): try again when one has left",
-                              code=1013)
+        sessions: list[StreamSession] = self.websocket.app.state.stream_sessions
+        if len(self.service.hub.subscribers) >= MAX_STREAM_CLIENTS and not self._make_room(sessions):
+            await self.reject(f"too many stream clients ({MAX_STREAM_CLIENTS}): try again when one has left"
+                              + (" (a client with the service's token is always let in)"
+                                 if self.websocket.app.state.token is not None else ""), code=1013)
             return
         try:
             self.subscriber = subscription(self.websocket.query_params)
@@ -87,12 +99,36 @@ class StreamSession:
             return
         await self.tell_unknown_sensors()
         self.service.hub.add(self.subscriber)
+        sessions.append(self)
         try:
             async with anyio.create_task_group() as group:
+                self._group = group
                 group.start_soon(self._until_either_ends, group, "sender", self.send_forever)
                 group.start_soon(self._until_either_ends, group, "receiver", self.receive_until_disconnected)
         finally:
+            sessions.remove(self)
             self.service.hub.remove(self.subscriber)
+        if self.ended_by == "evicted":
+            with anyio.move_on_after(1.0):
+                try:
+                    await self.reject("closed to make room for a client with the service's token: try again later",
+                                      code=1013)
+                except (WebSocketDisconnect, RuntimeError):  # it had gone already
+                    pass
+
+    def _make_room(self, sessions: list[StreamSession]) -> bool:
+        """For a client with the token, close the anonymous one that came
+        last (its place is free once it has left the hub); whether one was."""
+        if not self.holds_token:
+            return False
+        anonymous = [s for s in sessions if not s.holds_token and s.ended_by is None and s._group is not None]
+        if not anonymous:
+            return False
+        last = anonymous[-1]
+        last.ended_by = "evicted"
+        last._group.cancel_scope.cancel()
+        self.service.hub.remove(last.subscriber)
+        return True
 
     async def tell_unknown_sensors(self) -> None:
         """Sensors asked for that the board has not announced: a notice, not a
@@ -139,6 +175,13 @@ class StreamSession:
         if self.ended_by is None:
             self.ended_by = name
         group.cancel_scope.cancel()
+
+
+def _holds_token(websocket: WebSocket) -> bool:
+    """Whether the client presented the service's token (none set: no one does)."""
+    token = websocket.app.state.token
+    given = (websocket.headers.get("authorization") or "").encode("utf-8", "surrogateescape")
+    return token is not None and hmac.compare_digest(given, f"Bearer {token}".encode())
 
 
 @router.websocket("/ws")
