@@ -6,6 +6,8 @@ cli.py builds each command's parser from them.
 from __future__ import annotations
 
 import argparse
+import os
+import urllib.parse
 
 from . import cli_commands as commands
 from .calibration.cli import existing_registry, new_or_existing_registry
@@ -40,6 +42,35 @@ def port(text: str, free_ok: bool = False) -> int:
 def port_or_free(text: str) -> int:
     """A port, or 0 for any free one."""
     return port(text, free_ok=True)
+
+
+def web_origin(text: str) -> str:
+    """An --allow-origin value: what a browser sends as Origin, scheme://host[:port]
+    (one without its scheme could never match, silently)."""
+    parts = urllib.parse.urlsplit(text.strip())
+    try:
+        parts.port  # noqa: B018 — urlsplit checks the port only when asked
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"origin {text!r}: its port is not 0-65535") from None
+    if parts.scheme not in ("http", "https") or not parts.hostname or parts.path.strip("/") or parts.query:
+        raise argparse.ArgumentTypeError(f"origin {text!r}: expected http(s)://HOST[:PORT] as a browser sends it, "
+                                         "e.g. http://lab-pc:3000")
+    return text.strip()
+
+
+def bare_host(text: str) -> str:
+    """An --allow-host value: a host name or address as a Host header names it, without scheme or path."""
+    if not text.strip() or any(c in text for c in "/@?# ") or "://" in text:
+        raise argparse.ArgumentTypeError(f"host {text!r}: expected a bare name or address, e.g. lab-pc or "
+                                         "lab-pc.local (no scheme, no path)")
+    return text.strip()
+
+
+def directory_or_new(text: str) -> str:
+    """A directory, existing or to be made (a file there made every recording a 409 'File exists')."""
+    if os.path.exists(text) and not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a directory")
+    return text
 
 
 def positive(text: str) -> float:
@@ -86,11 +117,12 @@ def scene(text: str) -> str:
 def add_reconstruction_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
     """``stores``: the command stores into the registry (serve: uploads, load cycles), so it may make one."""
     parser.set_defaults(registry_reads=not stores)
+    default = "%(default)s" if parser.prog.split()[-1] != "replay" else "the recording's own, else %(default)s"
     parser.add_argument("--level", default=DEFAULT_LEVEL, choices=LEVELS,
                         help="fidelity level; auto takes the cheapest meeting the scene's error budget and says which "
-                             "(default: %(default)s)")
+                             f"(default: {default})")
     parser.add_argument("--mounting", default="flat", choices=list(MOUNTINGS),
-                        help="grid mounting: picks the load-shape table (default: %(default)s)")
+                        help=f"grid mounting: picks the load-shape table (default: {default})")
     parser.add_argument("--registry", metavar="PATH", type=new_or_existing_registry if stores else existing_registry,
                         help="calibration registry: each sensor's active calibration is used (default: "
                              "$TACTILE_REGISTRY, else $XDG_DATA_HOME/tactile/registry.sqlite3)" + (
@@ -109,10 +141,10 @@ def add_http_options(parser: argparse.ArgumentParser) -> None:
                         help="server log level (default: %(default)s)")
     parser.add_argument("--token", help="require this bearer token on mutating endpoints (default: none on localhost, "
                                         "a random one printed at start when binding beyond it; env TACTILE_TOKEN)")
-    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME", type=bare_host,
                         help="a host name clients may use for this service besides localhost and IP addresses "
                              "(repeatable; DNS names are refused otherwise, against DNS rebinding)")
-    parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+    parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN", type=web_origin,
                         help="a web origin (e.g. http://lab-pc:3000) whose pages may change state or stream "
                              "(repeatable; default: only the service's own dashboard)")
 
@@ -120,7 +152,7 @@ def add_http_options(parser: argparse.ArgumentParser) -> None:
 def add_serving_options(parser: argparse.ArgumentParser, stores: bool = False) -> None:
     """What ``serve`` and ``replay --serve`` share: both end in cmd_serve."""
     add_http_options(parser)
-    parser.add_argument("--recordings-dir", default="recordings", metavar="DIR",
+    parser.add_argument("--recordings-dir", default="recordings", metavar="DIR", type=directory_or_new,
                         help="where POST /record/start and the dashboard's Record write (default: %(default)s, "
                              "created on demand)")
     parser.add_argument("--silence-s", type=positive, default=2.0, metavar="S",

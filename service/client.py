@@ -154,9 +154,25 @@ def _normalized(frame: dict) -> dict:
     return frame
 
 
+def _checked_base_url(base_url: str) -> str:
+    """``base_url`` without its trailing slash; TactileError naming what is
+    wrong with one no request could be made to (urllib's own ValueError
+    came from the first request, not a TactileError)."""
+    if not isinstance(base_url, str) or any(c.isspace() for c in base_url):
+        raise TactileError(f"base URL {base_url!r}: no spaces, e.g. http://127.0.0.1:8000")
+    try:
+        parts = urllib.parse.urlsplit(base_url)
+        parts.port  # noqa: B018 — urlsplit checks the port only when asked
+    except ValueError as exc:
+        raise TactileError(f"base URL {base_url!r}: {exc}") from None
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise TactileError(f"base URL {base_url!r}: expected http://HOST[:PORT], e.g. http://127.0.0.1:8000")
+    return base_url.rstrip("/")
+
+
 class TactileClient:
     def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None, timeout: float = 5.0) -> None:
-        self.base_url = base_url.rstrip("/")
+        self.base_url = _checked_base_url(base_url)
         self.token = token
         self.timeout = timeout
         self.dropped = 0
@@ -196,7 +212,7 @@ class TactileClient:
                 detail = orjson.loads(exc.read() or b"{}").get("detail") or exc.reason
             except (orjson.JSONDecodeError, AttributeError, OSError, http.client.HTTPException):
                 detail = exc.reason
-            raise TactileError(f"{method} {path}: {exc.code} {detail}") from None
+            raise TactileError(f"{what}: {exc.code} {detail}") from None
         except urllib.error.URLError as exc:
             reason = exc.reason
             if isinstance(reason, ConnectionRefusedError):

@@ -156,7 +156,7 @@ class BrokenServer:
 
 @pytest.mark.parametrize("reply, message", [
     (b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 9\r\n\r\nnot json!", "the answer is no JSON"),
-    (b"HTTP/1.1 500 Internal Server Error\r\nContent-Length: 5\r\n\r\noops!", "GET /health: 500 Internal Server Error"),
+    (b"HTTP/1.1 500 Internal Server Error\r\nContent-Length: 5\r\n\r\noops!", "GET http://127.0.0.1:[0-9]+/health: 500 Internal Server Error"),
     (b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 24\r\n\r\n{\"detail\": \"not yet up\"}", "503 not yet up"),
     (None, "connection closed before the answer"),
     ("hang", "no answer within 0.3 s"),

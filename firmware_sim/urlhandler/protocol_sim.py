@@ -91,7 +91,9 @@ def config_from_url(url: str) -> BoardConfig:
     try:
         kwargs["sensors"] = parse_sensors(sensors_spec, **grid_options)
     except ValueError as exc:
-        raise ValueError(f"sim:// sensors={sensors_spec!r}: {exc}") from None
+        given = [f"sensors={sensors_spec!r}"] if "sensors" in urllib.parse.parse_qs(parts.query) else []
+        raise ValueError(f"sim:// {' with '.join(given + [', '.join(sorted(grid_options))] if grid_options else given)}"
+                         f": {exc}") from None
     return BoardConfig(**kwargs)
 
 

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import Field
 
 from ..board import RemoteBoardError
+from ..calibration.registry import RegistryUnusable
 from ..pipeline_changes import LoadedAtTare
 from .deps import Addressed, JSONResponse, authorised, find_sensor, get_service, known_sensor
 from .schemas import CalibrationDocumentUpload, GridCalibrationUpload, QuadCalibrationUpload
@@ -100,6 +101,8 @@ def upload_calibration(sensor_id: int, body: CalibrationUpload, board: str | Non
         raise HTTPException(422, str(exc)) from None
     except RemoteBoardError as exc:
         raise HTTPException(409, str(exc)) from None
+    except RegistryUnusable as exc:  # the service's store, not the upload: nothing was set
+        raise HTTPException(503, str(exc)) from None
     return JSONResponse({**document, "active": True, "stored": found.board.calibrations.use_registry})
 
 

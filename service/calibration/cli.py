@@ -119,6 +119,7 @@ def cmd_calibrate(args) -> int:
 
         require("the calibration report's PNGs")
     started = time.perf_counter()
+    Registry(args.registry).close()  # an unusable registry is said before a fit of seconds, not after it
     if _three_axis(args.reference):
         return _calibrate_quad(args, started)
     if args.fatigue == "paper":

@@ -99,16 +99,25 @@ class UnknownCalibration(ValueError):
     """No calibration (or more than one) answers to an id."""
 
 
+class RegistryUnusable(OSError):
+    """The registry's file cannot be opened as one (not SQLite, a directory, no permission)."""
+
+
 class Registry:
-    """The store at ``path`` (default: default_path()); created on first use."""
+    """The store at ``path`` (default: default_path()); created on first use;
+    RegistryUnusable naming it when its file cannot be."""
 
     def __init__(self, path: str | Path | None = None) -> None:
         self.path = Path(path) if path is not None else default_path()
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(self.path, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA foreign_keys=ON")
-        self._db.executescript(_DDL)
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._db.executescript(_DDL)
+        except sqlite3.Error as exc:
+            raise RegistryUnusable(f"calibration registry {self.path} cannot be used ({exc}): give another with "
+                                   "--registry, or move this file away to start an empty one") from None
 
     def close(self) -> None:
         self._db.close()

@@ -9,6 +9,7 @@ code path. Backends are imported when first used.
 from __future__ import annotations
 
 import abc
+import urllib.parse
 
 DEFAULT_SOURCE = "sim://"
 
@@ -61,10 +62,13 @@ def check_source(url: str) -> None:
     sim:// option, a replay:// recording that is not there). A device or a
     socket:// peer that is missing now is no error: the readout waits for
     it to appear."""
-    if "://" not in url:
-        return
     from . import handlers
 
+    if "://" not in url:
+        scheme = url.split(":/", 1)[0] if ":/" in url else ""
+        if scheme.isidentifier() and handlers.handler_module(scheme) is not None:  # "sim:/?…": a device path never there
+            raise ValueError(f"{url!r}: a {scheme} URL begins {scheme}:// (two slashes)")
+        return
     scheme = url.split("://", 1)[0]
     if not scheme.isidentifier():
         raise ValueError(f"{url!r}: {scheme!r} is no URL scheme")
@@ -72,6 +76,18 @@ def check_source(url: str) -> None:
     if module is None:
         raise ValueError(f"{url!r}: no handler for {scheme}:// (pyserial knows socket://, rfc2217://, loop://, "
                          f"spy://, hwgrep://, alt://; this service adds sim:// and replay://)")
-    check = getattr(module, "check_url", None)
+    check = getattr(module, "check_url", None) or (check_host_port if scheme in ("socket", "rfc2217") else None)
     if check is not None:
         check(url)
+
+
+def check_host_port(url: str) -> None:
+    """ValueError naming what a socket:// or rfc2217:// URL lacks: pyserial
+    would retry one without a port for ever, its reason a TypeError."""
+    parts = urllib.parse.urlsplit(url)
+    form = f"{parts.scheme}://HOST:PORT"
+    if not parts.hostname:
+        raise ValueError(f"{url!r}: no host ({form})")
+    port = parts.netloc.rsplit(":", 1)[1] if ":" in parts.netloc.rsplit("]", 1)[-1] else None
+    if port is None or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"{url!r}: " + ("no port" if port is None else f"port {port!r} is not 1-65535") + f" ({form})")
