@@ -50,6 +50,7 @@ class QuadProcessor:
     model: QuadModel = field(default_factory=QuadModel)
     relative_se: tuple[float, float] = (0.0, 0.0)  # σ/value of the normal and shear slopes (sigma.py)
     model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz: what the calibration's fit leaves unexplained
+    electrode_gain_se: float = 0.0  # σ/value of each electrode's gain about the others' (sensor_calibration.py)
     _noise_for: tuple | None = None
     _noisy_for: tuple | None = field(default=None, repr=False, compare=False)
     # (last reading (4,) pF, its electrodes' run lengths (4,)) that the next frames continue (stuck.py).
@@ -64,13 +65,21 @@ class QuadProcessor:
     def __post_init__(self) -> None:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
-        self.batch_key = (self.level, astuple(self.model), self.relative_se, self.model_sigma_N)
+        self.batch_key = (self.level, astuple(self.model), self.relative_se, self.model_sigma_N, self.electrode_gain_se)
         self.plausible = plausible_relative(self.model.top_relative)
         self._bounds = bounds(*self.plausible)
         # sigma's per-axis constants, made once: at 1 kHz a call's small arrays are its cost
         self._se = np.array([self.relative_se[1], self.relative_se[1], self.relative_se[0]])
         self._model_variance = np.square(self.model_sigma_N) if any(self.model_sigma_N) else None
         self._held_at = np.array([self.model.shear_usable_N, self.model.shear_usable_N, self.model.normal_usable_N])
+        # mismatch's: each axis's curve r = F·(slope − bend·|F|), and σ_g²/4 on X and Y only
+        if self.level == "level0":
+            self._curves = (_LEVEL0_SLOPES, np.zeros(3))
+        else:
+            model = self.model
+            c2, c1, _ = model.normal_fit
+            self._curves = (np.array([model.shear_a, model.shear_a, c1]), np.array([model.shear_b, model.shear_b, -c2]))
+        self._mismatch = 0.25 * self.electrode_gain_se ** 2 * np.array([1.0, 1.0, 0.0]) if self.electrode_gain_se else None
 
     def noise(self, baseline: np.ndarray, baseline_std: np.ndarray) -> float:
         """Noise of the combinations' ΔC/C0 from the tare spread (once per tare)."""
@@ -105,7 +114,8 @@ class QuadProcessor:
               sensitivity: np.ndarray | float = 1.0, drift: np.ndarray | None = None) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
         combination noise through the curve's slope at that force (Z's with
-        ``drift`` (N,), the drift estimate's own σ in ΔC/C0: quad_drift.py), the
+        ``drift`` (N,), the drift estimate's own σ in ΔC/C0: quad_drift.py;
+        X's and Y's with the electrodes' gain mismatch, ``mismatch``), the
         force times its slope's relative error, what the calibration's fit
         left unexplained (``model_sigma_N``), and FATIGUE_SIGMA_SHARE of
         the fatigue compensation (``sensitivity``, scalar or (N,), as
@@ -114,6 +124,8 @@ class QuadProcessor:
         noise = TARE_FACTOR * np.asarray(noise, dtype=float)
         if noise.ndim:
             noise = noise[:, None]
+        if self._mismatch is not None:
+            noise = np.sqrt(noise * noise + self.mismatch(forces))
         if self.level == "level0":
             reading = noise / _LEVEL0_SLOPES
         else:
@@ -140,6 +152,22 @@ class QuadProcessor:
             if np.count_nonzero(held):
                 sigma[held] = np.nan
         return sigma
+
+    def mismatch(self, forces: np.ndarray) -> np.ndarray:
+        """Variance (N, 3) of the combinations X, Y (Z: 0) in ΔC/C0 at
+        forces (N, 3) from each electrode's gain off by an independent
+        ``electrode_gain_se`` σ_g (relative): X = Σ c_i g_i r_i with
+        c_i = ±1/4 varies by Σ c_i² σ_g² r_i² = σ_g² (n² + t_x² + t_y²)/4
+        (the cross terms cancel over the four sides), Y alike; n, t the
+        level's curves (a tared curve: no offset). Under a normal load
+        alone that is σ_g·n/2 in X, and a ±p pattern between the X sides
+        reads X = −p·n: 2p/σ_g of it. Z's share is within the slope's
+        relative error (``relative_se``)."""
+        slope, bend = self._curves
+        responses = forces * (slope - bend * np.abs(forces))
+        if self.level != "level0" and self.model.coupling:
+            responses[:, :2] *= 1.0 - self.model.coupling * responses[:, 2:3]
+        return self._mismatch * np.square(responses).sum(axis=1, keepdims=True)
 
     def process(self, capacitance: np.ndarray, baseline: np.ndarray, noise: np.ndarray | float,
                 sensitivity: np.ndarray | float = 1.0, stale: np.ndarray | None = None) -> tuple[np.ndarray, list[list[str]]]:

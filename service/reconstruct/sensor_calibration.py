@@ -28,8 +28,11 @@ both  ``created``: an ISO 8601 string (absent: not known).
 not a fit's: it is how far a sensor that is not the paper's may be from it —
 the issue's measured array differed from table 1 by up to ±12 % in
 sensitivity (uniform: σ = 12 %/√3 ≈ 7 %), so 7 % per taxel, and likewise
-for the quad's two slopes. Its C0 was not measured on this sensor, so it
-cannot tell a loaded tare (``measured`` False for every taxel).
+for the quad's two slopes; and each quad electrode's gain about the
+others', which reads as shear (ELECTRODE_GAIN_SE: table 1's within-array
+spread; also a quad document's whose fit did not measure its shear
+residual). Its C0 was not measured on this sensor, so it cannot tell a
+loaded tare (``measured`` False for every taxel).
 """
 from __future__ import annotations
 
@@ -52,6 +55,10 @@ from .fatigue import PAPER_001, FatigueModel
 ID_HEX = 16
 SCHEMA = 1  # the calibration document's format (registry documents, uploads, exports)
 BUILTIN_RELATIVE_SE = 0.07
+# A quad's four electrodes are made together, so each one's gain about the others is assumed to spread as
+# the taxels of one array do: table 1's 64 sensitivities, std/mean = 0.0106/1.247 %/N = 0.85 %. Unlike the
+# common gain (BUILTIN_RELATIVE_SE) it reads as shear: ±2 % between the X sides read 12 N as Fx = −0.79 N.
+ELECTRODE_GAIN_SE = 0.0085
 # Plausible gains: those of the uploadable sensitivities (0.1–10 %/N) on the
 # flat table, whose slope at gain 1 is ~1.25 %/N.
 GAIN_RANGE = (SENSITIVITY_RANGE_PCT_PER_N[0] / 1.25, SENSITIVITY_RANGE_PCT_PER_N[1] / 1.25)
@@ -110,6 +117,7 @@ class SensorCalibration:
     quad: QuadModel | None = None
     quad_relative_se: tuple[float, float] = (BUILTIN_RELATIVE_SE, BUILTIN_RELATIVE_SE)  # normal, shear slopes
     quad_model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz residual RMS of a quad's fit
+    quad_electrode_gain_se: float = ELECTRODE_GAIN_SE  # σ/value of each electrode's gain about the others'
     fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
     tare_c0_pF: np.ndarray | None = None  # grid (n,): C0 as the multiplexer reads it (leakage applied), what a tare sees
     calibrated_to_N: np.ndarray | None = None  # grid (n,): the largest force its session pressed; None: unknown
@@ -349,6 +357,13 @@ def _quad_residual(document: dict) -> tuple[float, float, float]:
     return out[0], out[1], out[2]
 
 
+def _shear_residual_measured(document: dict) -> bool:
+    """Whether the document's fit measured its shear residual (statistics.rms_N has x and y; checked
+    by _quad_residual)."""
+    rms = (document.get("statistics") or {}).get("rms_N")
+    return isinstance(rms, dict) and "x" in rms and "y" in rms
+
+
 def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str], slope: str, value: float) -> float:
     """σ/value of the fit's ``slope`` coefficient (of ``value``) from ``name``
     (the standard errors of its two ``coefficients``), the built-in's where
@@ -387,6 +402,11 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
                                 document.get("normal_usable_N"), document.get("shear_usable_N"))
     se = (_slope_relative_se(document, "normal_fit_se", ("c2", "c1"), "c1", model.normal_fit[1]),
           _slope_relative_se(document, "shear_fit_se", ("a", "b"), "a", model.shear_a))
+    residual = _quad_residual(document)
+    # A session's normal presses show the electrodes' mismatch as shear in its fit's residual (rms_N.x, .y),
+    # which σ then carries; fits alone (an upload) measured none of it.
+    mismatch = 0.0 if _shear_residual_measured(document) else ELECTRODE_GAIN_SE
     return SensorCalibration(cid, "quad", _created(document), None, quad=model, quad_relative_se=se,
-                             quad_model_sigma_N=_quad_residual(document), quad_c0_pF=quad_c0(document.get("c0_pF")),
+                             quad_model_sigma_N=residual, quad_electrode_gain_se=mismatch,
+                             quad_c0_pF=quad_c0(document.get("c0_pF")),
                              fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)
