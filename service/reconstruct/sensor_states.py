@@ -176,6 +176,7 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             elif zero is not None and len(zero["baseline_pF"]) == info.channels:
                 state.baseline.preset(_array(zero["baseline_pF"]), _array(zero["std_pF"]))
                 state.tare_judged = True  # judged live, before the recording
+                state.tared_t_host = _array([zero.get("tared_t_host")])[0]  # None in older recordings: unknown
                 # A forced zero stays the zero when a calibration set later has it judged again, as it did live.
                 state.judge_tare = zero.get("judge") is not False
                 if zero.get("loaded"):
@@ -209,7 +210,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
 
     def baselines(self) -> list[dict]:
         """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
-        judge (False: a forced tare's, the load present is the zero), where
+        judge (False: a forced tare's, the load present is the zero),
+        tared_t_host (its tare's last reading's host time, where known), where
         its stale-channel count stands: stale_last_pF, stale_runs, its
         load-cycle count: cycles, cycles_seen, cycles_armed, and a quad's
         drift tracker: drift} (NaN as None); a sensor taring, its window so
@@ -225,11 +227,19 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
                     "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist(),
                     "judge": state.judge_tare, **self._counts(state)}
+            if state.tared_t_host == state.tared_t_host:
+                zero["tared_t_host"] = state.tared_t_host
             drift = where(state.processor, state.baseline.value) if isinstance(state.processor, QuadProcessor) else None
             if drift is not None:
                 zero["drift"] = drift
             out.append(zero)
         return out
+
+    def preset_left_zeros(self, left: list[dict]) -> None:
+        """The zeros of sensors that had left their address when a recording began (Replacements.left_zeros):
+        one back in it is judged against its own, as it was live."""
+        for kept in left:
+            self.replacements.keep_zero(tuple(kept["identity"]), kept["calibration"], kept["zero"])
 
     @staticmethod
     def _counts(state: SensorState) -> dict:
