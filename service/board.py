@@ -143,6 +143,7 @@ class Board:
         if began.get("info"):
             self.pipeline.interpreter.preset_info(began["info"])
         self.pipeline.reconstructor.preset_baselines(began.get("sensors", []))
+        self.pipeline.reconstructor.preset_left_zeros(began.get("left", []))
         if began and self.spec.name is None:  # begun mid-stream, no INFO in it: the name the board had then
             self.pipeline.interpreter.board_name = began["board"]
 

@@ -93,7 +93,7 @@ FAULTS = {
     "out_of_range": ("an implausible reading (null)", DEAD_CHANNEL),
     "stale": ("a stale reading (its converter repeats one count: null)", DEAD_CHANNEL),
     "loaded_at_tare": ("been loaded when tared (its zero is the calibration's C0, or the one it had before the "
-                       "service restarted)",
+                       "service restarted or it left its address)",
                        "lift the load and tare it again (POST /sensors/{board}/{sid}/tare)"),
 }
 

@@ -95,6 +95,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
             if began.get("info"):
                 pipeline.interpreter.preset_info(began["info"])
             pipeline.reconstructor.preset_baselines(began.get("sensors", []))
+            pipeline.reconstructor.preset_left_zeros(began.get("left", []))
         return pipeline
 
     paced = not math.isinf(pacer.speed)

@@ -113,7 +113,7 @@ def test_a_sensor_tared_under_load_on_every_taxel_says_to_lift_it_and_tare_again
     report = health_report(service)
     assert report["sensors"]["0"]["faulty_channels"] == {"loaded_at_tare": list(range(64))}
     assert "sensor 0: all 64 taxels had been loaded when tared (its zero is the calibration's C0, or the one it had " \
-        "before the service restarted) in most of the " \
+        "before the service restarted or it left its address) in most of the " \
         "last 1 s's frames: lift the load and tare it again " \
         f"(POST /sensors/{report['sensors']['0']['board']}/0/tare)" in report["problems"]
     assert report["status"] == "degraded"

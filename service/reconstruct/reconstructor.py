@@ -107,6 +107,7 @@ class Reconstructor(SensorStates):
                         out += self._batch_done(pending, taring)
                         pending, taring = [], []
                     state = self._state(reading.sensor, reading.board_restart)
+                state.last_t_host = reading.t_host
                 if pending and state.baseline.changes_zero(reading.capacitance_pF) and \
                         any(earlier is state for earlier, _ in pending):
                     out += self._batch_done(pending, taring)
@@ -117,7 +118,7 @@ class Reconstructor(SensorStates):
                     self._window_begun(state, state.judge_tare)
                 if ready:
                     if not state.tare_judged:
-                        self._judge_tare(state)
+                        self._judge_tare(state, reading.t_host)
                 else:
                     taring.append(len(pending))
             except Exception as exc:  # noqa: BLE001 — isolated: this reading goes out null and flagged

@@ -10,7 +10,8 @@ against the sensor's zero stored before the service started, the first
 after it (stored_zero.py), else against the C0 its calibration measured
 (loaded_tare.py: a grid's taxels, a quad's four electrodes together).
 Another sensor described at
-its address (identity.py) is made anew the same way, as first seen.
+its address (identity.py) is made anew the same way, as first seen; one
+back there after another was is judged against the zero it left with.
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration
 from .calibration_choice import CalibrationChoice
 from .cycle_counters import CycleCounters
-from .stored_zero import StoredZero, StoredZeros
+from .stored_zero import MAX_AGE_S, StoredZero, StoredZeros
 
 log = logging.getLogger(__name__)
 
@@ -54,10 +55,12 @@ class SensorState:
     cycles: CycleCounter | None = None  # load cycles per taxel (a quad: of Fz), fatigue.py
     sensitivity_for: tuple | None = None  # (cycles, model, factor): a quad's fatigue factor, kept until the count moves
     below_c0: list = field(default_factory=list)  # taxels below the calibration's C0 at the last tare (loaded_tare.py)
-    stored_zero: StoredZero | None = None  # the zero kept before the service started, for its first tare
+    stored_zero: StoredZero | None = None  # the zero kept before the service started, or it left with, for its first tare
     zero_kept: dict | None = None  # what that tare made of it (stored_zero.py)
     judged_once: bool = False  # a tare of it was judged: the stored zero's turn is over
     tared_at: float = 0.0  # Unix time the last tare was judged: an untracked zero's age (stored_zero.py)
+    tared_t_host: float = float("nan")  # t_host (s) of the reading that completed the last tare: the same, as it left
+    last_t_host: float = float("nan")  # t_host (s) of its last reading: when the zero it left with was last tracked
 
 
 class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
@@ -71,7 +74,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         self.resolve = resolve
         self.load_cycles: Callable[[SensorInfo, str], list | None] | None = None  # counts kept for (sensor, calibration)
         self._chosen: dict[tuple, SensorCalibration] = {}  # by identity: set through set_calibration, over ``resolve``
-        self.replacements = Replacements()  # other sensors described at an address, and counts of those that left
+        # Other sensors described at an address, and the counts and zeros of those that left.
+        self.replacements = Replacements(max_zero_age_s=MAX_AGE_S)
         self.calibration_problems: dict[int, str] = {}  # sensor → why its own calibration could not be used
         self._first_judge: dict[int, bool] = {}  # a forced tare recorded before the sensor's first frame (replay)
         self._preset: dict[int, dict] = {}  # zeros a recording began with, for sensors not seen yet (replay)
@@ -149,10 +153,12 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             if not state.judged_once:  # the INFO may name it only now: its stored zero is known by its name
                 state.stored_zero = self._stored_zero(info, state.calibration.id)
         if state is None or state.info is not info:
-            # A sensor that left for another address (a swap) takes its counter along: not kept as one that left.
-            leaving = None if state is None or self._live_elsewhere(state.info) else state.cycles
-            change = None if state is None else self.replacements.replaced(state.info, info, state.calibration.id,
-                                                                           leaving)
+            # A sensor that left for another address (a swap) takes its counter along, and tares there: neither
+            # its counter nor its zero is kept as one that left.
+            gone = state is not None and self._live_elsewhere(state.info) is None
+            change = None if state is None else self.replacements.replaced(
+                state.info, info, state.calibration.id, state.cycles if gone else None,
+                self._zero_left(state) if gone else None)
             if change is not None:
                 log.warning("sensor %d: %s where %s was: tared afresh, its calibration and load cycles looked up "
                             "for it", info.id, change["to"], change["from"])
@@ -170,6 +176,7 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             elif zero is not None and len(zero["baseline_pF"]) == info.channels:
                 state.baseline.preset(_array(zero["baseline_pF"]), _array(zero["std_pF"]))
                 state.tare_judged = True  # judged live, before the recording
+                state.tared_t_host = _array([zero.get("tared_t_host")])[0]  # None in older recordings: unknown
                 # A forced zero stays the zero when a calibration set later has it judged again, as it did live.
                 state.judge_tare = zero.get("judge") is not False
                 if zero.get("loaded"):
@@ -203,7 +210,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
 
     def baselines(self) -> list[dict]:
         """Each tared sensor's zero: {sensor, baseline_pF, std_pF, loaded,
-        judge (False: a forced tare's, the load present is the zero), where
+        judge (False: a forced tare's, the load present is the zero),
+        tared_t_host (its tare's last reading's host time, where known), where
         its stale-channel count stands: stale_last_pF, stale_runs, its
         load-cycle count: cycles, cycles_seen, cycles_armed, and a quad's
         drift tracker: drift} (NaN as None); a sensor taring, its window so
@@ -219,11 +227,19 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
                     "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist(),
                     "judge": state.judge_tare, **self._counts(state)}
+            if state.tared_t_host == state.tared_t_host:
+                zero["tared_t_host"] = state.tared_t_host
             drift = where(state.processor, state.baseline.value) if isinstance(state.processor, QuadProcessor) else None
             if drift is not None:
                 zero["drift"] = drift
             out.append(zero)
         return out
+
+    def preset_left_zeros(self, left: list[dict]) -> None:
+        """The zeros of sensors that had left their address when a recording began (Replacements.left_zeros):
+        one back in it is judged against its own, as it was live."""
+        for kept in left:
+            self.replacements.keep_zero(tuple(kept["identity"]), kept["calibration"], kept["zero"])
 
     @staticmethod
     def _counts(state: SensorState) -> dict:
@@ -292,20 +308,21 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         state = self._sensors.get(sensor_id)
         return [] if state is None or state.loaded is None else np.flatnonzero(state.loaded).tolist()
 
-    def _judge_tare(self, state: SensorState) -> None:
-        """Once a tare is complete: loaded channels get the stored zero (the first after the service
-        started), else a grid's the calibration's C0. Judged only once they have: the zeros' saver
-        (another thread, stored_zero.py) takes a judged zero, never the loaded means before it."""
+    def _judge_tare(self, state: SensorState, t_host: float) -> None:
+        """Once a tare is complete (its last reading received at ``t_host``): loaded channels get the
+        stored zero (the first after the service started, or back at its address), else a grid's the
+        calibration's C0. Judged only once they have: the zeros' saver (another thread,
+        stored_zero.py) takes a judged zero, never the loaded means before it."""
         try:
-            self._judge_loaded(state)
+            self._judge_loaded(state, t_host)
         finally:
             state.tare_judged = state.judged_once = True
 
-    def _judge_loaded(self, state: SensorState) -> None:
-        state.tared_at = time.time()
+    def _judge_loaded(self, state: SensorState, t_host: float) -> None:
+        state.tared_at, state.tared_t_host = time.time(), t_host
         state.below_c0 = []
         stored, state.stored_zero = state.stored_zero, None
-        if not state.judge_tare or (stored is not None and self._judge_stored(state, stored)):
+        if not state.judge_tare or (stored is not None and self._judge_stored(state, stored, t_host)):
             return
         baseline = state.baseline
         judged = against_c0(state.calibration, baseline.value, baseline.std, baseline.frames)

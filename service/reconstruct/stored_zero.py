@@ -31,6 +31,15 @@ explain COMMON_MAX_DRIFT (2 % ΔC/C0, ~1.6 N on a table-1 taxel, 0.58 N of a
 quad's Fz), a larger shift than a temperature change is taken for anywhere
 else. Nor one from a clock later than now. A replay never reads one (its
 zeros are its recording's) nor keeps one, nor does a simulated board.
+
+A sensor back at its address after another sensor was there (a board
+swapped out and back in, identity.py) is judged the same way against the
+zero it left with (as ``zeros_to_keep`` would have saved it then), or the
+registry's where that is newer: A's quad, tared unloaded, came back 2 s
+later under 2 N and read 0.000 N unflagged (its zero was never saved: A
+ran less than the 10 s between saves, and a sensor that left is not saved).
+That zero is dated, and its age judged, on its readings' host clock
+(t_host), so that a replay judges it as live did.
 """
 from __future__ import annotations
 
@@ -44,7 +53,7 @@ import numpy as np
 from ..readings import SensorInfo
 from .drift import MIN_REFERENCE_TAXELS
 from .grid import GridProcessor
-from .identity import named
+from .identity import Replacements, named
 from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, judge, mean_noise, whole_quad
 
 DRIFT_PER_S = 0.01 / 60.0  # the tracked drift bound: 1 % ΔC/C0 per minute (docs/reconstruction.md)
@@ -61,13 +70,14 @@ class StoredZero:
     std_pF: np.ndarray
     frames: int
     saved: float  # Unix time
+    left: bool = False  # the zero the sensor left its address with: ``saved`` on its readings' clock (t_host)
 
     @classmethod
-    def from_row(cls, row: dict | None, channels: int) -> StoredZero | None:
+    def from_row(cls, row: dict | None, channels: int, left: bool = False) -> StoredZero | None:
         """The registry's row as a zero of ``channels`` channels; None without one or for another shape."""
         if row is None or len(row["zero_pF"]) != channels or len(row["std_pF"]) != channels:
             return None
-        return cls(_array(row["zero_pF"]), _array(row["std_pF"]), int(row["frames"]), float(row["saved"]))
+        return cls(_array(row["zero_pF"]), _array(row["std_pF"]), int(row["frames"]), float(row["saved"]), left)
 
     def unusable(self, now: float) -> str | None:
         """Why it cannot judge a tare at ``now`` (Unix time), None when it can."""
@@ -110,25 +120,31 @@ class StoredZeros:
 
     _sensors: dict
     level: str
+    replacements: Replacements
     load_zero: Callable[[SensorInfo, str], dict | None] | None = None  # the registry's row for (sensor, calibration)
 
     def _stored_zero(self, info: SensorInfo, calibration_id: str) -> StoredZero | None:
-        """The zero kept for a named sensor under this calibration (none, or unreadable: None, with a warning)."""
+        """The zero kept for a named sensor under this calibration: the one it left its address with
+        (identity.py) or the registry's, the newer (none, or unreadable: None, with a warning)."""
+        left = StoredZero.from_row(self.replacements.returning_zero(info, calibration_id), info.channels, left=True)
         if self.load_zero is None or not named(info):
-            return None
+            return left
         try:
-            return StoredZero.from_row(self.load_zero(info, calibration_id), info.channels)
+            stored = StoredZero.from_row(self.load_zero(info, calibration_id), info.channels)
         except Exception as exc:  # noqa: BLE001 — a lost zero is a warning: the sensor tares as before
             log.warning("sensor %d: its stored zero cannot be read (%s); tared as if there were none", info.id, exc)
-            return None
+            return left
+        return stored if left is None or (stored is not None and stored.saved > left.saved) else left
 
-    def _judge_stored(self, state, stored: StoredZero) -> bool:
-        """A first tare against the stored zero: the channels above it keep it
-        (``loaded_at_tare``), a quad's four together (loaded_tare.whole_quad:
-        a shear lowers some electrodes under a load); whether it judged the
-        tare (else the calibration's C0 does)."""
+    def _judge_stored(self, state, stored: StoredZero, t_host: float) -> bool:
+        """A first tare, its last reading received at ``t_host``, against the
+        stored zero: the channels above it keep it (``loaded_at_tare``), a
+        quad's four together (loaded_tare.whole_quad: a shear lowers some
+        electrodes under a load); whether it judged the tare (else the
+        calibration's C0 does)."""
         baseline = state.baseline
-        report = judged(stored, baseline.value, baseline.std, baseline.frames, time.time())
+        now = t_host if stored.left else time.time()
+        report = judged(stored, baseline.value, baseline.std, baseline.frames, now)
         kept = report.pop("kept")
         if state.info.kind == "quad":
             kept = whole_quad(kept, np.isfinite(baseline.value) & np.isfinite(report["zero_pF"]))
@@ -139,8 +155,9 @@ class StoredZeros:
         if kept.any():
             baseline.substitute(kept, report["zero_pF"])
             state.loaded = kept
-            log.warning("sensor %d: channels %s were loaded at the tare, against the zero stored %.1f s before; "
-                        "they keep it", state.info.id, state.zero_kept["kept"], report["age_s"])
+            log.warning("sensor %d: channels %s were loaded at the tare, against the zero %s %.1f s before; "
+                        "they keep it", state.info.id, state.zero_kept["kept"],
+                        "it left its address with" if stored.left else "stored", report["age_s"])
         return True
 
     def zeros_to_keep(self) -> dict[int, tuple[SensorInfo, str, dict]]:
@@ -149,13 +166,27 @@ class StoredZeros:
         level, a grid of fewer than 3 taxels) the zero is as old as its tare, and saved as made then."""
         out, now = {}, time.time()
         for sid, state in list(self._sensors.items()):
-            baseline = state.baseline
-            if not (baseline.ready and state.tare_judged and not baseline.zeroless and named(state.info)):
-                continue
-            tracked = self.level == "full" and state.info.channels >= MIN_REFERENCE_TAXELS
-            out[sid] = (state.info, state.calibration.id, row(baseline.value * (1.0 + _drift(state)), baseline.std,
-                                                               baseline.frames, now if tracked else state.tared_at))
+            zero = self._zero_in_force(state, now, state.tared_at)
+            if zero is not None:
+                out[sid] = (state.info, state.calibration.id, zero)
         return out
+
+    def _zero_left(self, state) -> dict | None:
+        """The zero in force of a sensor leaving its address (another is described there), as ``zeros_to_keep``
+        gives it, dated on its readings' clock: its last reading's t_host (its tare's, where no drift is tracked);
+        None as there, or where that time is unknown (a recording begun after its tare, before they were kept)."""
+        zero = self._zero_in_force(state, state.last_t_host, state.tared_t_host)
+        return zero if zero is not None and np.isfinite(zero["saved"]) else None
+
+    def _zero_in_force(self, state, now: float, tared_at: float) -> dict | None:
+        """The sensor's zero as the registry keeps it (``row``) with the drift tracked on it, dated ``now``, or where
+        none is tracked (below the full level, a grid of fewer than 3 taxels) ``tared_at``; None for a sensor
+        unnamed, or whose tare is not complete and judged."""
+        baseline = state.baseline
+        if not (baseline.ready and state.tare_judged and not baseline.zeroless and named(state.info)):
+            return None
+        tracked = self.level == "full" and state.info.channels >= MIN_REFERENCE_TAXELS
+        return row(baseline.value * (1.0 + _drift(state)), baseline.std, baseline.frames, now if tracked else tared_at)
 
     def zero_kept(self, sensor_id: int) -> dict | None:
         """The stored zero's part in the sensor's first tare: {age_s, kept, not_used}; None when there was none."""

@@ -170,7 +170,8 @@ def read_settings(path: str | Path) -> dict[str | None, dict]:
 def read_baselines(path: str | Path) -> dict[str | None, dict]:
     """The zeros in force when the recording began, per board (as
     ``read_boards`` names them): {"board": its name then, "sensors": [...],
-    "info": the INFO then in force (if any)}; none for a recording that
+    "info": the INFO then in force (if any), "left": the zeros of sensors
+    that had left their address}; none for a recording that
     began with its stream (its sensors tare in it, and its INFO names the
     board)."""
     zeros: dict[str | None, dict] = {}
@@ -178,6 +179,7 @@ def read_baselines(path: str | Path) -> dict[str | None, dict]:
         doc = orjson.loads(message.data)
         began = zeros.setdefault(raw_board(topic, "baselines"), {"board": doc["board"], "sensors": []})
         began["sensors"] += doc["sensors"]
+        began.setdefault("left", []).extend(doc.get("left", []))
         if doc.get("info") is not None:
             began.setdefault("info", doc["info"])
     return zeros

@@ -112,25 +112,29 @@ class McapLog:
         self._add(f"{prefix}/calibration_set", "calibration_set", t_host,
                   {"board": board, "sensor": sensor, "after_reads": after_reads, "document": document})
 
-    def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "") -> None:
+    def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "",
+                  left: list[dict] = ()) -> None:
         """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded, …} when the recording
         began (one taring: its window so far, ``taring``); ``info``: the board's INFO then in force
-        (Interpreter.info_document), if any."""
+        (Interpreter.info_document), if any; ``left``: the zeros of sensors that had left their address
+        (Replacements.left_zeros), if any."""
         self._add(f"{prefix}/baselines", "baselines", t_host,
-                  {"board": board, "sensors": sensors, **({"info": info} if info is not None else {})})
+                  {"board": board, "sensors": sensors, **({"info": info} if info is not None else {}),
+                   **({"left": left} if left else {})})
 
     def resume(self, board: str, after_reads: int, sensors: list[dict], info: dict | None, described: list[int],
-               in_force: list[tuple], t_host: float, prefix: str = "") -> None:
+               in_force: list[tuple], left: list[dict], t_host: float, prefix: str = "") -> None:
         """The zeros (``sensors``, as ``baselines``) and INFO in force before the board's read ``after_reads``
         of the recording, the sensors then described (``described``, tared or not) and ``in_force``: (SensorInfo,
         calibration id) each seen sensor was reconstructed with (named as in /calibrations, whose entry for it
-        may be lost with the recording's start)."""
+        may be lost with the recording's start); ``left`` as ``baselines``."""
         calibrations = [{"board": sensor.board, "sensor": sensor.id, "id": calibration_id,
                          "key": sensor_identity(sensor.board_info or {}, sensor)["key"]}
                         for sensor, calibration_id in in_force]
         self._add(f"{prefix}/resume", "resume", t_host, {"board": board, "after_reads": after_reads, "sensors": sensors,
                                                          "described": described, "calibrations": calibrations,
-                                                         **({"info": info} if info is not None else {})})
+                                                         **({"info": info} if info is not None else {}),
+                                                         **({"left": left} if left else {})})
 
     def settings(self, board: str, level: str, mounting: str, t_host: float, prefix: str = "") -> None:
         """How the board's forces are reconstructed, before its first read."""

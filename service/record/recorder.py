@@ -191,8 +191,8 @@ class Recorder:
             self._log.resume(pipeline.interpreter.name, *payload, t_host, prefix)
             self.messages += 1
         elif kind == "baselines":
-            zeros, info = payload
-            self._log.baselines(pipeline.interpreter.name, zeros, info, t_host, prefix)
+            zeros, info, left = payload
+            self._log.baselines(pipeline.interpreter.name, zeros, info, t_host, prefix, left)
             self.messages += 1
         else:
             self._log.diagnostics(t_host, payload, prefix)
@@ -234,8 +234,9 @@ class _Listeners:
             put(("settings", (self.pipeline, (reconstructor.level, reconstructor.mounting)), t_host))
             zeros = self.pipeline.reconstructor.baselines()
             info = self.pipeline.interpreter.info_document()
-            if zeros or info:  # a recording begun on a running service: the INFO and zeros its replay starts from
-                put(("baselines", (self.pipeline, (zeros, info)), t_host))
+            left = reconstructor.replacements.left_zeros()  # a sensor back later is judged against its own
+            if zeros or info or left:  # a recording begun on a running service: the INFO and zeros its replay begins on
+                put(("baselines", (self.pipeline, (zeros, info, left)), t_host))
             # The start of a frame this read completes, which the decoder already holds: recorded with the read,
             # so the replay decodes that frame as live did (without it, the frame live recorded had no bytes).
             data = self.pipeline.decoder.held() + data
@@ -248,7 +249,8 @@ class _Listeners:
             if after_reads:  # where a replay whose start was lost (a damaged chunk) can begin: the first read has it
                 interpreter, reconstructor = self.pipeline.interpreter, self.pipeline.reconstructor
                 put(("resume", (self.pipeline, (after_reads, reconstructor.baselines(), interpreter.info_document(),
-                                                sorted(interpreter.sensors), reconstructor.in_force())), t_host))
+                                                sorted(interpreter.sensors), reconstructor.in_force(),
+                                                reconstructor.replacements.left_zeros())), t_host))
         put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:

@@ -79,7 +79,18 @@ BASELINES = {
                              "description": "outputs loaded above 1 N, a cycle pending"},
             "drift": {"type": "array", "items": {"type": ["number", "string", "boolean", "null", "array"]},
                       "description": "a quad's common-mode drift tracker where it stood (quad_drift.py; a "
-                                     "non-finite number as its name)"}}}},
+                                     "non-finite number as its name)"},
+            "tared_t_host": {"type": "number", "description": "host receive time (Unix s) of the reading that "
+                                                             "completed its tare: an untracked zero's date, should "
+                                                             "it leave its address (absent: unknown)"}}}},
+        "left": {"type": "array", "description": "zeros of sensors another had taken the place of, each judged "
+                                                 "against its own when it comes back (reconstruct/identity.py)",
+                 "items": {"type": "object", "properties": {
+                     "identity": {"type": "array", "items": {"type": ["string", "integer", "null"]},
+                                  "description": "[\"serial\", its serial] or [\"board\", its board, its id]"},
+                     "calibration": {"type": "string"},
+                     "zero": {"type": "object", "description": "as the registry keeps it: zero_pF, std_pF, frames, "
+                                                               "saved (host receive time, Unix s)"}}}},
     },
 }
 
