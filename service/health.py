@@ -6,6 +6,7 @@ import time
 from .board import Board, calibration_state
 from .board_info import UNKNOWN_KIND
 from .history import BELOW_ZERO_S
+from .protocol import MAX_PAYLOAD
 from .readout import MIN_STALE_S, LinkState
 
 STALE_SCAN_PERIODS = 20
@@ -153,8 +154,6 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [line for sid, s in sensors.items() if s.get("faulty_channels") for line in _fault_lines(sid, s)]
-    problems += [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
-                 "(its shape is taken from its frames)" for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems
 
 
@@ -190,13 +189,29 @@ def _span(low: float, high: float) -> str:
 
 
 def _info_problems(interpreter, sensors: dict) -> list[str]:
-    """What the board's INFO got wrong: an INFO refused as a whole, and sensors
-    it leaves undescribed that send nothing readable (those that do: _problems)."""
-    problems = [f"the board's last INFO was refused ({interpreter.info_refused}); the description before it "
-                "stays in force"] if interpreter.info_refused else []
+    """What the board's INFO got wrong: an INFO refused as a whole, sensors
+    that send data although it does not list them while it had room to (a
+    full one: _notes), and sensors it leaves undescribed, whether they send
+    data or nothing readable."""
+    problems = [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
+                "(its shape is taken from its frames)" for sid, s in sensors.items()
+                if s.get("not_in_info") and not s["stale"] and (s.get("info_problem") or not interpreter.info_full)]
+    problems += [f"the board's last INFO was refused ({interpreter.info_refused}); the description before it "
+                 "stays in force"] if interpreter.info_refused else []
     return problems + [f"sensor {sid}: the board's INFO {why}; its frames are read only where their size tells "
                        "an 8x8 grid or a quad" for sid, why in sorted(interpreter.undescribed.items())
                        if str(sid) not in sensors and not why.startswith(UNKNOWN_KIND)]
+
+
+def _notes(interpreter, sensors: dict) -> list[str]:
+    """What /health tells that is no fault: the sensors a full INFO could not list, read from their frames."""
+    if not interpreter.info_full:
+        return []
+    taken = [sid for sid, s in sensors.items() if s["not_in_info"] and not s["retired"] and not s["info_problem"]]
+    size, entries = interpreter.info_size
+    return [f"the board's INFO is full ({size} of {MAX_PAYLOAD} bytes, listing {entries} sensors): {len(taken)} more "
+            "sensors were taken from their data frames (a QUAD frame is a quad, a 256-byte GRID frame an 8x8 grid)"
+            ] if taken else []
 
 
 def _shared_serials(boards) -> list[str]:
@@ -239,6 +254,7 @@ def board_health(board, now: float, book=None) -> dict:
         "info": pipeline.interpreter.board,
         "status": "ok" if not problems else "degraded",
         "problems": problems,
+        "notes": _notes(pipeline.interpreter, sensors),
         "link": link_state,
         "level": pipeline.reconstructor.level,
         "stream": {k: v for k, v in counters.items() if k != "sensors"},
@@ -270,6 +286,8 @@ def health_report(service) -> dict:
     report = {
         "status": "ok" if not problems else "degraded",
         "problems": problems,
+        "notes": [(f"board {name}: " if several else "") + note for name, part in boards.items()
+                  for note in part.get("notes", ())],
         "uptime_s": round(now - service.started_at, 1),
         "boards": boards,
         "websocket_clients": len(service.hub.subscribers),

@@ -17,9 +17,9 @@ from dataclasses import replace
 import numpy as np
 import orjson
 
-from .board_info import UNNAMED_BOARD, default_sensor, name_from_info, parse_info
+from .board_info import UNNAMED_BOARD, default_sensor, info_is_full, name_from_info, parse_info
 from .protocol import Frame, FrameType
-from .readings import AF_PER_PF, MAX_UNANNOUNCED_SENSORS, OPEN_SENTINEL, SHORT_SENTINEL, Reading, SensorInfo
+from .readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Reading, SensorInfo
 
 log = logging.getLogger(__name__)
 ERROR_LOG_PERIOD_S = 60.0  # a board's ERROR texts reach the log at most this often (all are in /health)
@@ -35,8 +35,7 @@ class Interpreter:
     so that a sensor's address does not change under its clients; until
     then ``board``."""
 
-    def __init__(self, clock=time.time, max_unannounced_sensors: int = MAX_UNANNOUNCED_SENSORS,
-                 board_name: str | None = None, name_board=name_from_info) -> None:
+    def __init__(self, clock=time.time, board_name: str | None = None, name_board=name_from_info) -> None:
         self.board_name = board_name
         self.unnamed = UNNAMED_BOARD  # the name until one is settled (a service of several boards makes it unique)
         self.name_board = name_board
@@ -51,13 +50,12 @@ class Interpreter:
         self._error_logged_at: float | None = None  # monotonic time of the last board error logged
         self.board_error_count = 0  # ERROR frames ever (board_errors keeps the last 50)
         self._errors_unlogged = 0
-        self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
-        self.max_unannounced_sensors = max_unannounced_sensors
-        self._unannounced: set[int] = set()  # sensors known only from their data frames
+        self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
         self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._ever_listed: set[int] = set()  # the sensors any INFO described
         self.undescribed: dict[int, str] = {}  # sensors the INFO in force names but leaves undescribed: why
         self.info_refused: str | None = None  # why the last INFO was invalid as a whole (None: it was taken)
+        self.info_size = (0, 0)  # the INFO in force: (payload bytes, sensor entries)
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
@@ -73,6 +71,11 @@ class Interpreter:
         list them (their shape taken from their frames, or from an older
         INFO); none before any INFO."""
         return sorted(set(self.sensors) - self._listed) if self.board else []
+
+    @property
+    def info_full(self) -> bool:
+        """Whether the INFO in force had no room to list another sensor (board_info.info_is_full)."""
+        return bool(self.board) and info_is_full(*self.info_size)
 
     @property
     def dropped(self) -> list[int]:
@@ -194,18 +197,14 @@ class Interpreter:
             return None
         info = self.sensors.get(frame.sensor)
         if info is None:
-            # Without INFO any byte stream could create up to 255 sensors,
-            # each with its own reconstruction and history downstream.
-            if len(self._unannounced) >= self.max_unannounced_sensors:
-                self.rejected["unannounced_sensor"] += 1
-                return None
+            # Every id the protocol allows (a board of more sensors than its INFO can list): what bounds their
+            # memory is the history budget they share, not a count of sensors (docs/scale.md).
             info = default_sensor(frame.sensor, frame)
             if info is None:
                 self.rejected["unknown_shape"] += 1
                 return None
             info = replace(info, board=self.name, board_identity=self._swapped_to, board_info=self.board)
             self.sensors[frame.sensor] = info
-            self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
         if info.kind != expected_kind or len(frame.payload) != 4 * info.channels:
             self.rejected["shape_mismatch"] += 1
@@ -221,13 +220,17 @@ class Interpreter:
         described = [{"id": sid, "kind": info.kind, "rows": info.rows, "cols": info.cols,
                       **({"serial": info.serial} if info.serial else {})} for sid, info in sorted(self.sensors.items())]
         return {**self.board, "sensors": [d for d in described if d["id"] in self._listed],
-                "unlisted": [d for d in described if d["id"] not in self._listed]}  # shapes from an older INFO or frames
+                "unlisted": [d for d in described if d["id"] not in self._listed],  # shapes from an older INFO or frames
+                "info_size": list(self.info_size)}  # its bytes, which this document's do not tell: info_full
 
     def preset_info(self, document: dict) -> None:
         """Take ``info_document``'s document as the INFO in force (a replay
         of a recording begun mid-stream, before its first frame), with the
         shapes of the sensors it did not list."""
-        self._on_info(orjson.dumps({k: v for k, v in document.items() if k != "unlisted"}))
+        self._on_info(orjson.dumps({k: v for k, v in document.items() if k not in ("unlisted", "info_size")}))
+        size = document.get("info_size")  # not in older recordings
+        if isinstance(size, list) and len(size) == 2 and all(type(n) is int for n in size):
+            self.info_size = (size[0], size[1])
         _, unlisted, _ = parse_info(orjson.dumps({"sensors": document.get("unlisted", [])}))
         for sid, info in unlisted.items():
             self.sensors.setdefault(sid, replace(info, board=self.board_name, board_identity=self._swapped_to,
@@ -242,6 +245,7 @@ class Interpreter:
             log.warning("ignoring INFO frame: %s", exc)
             return
         self.info_refused = None
+        self.info_size = (len(payload), len(doc.get("sensors", [])))
         board = {k: v for k, v in doc.items() if k != "sensors"}
         identity, before = board.get("serial") or board.get("board"), self.board.get("serial") or self.board.get("board")
         if self.board and identity != before:
@@ -257,7 +261,6 @@ class Interpreter:
         self.sensors.update({sid: replace(info, board=self.board_name,
                                           board_identity=None if info.serial else self._swapped_to, board_info=board)
                              for sid, info in sensors.items()})
-        self._unannounced.difference_update(sensors)
         self._listed = set(sensors)
         self._ever_listed |= self._listed
         self.undescribed = undescribed
