@@ -17,13 +17,21 @@ from dataclasses import replace
 import numpy as np
 import orjson
 
-from .board_info import UNNAMED_BOARD, default_sensor, info_is_full, name_from_info, parse_info
+from .board_info import UNKNOWN_KIND, UNNAMED_BOARD, default_sensor, info_is_full, name_from_info, parse_info
 from .protocol import Frame, FrameType
 from .readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Reading, SensorInfo
+from .recent import RecentCount
 
 log = logging.getLogger(__name__)
 ERROR_LOG_PERIOD_S = 60.0  # a board's ERROR texts reach the log at most this often (all are in /health)
 ERROR_LOG_CHARS = 200
+
+
+def shown_text(text: str) -> str:
+    """A board's text for a log or a problem line: escaped (a board must not write control sequences to a
+    terminal or fake log lines), its first ERROR_LOG_CHARS characters."""
+    shown = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in text[:ERROR_LOG_CHARS])
+    return shown + ("…" if len(text) > ERROR_LOG_CHARS else "")
 
 
 class Interpreter:
@@ -50,6 +58,8 @@ class Interpreter:
         self._error_logged_at: float | None = None  # monotonic time of the last board error logged
         self.board_error_count = 0  # ERROR frames ever (board_errors keeps the last 50)
         self._errors_unlogged = 0
+        self.recent_errors = RecentCount()  # ERROR frames over the last PROBLEM_WINDOW_S (/health)
+        self.drops: dict[int, RecentCount] = {}  # data frames rejected by sensor, over the last seconds; latest: why
         self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
         self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._ever_listed: set[int] = set()  # the sensors any INFO described
@@ -177,9 +187,8 @@ class Interpreter:
         if self._error_logged_at is not None and now - self._error_logged_at < ERROR_LOG_PERIOD_S:
             self._errors_unlogged += 1
             return
-        shown = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in text[:ERROR_LOG_CHARS])
         more = f" ({self._errors_unlogged} more since the last logged, in /health)" if self._errors_unlogged else ""
-        log.warning("board error: %s%s%s", shown, "…" if len(text) > ERROR_LOG_CHARS else "", more)
+        log.warning("board error: %s%s", shown_text(text), more)
         self._error_logged_at, self._errors_unlogged = now, 0
 
     def _sensor_for(self, frame: Frame, t_host: float) -> SensorInfo | None:
@@ -193,6 +202,7 @@ class Interpreter:
             text = frame.payload.decode("utf-8", errors="replace")
             self.board_errors.append((t_host, text))
             self.board_error_count += 1
+            self.recent_errors.add(t_host)
             self._log_board_error(text)
             return None
         info = self.sensors.get(frame.sensor)
@@ -202,14 +212,30 @@ class Interpreter:
             info = default_sensor(frame.sensor, frame)
             if info is None:
                 self.rejected["unknown_shape"] += 1
+                why = self.undescribed.get(frame.sensor, "does not describe it")
+                if not why.startswith(UNKNOWN_KIND):  # a board's other sensor (a thermistor): its frames are not ours
+                    told = f"the board's INFO {why}" if self.board else "no INFO came"
+                    self._drop(frame, t_host, f"{len(frame.payload)}-byte GRID frames, and {told} (without a "
+                               "description only a 256-byte GRID frame is read, as an 8x8 grid)")
                 return None
             info = replace(info, board=self.name, board_identity=self._swapped_to, board_info=self.board)
             self.sensors[frame.sensor] = info
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
         if info.kind != expected_kind or len(frame.payload) != 4 * info.channels:
             self.rejected["shape_mismatch"] += 1
+            told = "the board's INFO describes" if frame.sensor in self._listed else "it was taken as"
+            shape = "a quad" if info.kind == "quad" else f"a {info.rows}x{info.cols} grid"
+            self._drop(frame, t_host, f"{len(frame.payload)}-byte {FrameType(frame.type).name} frames where {told} "
+                       f"{shape} ({4 * info.channels} bytes)")
             return None
         return info
+
+    def _drop(self, frame: Frame, t_host: float, why: str) -> None:
+        """Count a data frame rejected, under its sensor, with why (/health names the sensor while it lasts)."""
+        drops = self.drops.get(frame.sensor)
+        if drops is None:
+            drops = self.drops[frame.sensor] = RecentCount()
+        drops.add(t_host, latest=why)
 
     def info_document(self) -> dict | None:
         """The INFO in force as a document (its fields and the sensors it
