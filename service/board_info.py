@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import logging
+import math
 import re
 
 import orjson
 
-from .protocol import Frame, FrameType
+from .protocol import MAX_PAYLOAD, Frame, FrameType
 from .readings import MAX_CHANNELS, MAX_SENSOR_ID, SensorInfo
 
 log = logging.getLogger(__name__)
@@ -112,6 +113,22 @@ def parse_info(payload: bytes) -> tuple[dict, dict[int, SensorInfo], dict[int, s
                     "its shape), the board and its other sensors are taken", sid)
     undescribed.update({sid: "describes it twice, differently" for sid in conflicting})
     return doc, sensors, undescribed
+
+
+# A long sensor entry as a board spaces it (a grid with its shape and a serial).
+INFO_ENTRY_MAX_BYTES = len(', {"id": 254, "kind": "grid", "rows": 16, "cols": 16, "serial": "A8-2291-0001"}')
+
+
+def info_is_full(size: int, entries: int) -> bool:
+    """Whether an INFO payload of ``size`` bytes listing ``entries`` sensors
+    had no room under the protocol's MAX_PAYLOAD (1024 bytes) for another:
+    less room left than the payload spends per sensor it lists (its own
+    fields counted in: an entry as this board writes it, over-estimated;
+    30 bytes a spaced quad entry among 33), or than a long entry takes
+    (INFO_ENTRY_MAX_BYTES). A board of more sensors than fit lists what fits
+    (protocol.md: ids 0..254), and the rest are read from their frames."""
+    room = MAX_PAYLOAD - size
+    return room < min(size / entries if entries else math.inf, INFO_ENTRY_MAX_BYTES)
 
 
 UNNAMED_BOARD = "board"

@@ -6,6 +6,8 @@ import time
 from .board import Board, calibration_state
 from .board_info import UNKNOWN_KIND
 from .history import BELOW_ZERO_S
+from .interpreter import shown_text
+from .protocol import MAX_PAYLOAD
 from .readout import MIN_STALE_S, LinkState
 
 STALE_SCAN_PERIODS = 20
@@ -125,14 +127,19 @@ def _reconstruction(pipeline) -> dict:
     }
 
 
-def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
-    """Why the status is degraded, one line each (empty when ok)."""
+def _problems(link: dict, sensors: dict, errors: dict, dropping: dict[str, str] | None = None) -> list[str]:
+    """Why the status is degraded, one line each (empty when ok). ``dropping``:
+    the line of each sensor whose frames are being dropped (_dropping), in
+    place of its "stale": its frames come, and are not read."""
+    dropping = dropping or {}
     problems = []
     if link["state"] == "stale":  # connected, silent: an error from before it connected is not why
         problems.append(f"link stale: connected, no bytes for {link['silent_s']:g} s")
     elif link["state"] != "up":
         problems.append(f"link {link['state']}" + (f": {link['last_error']}" if link["last_error"] else ""))
-    problems += [f"sensor {sid} stale" for sid, sensor in sensors.items() if sensor["stale"] and not sensor.get("retired")]
+    problems += [f"sensor {sid} stale" for sid, sensor in sensors.items()
+                 if sensor["stale"] and not sensor.get("retired") and sid not in dropping]
+    problems += dropping.values()
     problems += [f"sensor {sid} reconstruction fails: {error['error']} ({error['count']} times)"
                  for sid, error in errors.items() if error["active"]]
     problems += [f"sensor {sid} uses the built-in calibration: its own could not be used ({s['calibration']['problem']})"
@@ -153,9 +160,49 @@ def _problems(link: dict, sensors: dict, errors: dict) -> list[str]:
                  f"{BELOW_ZERO_S:g} s: tared under a load since removed? Tare it again unloaded "
                  f"(POST /sensors/{s['board']}/{sid}/tare)" for sid, s in sensors.items() if s.get("below_zero")]
     problems += [line for sid, s in sensors.items() if s.get("faulty_channels") for line in _fault_lines(sid, s)]
-    problems += [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
-                 "(its shape is taken from its frames)" for sid, s in sensors.items() if s.get("not_in_info") and not s["stale"]]
     return problems
+
+
+# Corrupt frames above this share of the window's are a fault, not the rare error of a long run: a sound link
+# corrupts next to nothing (USB bulk transfers are CRC-checked and resent; a 2 Mbaud UART at a bit error rate of
+# 1e-9 spoils one 272-byte GRID frame in ~370 000), and 1 % costs a 1 kHz sensor 10 frames a second.
+CORRUPT_SHARE = 0.01
+CORRUPT_MIN_FRAMES = 5  # and at least this many: one bad frame among a slow board's few (10 at 1 Hz) is no pattern
+CORRUPT_SENSORS_NAMED = 3
+
+
+def _dropping(interpreter, now: float) -> dict[str, str]:
+    """The problem line of each sensor whose data frames were rejected in the last PROBLEM_WINDOW_S, by id."""
+    lines = {}
+    for sid, drops in sorted(interpreter.drops.items()):
+        if count := drops.recent(now):
+            lines[str(sid)] = (f"sensor {sid}: {count} frames dropped in the last {drops.window_s:g} s: "
+                               f"{drops.latest}")
+    return lines
+
+
+def _board_lines(pipeline, now: float) -> list[str]:
+    """The board's ERROR frames and the link's corrupt frames over the last PROBLEM_WINDOW_S, a line each."""
+    lines = []
+    errors = pipeline.interpreter.recent_errors
+    if count := errors.recent(now):
+        latest = shown_text(pipeline.interpreter.board_errors[-1][1])
+        lines.append(f"the board sent {count} ERROR frames in the last {errors.window_s:g} s, the latest: \"{latest}\"")
+    corruption = pipeline.corruption
+    corrupt = corruption.corrupt.recent(now)
+    total = corrupt + corruption.frames.recent(now)
+    if corrupt >= CORRUPT_MIN_FRAMES and corrupt > CORRUPT_SHARE * total:
+        claimed = sorted(((n, sid) for sid, c in corruption.by_sensor.items() if (n := c.recent(now))), reverse=True)
+        named = ", ".join(f"sensor {sid} ({n})" for n, sid in claimed[:CORRUPT_SENSORS_NAMED])
+        lines.append(f"{corrupt} of {total} frames ({_percent(corrupt / total)} %) in the last {corruption.window_s:g} s "
+                     f"failed their CRC check and were dropped{f', by their headers from {named}' if named else ''}: "
+                     "a loose cable or connector, electrical noise, or a wrong baud rate?")
+    return lines
+
+
+def _percent(share: float) -> str:
+    """``share`` (0..1) in per cent to 2 digits: 1.5, 19, 100."""
+    return f"{100 * share:.0f}" if share >= 0.1 else f"{100 * share:.2g}"
 
 
 def _unzeroed_otherwise(sensor: dict) -> list[int]:
@@ -189,14 +236,31 @@ def _span(low: float, high: float) -> str:
     return low_text if low_text == high_text else f"{low_text}–{high_text}"
 
 
-def _info_problems(interpreter, sensors: dict) -> list[str]:
-    """What the board's INFO got wrong: an INFO refused as a whole, and sensors
-    it leaves undescribed that send nothing readable (those that do: _problems)."""
-    problems = [f"the board's last INFO was refused ({interpreter.info_refused}); the description before it "
-                "stays in force"] if interpreter.info_refused else []
+def _info_problems(interpreter, sensors: dict, dropping: dict[str, str]) -> list[str]:
+    """What the board's INFO got wrong: an INFO refused as a whole, sensors
+    that send data although it does not list them while it had room to (a
+    full one: _notes), and sensors it leaves undescribed, whether they send
+    data or nothing readable (those whose frames come and are dropped:
+    ``dropping``'s lines)."""
+    problems = [f"sensor {sid} sends data but the board's INFO {s.get('info_problem') or 'does not list it'} "
+                "(its shape is taken from its frames)" for sid, s in sensors.items()
+                if s.get("not_in_info") and not s["stale"] and (s.get("info_problem") or not interpreter.info_full)]
+    problems += [f"the board's last INFO was refused ({interpreter.info_refused}); the description before it "
+                 "stays in force"] if interpreter.info_refused else []
     return problems + [f"sensor {sid}: the board's INFO {why}; its frames are read only where their size tells "
                        "an 8x8 grid or a quad" for sid, why in sorted(interpreter.undescribed.items())
-                       if str(sid) not in sensors and not why.startswith(UNKNOWN_KIND)]
+                       if str(sid) not in sensors and str(sid) not in dropping and not why.startswith(UNKNOWN_KIND)]
+
+
+def _notes(interpreter, sensors: dict) -> list[str]:
+    """What /health tells that is no fault: the sensors a full INFO could not list, read from their frames."""
+    if not interpreter.info_full:
+        return []
+    taken = [sid for sid, s in sensors.items() if s["not_in_info"] and not s["retired"] and not s["info_problem"]]
+    size, entries = interpreter.info_size
+    return [f"the board's INFO is full ({size} of {MAX_PAYLOAD} bytes, listing {entries} sensors): {len(taken)} more "
+            "sensors were taken from their data frames (a QUAD frame is a quad, a 256-byte GRID frame an 8x8 grid)"
+            ] if taken else []
 
 
 def _shared_serials(boards) -> list[str]:
@@ -233,12 +297,15 @@ def board_health(board, now: float, book=None) -> dict:
     link_state = link.as_dict(now, stale_after)
     sensors = _sensors(pipeline, now, counters, stale_after, book)
     reconstruction = _reconstruction(pipeline)
-    problems = _problems(link_state, sensors, reconstruction["errors"]) + _info_problems(pipeline.interpreter, sensors)
+    dropping = _dropping(pipeline.interpreter, now)
+    problems = (_problems(link_state, sensors, reconstruction["errors"], dropping) + _board_lines(pipeline, now)
+                + _info_problems(pipeline.interpreter, sensors, dropping))
     return {
         "source": board.source,
         "info": pipeline.interpreter.board,
         "status": "ok" if not problems else "degraded",
         "problems": problems,
+        "notes": _notes(pipeline.interpreter, sensors),
         "link": link_state,
         "level": pipeline.reconstructor.level,
         "stream": {k: v for k, v in counters.items() if k != "sensors"},
@@ -270,6 +337,8 @@ def health_report(service) -> dict:
     report = {
         "status": "ok" if not problems else "degraded",
         "problems": problems,
+        "notes": [(f"board {name}: " if several else "") + note for name, part in boards.items()
+                  for note in part.get("notes", ())],
         "uptime_s": round(now - service.started_at, 1),
         "boards": boards,
         "websocket_clients": len(service.hub.subscribers),

@@ -17,13 +17,21 @@ from dataclasses import replace
 import numpy as np
 import orjson
 
-from .board_info import UNNAMED_BOARD, default_sensor, name_from_info, parse_info
+from .board_info import UNKNOWN_KIND, UNNAMED_BOARD, default_sensor, info_is_full, name_from_info, parse_info
 from .protocol import Frame, FrameType
-from .readings import AF_PER_PF, MAX_UNANNOUNCED_SENSORS, OPEN_SENTINEL, SHORT_SENTINEL, Reading, SensorInfo
+from .readings import AF_PER_PF, OPEN_SENTINEL, SHORT_SENTINEL, Reading, SensorInfo
+from .recent import RecentCount
 
 log = logging.getLogger(__name__)
 ERROR_LOG_PERIOD_S = 60.0  # a board's ERROR texts reach the log at most this often (all are in /health)
 ERROR_LOG_CHARS = 200
+
+
+def shown_text(text: str) -> str:
+    """A board's text for a log or a problem line: escaped (a board must not write control sequences to a
+    terminal or fake log lines), its first ERROR_LOG_CHARS characters."""
+    shown = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in text[:ERROR_LOG_CHARS])
+    return shown + ("…" if len(text) > ERROR_LOG_CHARS else "")
 
 
 class Interpreter:
@@ -35,8 +43,7 @@ class Interpreter:
     so that a sensor's address does not change under its clients; until
     then ``board``."""
 
-    def __init__(self, clock=time.time, max_unannounced_sensors: int = MAX_UNANNOUNCED_SENSORS,
-                 board_name: str | None = None, name_board=name_from_info) -> None:
+    def __init__(self, clock=time.time, board_name: str | None = None, name_board=name_from_info) -> None:
         self.board_name = board_name
         self.unnamed = UNNAMED_BOARD  # the name until one is settled (a service of several boards makes it unique)
         self.name_board = name_board
@@ -51,13 +58,14 @@ class Interpreter:
         self._error_logged_at: float | None = None  # monotonic time of the last board error logged
         self.board_error_count = 0  # ERROR frames ever (board_errors keeps the last 50)
         self._errors_unlogged = 0
-        self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
-        self.max_unannounced_sensors = max_unannounced_sensors
-        self._unannounced: set[int] = set()  # sensors known only from their data frames
+        self.recent_errors = RecentCount()  # ERROR frames over the last PROBLEM_WINDOW_S (/health)
+        self.drops: dict[int, RecentCount] = {}  # data frames rejected by sensor, over the last seconds; latest: why
+        self.rejected = {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
         self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._ever_listed: set[int] = set()  # the sensors any INFO described
         self.undescribed: dict[int, str] = {}  # sensors the INFO in force names but leaves undescribed: why
         self.info_refused: str | None = None  # why the last INFO was invalid as a whole (None: it was taken)
+        self.info_size = (0, 0)  # the INFO in force: (payload bytes, sensor entries)
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
@@ -73,6 +81,11 @@ class Interpreter:
         list them (their shape taken from their frames, or from an older
         INFO); none before any INFO."""
         return sorted(set(self.sensors) - self._listed) if self.board else []
+
+    @property
+    def info_full(self) -> bool:
+        """Whether the INFO in force had no room to list another sensor (board_info.info_is_full)."""
+        return bool(self.board) and info_is_full(*self.info_size)
 
     @property
     def dropped(self) -> list[int]:
@@ -174,9 +187,8 @@ class Interpreter:
         if self._error_logged_at is not None and now - self._error_logged_at < ERROR_LOG_PERIOD_S:
             self._errors_unlogged += 1
             return
-        shown = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in text[:ERROR_LOG_CHARS])
         more = f" ({self._errors_unlogged} more since the last logged, in /health)" if self._errors_unlogged else ""
-        log.warning("board error: %s%s%s", shown, "…" if len(text) > ERROR_LOG_CHARS else "", more)
+        log.warning("board error: %s%s", shown_text(text), more)
         self._error_logged_at, self._errors_unlogged = now, 0
 
     def _sensor_for(self, frame: Frame, t_host: float) -> SensorInfo | None:
@@ -190,27 +202,40 @@ class Interpreter:
             text = frame.payload.decode("utf-8", errors="replace")
             self.board_errors.append((t_host, text))
             self.board_error_count += 1
+            self.recent_errors.add(t_host)
             self._log_board_error(text)
             return None
         info = self.sensors.get(frame.sensor)
         if info is None:
-            # Without INFO any byte stream could create up to 255 sensors,
-            # each with its own reconstruction and history downstream.
-            if len(self._unannounced) >= self.max_unannounced_sensors:
-                self.rejected["unannounced_sensor"] += 1
-                return None
+            # Every id the protocol allows (a board of more sensors than its INFO can list): what bounds their
+            # memory is the history budget they share, not a count of sensors (docs/scale.md).
             info = default_sensor(frame.sensor, frame)
             if info is None:
                 self.rejected["unknown_shape"] += 1
+                why = self.undescribed.get(frame.sensor, "does not describe it")
+                if not why.startswith(UNKNOWN_KIND):  # a board's other sensor (a thermistor): its frames are not ours
+                    told = f"the board's INFO {why}" if self.board else "no INFO came"
+                    self._drop(frame, t_host, f"{len(frame.payload)}-byte GRID frames, and {told} (without a "
+                               "description only a 256-byte GRID frame is read, as an 8x8 grid)")
                 return None
             info = replace(info, board=self.name, board_identity=self._swapped_to, board_info=self.board)
             self.sensors[frame.sensor] = info
-            self._unannounced.add(frame.sensor)
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
         if info.kind != expected_kind or len(frame.payload) != 4 * info.channels:
             self.rejected["shape_mismatch"] += 1
+            told = "the board's INFO describes" if frame.sensor in self._listed else "it was taken as"
+            shape = "a quad" if info.kind == "quad" else f"a {info.rows}x{info.cols} grid"
+            self._drop(frame, t_host, f"{len(frame.payload)}-byte {FrameType(frame.type).name} frames where {told} "
+                       f"{shape} ({4 * info.channels} bytes)")
             return None
         return info
+
+    def _drop(self, frame: Frame, t_host: float, why: str) -> None:
+        """Count a data frame rejected, under its sensor, with why (/health names the sensor while it lasts)."""
+        drops = self.drops.get(frame.sensor)
+        if drops is None:
+            drops = self.drops[frame.sensor] = RecentCount()
+        drops.add(t_host, latest=why)
 
     def info_document(self) -> dict | None:
         """The INFO in force as a document (its fields and the sensors it
@@ -221,13 +246,17 @@ class Interpreter:
         described = [{"id": sid, "kind": info.kind, "rows": info.rows, "cols": info.cols,
                       **({"serial": info.serial} if info.serial else {})} for sid, info in sorted(self.sensors.items())]
         return {**self.board, "sensors": [d for d in described if d["id"] in self._listed],
-                "unlisted": [d for d in described if d["id"] not in self._listed]}  # shapes from an older INFO or frames
+                "unlisted": [d for d in described if d["id"] not in self._listed],  # shapes from an older INFO or frames
+                "info_size": list(self.info_size)}  # its bytes, which this document's do not tell: info_full
 
     def preset_info(self, document: dict) -> None:
         """Take ``info_document``'s document as the INFO in force (a replay
         of a recording begun mid-stream, before its first frame), with the
         shapes of the sensors it did not list."""
-        self._on_info(orjson.dumps({k: v for k, v in document.items() if k != "unlisted"}))
+        self._on_info(orjson.dumps({k: v for k, v in document.items() if k not in ("unlisted", "info_size")}))
+        size = document.get("info_size")  # not in older recordings
+        if isinstance(size, list) and len(size) == 2 and all(type(n) is int for n in size):
+            self.info_size = (size[0], size[1])
         _, unlisted, _ = parse_info(orjson.dumps({"sensors": document.get("unlisted", [])}))
         for sid, info in unlisted.items():
             self.sensors.setdefault(sid, replace(info, board=self.board_name, board_identity=self._swapped_to,
@@ -242,6 +271,7 @@ class Interpreter:
             log.warning("ignoring INFO frame: %s", exc)
             return
         self.info_refused = None
+        self.info_size = (len(payload), len(doc.get("sensors", [])))
         board = {k: v for k, v in doc.items() if k != "sensors"}
         identity, before = board.get("serial") or board.get("board"), self.board.get("serial") or self.board.get("board")
         if self.board and identity != before:
@@ -257,7 +287,6 @@ class Interpreter:
         self.sensors.update({sid: replace(info, board=self.board_name,
                                           board_identity=None if info.serial else self._swapped_to, board_info=board)
                              for sid, info in sensors.items()})
-        self._unannounced.difference_update(sensors)
         self._listed = set(sensors)
         self._ever_listed |= self._listed
         self.undescribed = undescribed

@@ -23,6 +23,7 @@ from .board_info import name_from_info
 from .interpreter import Interpreter
 from .pipeline_changes import CalibrationListener, SensorChanges, TareListener
 from .readings import Reading, SensorInfo
+from .recent import RecentCorruption
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
 
@@ -85,6 +86,7 @@ class Pipeline(SensorChanges):
         self.grid_batch_s = grid_batch_s
         self.keep_history = keep_history
         self.decoder = BulkDecoder()
+        self.corruption = RecentCorruption()  # the decoder's CRC errors over the last seconds (/health)
         self.interpreter = Interpreter(clock, board_name=board_name, name_board=name_board or name_from_info)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
@@ -207,6 +209,7 @@ class Pipeline(SensorChanges):
                 self.bytes_fed += len(data)
                 # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.
                 readings += self.interpreter.interpret_many(self.decoder.feed(data), t_host, self.clock)
+                self.corruption.note(t_host, self.decoder.counters)
         return readings
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:

@@ -16,7 +16,6 @@ from .protocol import FLAG_OVERRUN, FLAG_SATURATED
 OPEN_SENTINEL = 0xFFFFFFFF
 SHORT_SENTINEL = 0x00000000
 AF_PER_PF = 1e6
-MAX_UNANNOUNCED_SENSORS = 64  # sensors created from data frames alone, without INFO
 MAX_SENSOR_ID = 254  # 255 is the board itself
 MAX_CHANNELS = 256  # a payload holds at most 1024 bytes of u32 channels
 

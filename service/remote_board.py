@@ -135,6 +135,7 @@ class RemoteBoard:
             "source": self.source,
             "status": "degraded" if lost or problems else "ok",
             "problems": problems,
+            "notes": list(document.get("notes") or []),
             **part,
             "sensors": sensors,
             "remote": {"lost": lost, "alive": self.alive, "publisher": claims["publisher"],

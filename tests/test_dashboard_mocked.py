@@ -253,6 +253,22 @@ def test_a_degraded_service_says_why_in_the_banner(service):
     assert "service degraded · sensor 3 stale (+1 more)" in text
 
 
+def test_a_sensor_whose_frames_are_dropped_ranks_with_the_silent_ones(service):
+    """Its frames come and none is read: no data, as a stale sensor has none, above null channels and above
+    the board's ERROR frames and corrupt frames (its data partly lost, partly read)."""
+    dropped = ("sensor 2: 900 frames dropped in the last 10 s: 256-byte GRID frames where the board's INFO "
+               "describes a 4x6 grid (96 bytes)")
+    null = "sensor 0: channels [5] have no zero (no plausible reading while it tared): their forces are null"
+    errors = "the board sent 30 ERROR frames in the last 10 s, the latest: \"mux settle timeout\""
+    corrupt = ("168 of 880 frames (19 %) in the last 10 s failed their CRC check and were dropped, by their headers "
+               "from sensor 1 (168): a loose cable or connector, electrical noise, or a wrong baud rate?")
+    service.health.update(status="degraded", problems=[errors, corrupt, null, dropped])
+    service.open()
+    service.poll()
+    assert f"service degraded · {dropped} (+3 more)" in service.page.text_content("#status")
+    assert service.page.locator("#problems li").all_inner_texts() == [dropped, null, errors, corrupt]
+
+
 def test_stats_have_no_stray_separators_without_a_board(service):
     service.health.update(sensors={}, stream={}, latency={"published": {"p99_ms": None}})
     service.open()

@@ -286,26 +286,17 @@ def quad_frame(sensor, seq=0):
     return encode_frame(FrameType.QUAD, sensor, seq, 1000 * seq, bytes(np.full(4, 5_000_000, "<u4")))
 
 
-def test_sensors_without_info_are_capped_and_the_rest_dropped_and_counted():
-    interpreter = Interpreter(max_unannounced_sensors=3)
-    readings = feed(interpreter, *(quad_frame(sid) for sid in range(10)), quad_frame(1, seq=1))
-    assert [r.sensor.id if r else None for r in readings] == [0, 1, 2] + [None] * 7 + [1]
-    assert sorted(interpreter.sensors) == [0, 1, 2]
-    assert interpreter.rejected["unannounced_sensor"] == 7
-
-
-def test_announced_sensors_are_not_capped():
-    interpreter = Interpreter(max_unannounced_sensors=1)
-    doc = {"sensors": [{"id": sid, "kind": "quad"} for sid in range(5, 9)]}
-    readings = feed(interpreter, quad_frame(0), info_frame(doc), *(quad_frame(sid) for sid in range(5, 9)), quad_frame(1))
-    assert [r.sensor.id if r else None for r in readings] == [0, None, 5, 6, 7, 8, None]
-    assert interpreter.rejected["unannounced_sensor"] == 1
-
-
-def test_the_default_cap_on_sensors_without_info_is_64():
+def test_every_sensor_id_is_taken_without_info_as_with_it():
+    """Ids 0..254 (protocol.md), before an INFO and after one that lists 5..8:
+    64 unlisted sensors were taken and the rest dropped, a board of more
+    sensors than its INFO can list losing their data."""
     interpreter = Interpreter()
-    feed(interpreter, *(quad_frame(sid) for sid in range(255)))
-    assert len(interpreter.sensors) == 64 and interpreter.rejected["unannounced_sensor"] == 255 - 64
+    doc = {"board": "b", "sensors": [{"id": sid, "kind": "quad"} for sid in range(5, 9)]}
+    readings = feed(interpreter, *(quad_frame(sid) for sid in range(128)), info_frame(doc),
+                    *(quad_frame(sid) for sid in range(128, 255)), quad_frame(254, seq=1))
+    assert [r.sensor.id if r else None for r in readings] == list(range(128)) + [None] + list(range(128, 255)) + [254]
+    assert sorted(interpreter.sensors) == list(range(255)) and interpreter.unlisted == sorted(set(range(255)) - {5, 6, 7, 8})
+    assert interpreter.rejected == {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
 
 
 def test_a_malformed_info_costs_nothing_but_itself_in_the_read_it_arrives_in():

@@ -1,8 +1,8 @@
 """Interpreter.interpret_many against interpret, frame by frame: the same
 readings (every field, channels bit for bit, sentinels as NaN) and the same
 rejections, whatever a batch mixes — INFO changing shapes mid-batch, ERROR
-text, frames that do not fit, sensors beyond the cap, open and shorted
-channels, grids and quads of one payload size."""
+text, frames that do not fit, sensors the INFO does not list, open and
+shorted channels, grids and quads of one payload size."""
 import json
 import random
 from pathlib import Path
@@ -39,8 +39,7 @@ def fields(reading):
 
 def both(frames: list[Frame], cut: int = 7) -> tuple[list, list, Interpreter, Interpreter]:
     """Readings one frame at a time and in batches of ``cut`` frames."""
-    single, many = Interpreter(clock=lambda: 0.0, max_unannounced_sensors=5), Interpreter(clock=lambda: 0.0,
-                                                                                          max_unannounced_sensors=5)
+    single, many = Interpreter(clock=lambda: 0.0), Interpreter(clock=lambda: 0.0)
     one = [fields(r) for r in (single.interpret(f, 1.5) for f in frames) if r is not None]
     batched = [fields(r) for start in range(0, len(frames), cut)
                for r in many.interpret_many(frames[start:start + cut], 1.5)]
@@ -55,15 +54,14 @@ def test_a_mixed_batch_reads_as_frame_by_frame():
               grid(0, 2, values), grid(0, 3, values[:16]), grid(2, 2, np.r_[values[:15], OPEN_SENTINEL]),
               encode_frame(FrameType.ERROR, 255, 0, 0, b"mux settle timeout"), quad(0, 4, [1, 2, 3, 4]),
               quad(1, 2, [5, 6, 7, 8])]
-    stream += [grid(sensor, 1, np.r_[values[:63], 0]) for sensor in range(10, 20)]  # beyond the cap of 5
+    stream += [grid(sensor, 1, np.r_[values[:63], 0]) for sensor in range(10, 20)]  # unlisted, taken as 8x8
     one, batched, single, many = both(Decoder().feed(b"".join(stream)))
     assert batched == one
-    assert single.rejected == many.rejected == {"info_invalid": 0, "shape_mismatch": 2, "unknown_shape": 1,
-                                                "unannounced_sensor": 6}
+    assert single.rejected == many.rejected == {"info_invalid": 0, "shape_mismatch": 2, "unknown_shape": 1}
     assert list(single.board_errors) == list(many.board_errors)
     opened = [r[7] for r in one]
     shorted = [r[8] for r in one]
-    assert opened.count(True) == 2 and shorted.count(True) == 5  # the sentinels were there to find
+    assert opened.count(True) == 2 and shorted.count(True) == 11  # the sentinels were there to find: 1 + 10 grids
 
 
 @pytest.mark.parametrize("capture", sorted(DATA.glob("*.bin")), ids=lambda p: p.stem)

@@ -87,7 +87,7 @@ def test_diagnostics_carry_what_their_schema_declares(tmp_path):
     assert docs and all(set(doc) == declared for doc in docs)
     last = docs[-1]
     assert last["counters"]["crc_errors"] == 0 and last["counters"]["sensors"]["0"]["frames"] > 900
-    assert last["rejected"] == {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0, "unannounced_sensor": 0}
+    assert last["rejected"] == {"info_invalid": 0, "shape_mismatch": 0, "unknown_shape": 0}
 
 
 def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path, caplog):

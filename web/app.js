@@ -584,9 +584,11 @@ function worstLink(health) {
   return [boards.length > 1 ? `board ${ranked[0][0]}: ` : "", ranked[0][1]];
 }
 
-// /health's problem lines, most severe first: a link down or board lost, then silence
-// (a stale link or sensor), then forces null or failing, then the rest (in /health's order).
-const PROBLEM_RANKS = [/(^|: )(lost|link down)\b/, /(^|: )(link stale|sensor \S+ stale$)/, /\bnull\b|\bfails\b/];
+// /health's problem lines, most severe first: a link down or board lost, then no data (a stale
+// link or sensor, a sensor whose frames are dropped), then forces null or failing, then the
+// rest (in /health's order).
+const PROBLEM_RANKS = [/(^|: )(lost|link down)\b/, /(^|: )(link stale|sensor \S+ stale$|sensor \S+: \d+ frames dropped\b)/,
+  /\bnull\b|\bfails\b/];
 
 function problemRank(text) {
   const rank = PROBLEM_RANKS.findIndex((pattern) => pattern.test(text));
