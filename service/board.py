@@ -20,7 +20,7 @@ from .calibration.registry import sensor_identity
 from .handover import LoopHandover
 from .history import Histories
 from .pipeline import Pipeline
-from .readout import DEFAULT_SILENCE_S, Readout
+from .readout import DEFAULT_SILENCE_S, INFO_REPLY_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
 from .sources.protocol_replay import recorded_baselines, recorded_changes
 
@@ -159,6 +159,8 @@ class Board:
         """Start reading; the pipeline's listeners are wired by the service."""
         self.handover = LoopHandover(self.pipeline.feed_reads, self.pipeline.link_lost, loop)
         self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
+        if not self.source.startswith("replay://"):  # a link a board may be swapped on, not a recording's bytes
+            self.pipeline.identify_on_link(INFO_REPLY_S, self.readout.ask_info, loop.call_later)
         self.readout.start(loop)
 
     def stop(self) -> None:

@@ -6,21 +6,27 @@ reconstruct, keep history and rates, publish. Byte listeners (the
 recorder's raw channel) see every chunk as received, before decoding it,
 under the pipeline's lock;
 frame listeners (the fan-out hub, the recorder) see each batch of
-ForceFrames. Tares and calibrations: pipeline_changes.py.
+ForceFrames. Tares and calibrations: pipeline_changes.py. On a live link,
+frames wait for the board's INFO after each (re)open and after a restart
+whose INFO was lost (identify.py: ``identify_on_link``).
 """
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 from collections import deque
+from functools import partial
 from typing import Callable, Protocol
 
 from .clock_map import ClockMap
 from .history import Histories
 from .protocol_bulk import BulkDecoder
 from .board_info import name_from_info
+from .identify import Held, Identification
 from .interpreter import Interpreter
+from .protocol import Frame
 from .pipeline_changes import CalibrationListener, SensorChanges, TareListener
 from .readings import Reading, SensorInfo
 from .recent import RecentCorruption
@@ -30,6 +36,9 @@ from .reconstruct.sensor_calibration import SensorCalibration
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
 Defer = Callable[[Callable[[], None]], object]
+Later = Callable[[float, Callable[[], None]], object]
+
+log = logging.getLogger(__name__)
 
 RATE_WINDOW_S = 1.0
 
@@ -112,6 +121,21 @@ class Pipeline(SensorChanges):
         self._deferred: deque[tuple[list[Reading], float, int]] = deque()  # (grids, t_host, reads)
         self.bytes_fed = 0  # bytes of every read so far
         self._recorded: list[tuple[int, int, bool | dict]] = []  # (byte offset, sensor, change), in order
+        self.identification: Identification | None = None  # a live link's frames waiting for INFO (identify_on_link)
+        self._ask_info: Callable[[], object] | None = None
+        self._later: Later | None = None
+        self._unreadable = 0  # data frames the description in force could not read, as last seen
+
+    def identify_on_link(self, wait_s: float, ask_info: Callable[[], object], later: Later) -> None:
+        """A live link's frames wait for its board's INFO, from its first
+        connect, after each ``link_lost`` and after a restart whose INFO was
+        lost, at most ``wait_s`` (identify.py). ``ask_info`` asks the board
+        INFO? (the readout's, at most one a second; it asked on connect): at
+        such a restart, and when a data frame does not fit the description in
+        force (a restart not found whose INFO was lost). ``later(delay, fn)``:
+        ``fn`` on the feeding thread after ``delay`` s (the loop's call_later)."""
+        self.identification = Identification(wait_s)
+        self._ask_info, self._later = ask_info, later
 
     def schedule_recorded(self, changes: list[tuple[int, int, bool | dict]]) -> None:
         """Recorded changes (byte offset in the stream, sensor id, change:
@@ -189,9 +213,14 @@ class Pipeline(SensorChanges):
 
     def link_lost(self) -> None:
         """The partial frame is dropped and counted; sequence state is kept,
-        so the scans lost while away show up as a gap."""
+        so the scans lost while away show up as a gap. Frames still waiting
+        for the board's INFO go on without it; the next link's wait for its own."""
         with self._lock:
             self.decoder.reset()
+            if self.identification is None:
+                return
+            readings = self._unidentified(self.identification.lost(), "the link dropped first")
+        self._flush(readings)
 
     def diagnostics(self) -> dict:
         """The decoder's counters and the interpreter's rejections (a recording's /diagnostics)."""
@@ -208,9 +237,66 @@ class Pipeline(SensorChanges):
                 self.reads += 1
                 self.bytes_fed += len(data)
                 # Each reading's scan time on the host clock: the board's clock mapped by the frames' arrival times.
-                readings += self.interpreter.interpret_many(self.decoder.feed(data), t_host, self.clock)
+                frames = self.decoder.feed(data)
                 self.corruption.note(t_host, self.decoder.counters)
+                if self.identification is None or not self.identification.wants(self.decoder.restarts_without_info):
+                    readings += self.interpreter.interpret_many(frames, t_host, self.clock)
+                else:
+                    readings += self._identify(frames, t_host)
+        if self._ask_info is not None:
+            self._ask_if_unreadable()
         return readings
+
+    def _identify(self, frames: list[Frame], t_host: float) -> list[Reading]:
+        """A read's frames through the identification: those it lets go, read;
+        a hold that begins times itself out, and at a restart asks the board INFO?."""
+        identification = self.identification
+        unanswered = identification.unanswered
+        go, began = identification.take(frames, t_host, self.decoder.restarts_without_info)
+        if began:
+            self._later(identification.wait_s, partial(self._hold_expired, identification.holds))
+        if began == "restarted":
+            self._ask_info()
+        if identification.unanswered != unanswered:
+            return self._unidentified(go, f"none within {identification.wait_s:.2f} s")
+        return self._read(go)
+
+    def _hold_expired(self, hold: int) -> None:
+        """``wait_s`` after hold number ``hold`` began: its frames, if no INFO
+        came meanwhile, read under the description in force and published."""
+        with self._lock:
+            held = self.identification.expire(hold)
+            readings = self._unidentified(held, f"none within {self.identification.wait_s:.2f} s")
+        self._flush(readings)
+
+    def _unidentified(self, held: Held, why: str) -> list[Reading]:
+        """Frames released without the board's INFO, read (and said, when there are any)."""
+        count = sum(len(frames) for frames, _ in held)
+        if count:
+            log.warning("board %s: %d frames held for its INFO after its link opened or it restarted (%s) are read "
+                        "under the description in force", self.interpreter.name, count, why)
+        return self._read(held)
+
+    def _read(self, held: Held) -> list[Reading]:
+        """Readings of frames grouped by read, each group with its receive time, in order."""
+        return [reading for frames, t_host in held if frames
+                for reading in self.interpreter.interpret_many(frames, t_host, self.clock)]
+
+    def _flush(self, readings: list[Reading]) -> None:
+        """Readings released outside a read, reconstructed and published now,
+        after the grids still deferred (each sensor's frames stay in order)."""
+        if readings:
+            self._reconstruct_deferred()
+            self._reconstruct(readings, readings[-1].t_host, {})
+
+    def _ask_if_unreadable(self) -> None:
+        """Ask the board INFO? when data frames did not fit the description in
+        force (another shape, or none known): its INFO may have been lost."""
+        rejected = self.interpreter.rejected
+        unreadable = rejected["shape_mismatch"] + rejected["unknown_shape"]
+        if unreadable != self._unreadable:
+            self._unreadable = unreadable
+            self._ask_info()
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:
         """``reads``: how many more reads are reconstructed, by kind ("grid",

@@ -88,6 +88,7 @@ class Decoder(Sequencing):
         self._states: dict[int, _SensorState] = {}
         self._infos = 0  # INFO frames seen, and the board time of the last one
         self._info_t_us = 0
+        self.restarts_without_info = 0  # restarts found with their power-up INFO lost (protocol_sequence.py)
         self.counters = StreamCounters()
 
     def feed(self, data: bytes) -> list[Frame]:

@@ -66,8 +66,10 @@ class _SensorState:
 
 class Sequencing:
     """``Decoder``'s sequence bookkeeping: ``_states`` (per sensor), the INFO
-    count ``_infos`` and the last INFO's board time ``_info_t_us``, and the
-    ``counters`` it adds to (all set by ``Decoder``)."""
+    count ``_infos`` and the last INFO's board time ``_info_t_us``, the
+    ``counters`` it adds to and ``restarts_without_info`` (restarts found by
+    a sensor's clock going back, with no INFO of the new run before them:
+    its power-up INFO was lost; all set by ``Decoder``)."""
 
     def _accept(self, ftype: int, sensor: int, flags: int, seq: int, t_us: int, body: bytes) -> Frame | None:
         """A good frame, with its place in its sensor's sequence; None for a
@@ -107,6 +109,7 @@ class Sequencing:
                             sensor_counters.late_frames += 1  # a scan the gap before missed, delivered late
                             return None
                         restart = step != 0
+                        self.restarts_without_info += restart  # its power-up INFO lost: the live path asks INFO?
                 elif state.infos != self._infos and ((t_us < state.t_us and step > RESTART_JUMP_US)
                                                      or ((seq - state.seq) % SEQ_MODULUS >= SEQ_MODULUS // 2
                                                          and 0 < (state.t_us - self._info_t_us) % T_US_MODULUS

@@ -7,7 +7,10 @@ while it is away), telling the sink ``link_lost()``. A link that goes
 silent — a board that hangs, a socket whose peer stopped without closing —
 is asked ``INFO?`` after ``silence_s`` and reopened if still silent half a
 second later. A finite source (a recording) that has delivered everything
-is ``finished``: it stays open and is not reopened.
+is ``finished``: it stays open and is not reopened. The pipeline may ask the
+board ``INFO?`` too (``ask_info``: a board restarted without its INFO, or
+sends frames its description cannot read), at most once per
+``ASK_INFO_EVERY_S``, so that a board that never answers is not flooded.
 
 Where the bytes are read is decided once per connection, here
 (``_read_until_gone``), as python-can's ``Notifier.add_bus`` does: given an
@@ -38,6 +41,11 @@ log = logging.getLogger(__name__)
 ON_CONNECT_COMMANDS = b"START\nINFO?\n"
 DEFAULT_SILENCE_S = 2.0
 REOPEN_AFTER_ASKING_S = 0.5
+# A board answers INFO? with one INFO frame after the frames already in flight (protocol.md): an INFO of at
+# most 1 040 bytes takes 5 ms at 2 Mbaud (200 kB/s), behind the tens of KB the device's and the kernel's
+# buffers hold (0.1-0.2 s at that rate). Frames wait at most this long for it after a (re)open (identify.py).
+INFO_REPLY_S = 0.25
+ASK_INFO_EVERY_S = 1.0  # ask_info's: a board that never answers is asked once a second, not once per frame it sends
 MIN_STALE_S = 0.5
 
 
@@ -118,7 +126,9 @@ class Readout:
             raise ValueError(f"silence_s must be > 0, got {silence_s}")
         self.link = LinkState(url)
         self._silence_s = silence_s
-        self._asked_at: float | None = None
+        self._asked_at: float | None = None  # INFO? asked for the silence now
+        self._info_asked_at: float | None = None  # INFO? last sent by ask_info
+        self._write_lock = threading.Lock()  # the loop's ask_info and this thread write the same source
         self._sink = sink
         self._opener = opener
         self._backoff = backoff_s
@@ -154,14 +164,15 @@ class Readout:
                 self._stop_event.wait(delay)
                 delay = min(delay * 2, self._backoff[1])
                 continue
-            self.link.up = True
             self.link.connects += 1
             self.link.connected_at = self._clock()
             self._asked_at = None
             delay = self._backoff[0]
             log.info("connected to %s", self.link.url)
             try:
-                self._source.write(ON_CONNECT_COMMANDS)
+                with self._write_lock:
+                    self.link.up = True
+                    self._source.write(ON_CONNECT_COMMANDS)
                 self._read_until_gone(self._source)
             except OSError as exc:
                 self.link.last_error = str(exc)
@@ -170,7 +181,8 @@ class Readout:
                 self.link.last_error = f"{type(exc).__name__}: {exc}"
                 log.exception("reading %s failed; reopening", self.link.url)
             finally:
-                self.link.up = False
+                with self._write_lock:  # no ask_info writes to it once it is closing
+                    self.link.up = False
                 self._source.close()
                 self._sink.link_lost()
             self._stop_event.wait(delay)
@@ -200,9 +212,27 @@ class Readout:
         if self._asked_at is None or self._asked_at < now - silent:  # not yet asked in this silence
             self._asked_at = now
             log.warning("no bytes from %s for %.1f s: asking INFO?", self.link.url, silent)
-            source.write(b"INFO?\n")
+            with self._write_lock:
+                source.write(b"INFO?\n")
         elif now - self._asked_at >= REOPEN_AFTER_ASKING_S:
             raise OSError(f"no bytes for {silent:.1f} s, not even after INFO?")
+
+    def ask_info(self) -> bool:
+        """Ask the board ``INFO?`` (from any thread), unless the link is down
+        or this asked less than ASK_INFO_EVERY_S ago (the INFO? on connect and
+        for a silence are the readout's own); True when sent. A failed write
+        is left to the reading thread, which finds the link gone."""
+        with self._write_lock:
+            now = self._clock()
+            if not self.link.up or (self._info_asked_at is not None and now - self._info_asked_at < ASK_INFO_EVERY_S):
+                return False
+            self._info_asked_at = now
+            try:
+                self._source.write(b"INFO?\n")
+            except OSError as exc:
+                log.debug("asking %s INFO? failed: %s", self.link.url, exc)
+                return False
+            return True
 
     def _received(self, data: bytes) -> float:
         now = self._clock()

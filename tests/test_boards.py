@@ -173,9 +173,10 @@ def test_a_tare_of_a_board_not_connected_says_so():
 
     service = TactileService(boards=[BoardSpec("socket://127.0.0.1:1", name="a")])
     quad = np.full(4, 2_200_000, "<u4").tobytes()
+    info = encode_frame(FrameType.INFO, 255, 0, 0, b'{"sensors": [{"id": 0, "kind": "quad"}]}')  # its frames wait for it
     with TestClient(create_app(service), base_url="http://localhost") as client:
-        service.pipeline.feed(b"".join(encode_frame(FrameType.QUAD, 0, k, 1000 * (k + 1), quad) for k in range(5)),
-                              time.time())
+        service.pipeline.feed(info + b"".join(encode_frame(FrameType.QUAD, 0, k, 1000 * (k + 1), quad)
+                                              for k in range(5)), time.time())
         answer = client.post("/tare").json()
     assert answer["tared"] == [0] and "a not connected" in answer["note"]
 

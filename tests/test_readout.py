@@ -10,7 +10,7 @@ from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig
 from service.pipeline import Pipeline
 from service.handover import ThreadSink
-from service.readout import Readout
+from service.readout import ASK_INFO_EVERY_S, Readout
 
 
 def wait_for(predicate, timeout=5.0):
@@ -233,3 +233,49 @@ def test_a_replugged_device_is_read_again_within_half_a_second():
         readout.stop()
         device.unplug()
     assert max(took) < 0.6  # backoff capped at 0.5 s
+
+
+class Port:
+    """A source that reads nothing and keeps what is written to it."""
+
+    def __init__(self):
+        self.written = b""
+
+    def read(self, timeout):
+        time.sleep(timeout)
+        return b""
+
+    def write(self, data):
+        self.written += data
+
+    def finished(self):
+        return False
+
+    def fileno(self):
+        return None
+
+    def close(self):
+        pass
+
+
+def test_info_is_asked_at_most_once_a_second_and_not_while_the_link_is_down():
+    """A board that never answers, sending frames its INFO cannot read: the
+    pipeline asks at every read; the board gets INFO? once a second."""
+    now = [100.0]
+    port = Port()
+    readout = Readout("fake://", ThreadSink(lambda data, t_host: None, lambda: None), opener=lambda url: port,
+                      clock=lambda: now[0], silence_s=1e9)
+    assert not readout.ask_info()  # not connected yet
+    readout.start()
+    try:
+        deadline = time.monotonic() + 2
+        while not readout.link.up and time.monotonic() < deadline:
+            time.sleep(0.01)
+        asks = []
+        for _ in range(40):  # 5 s of reads 1/8 s apart
+            asks.append(readout.ask_info())
+            now[0] += 0.125
+    finally:
+        readout.stop()
+    assert port.written.count(b"INFO?") == 1 + 5  # on connect, then once a second
+    assert [k for k, sent in enumerate(asks) if sent] == [round(k * ASK_INFO_EVERY_S / 0.125) for k in range(5)]
