@@ -40,6 +40,8 @@ def broken(field: str) -> dict:
         taxels["max_force_N"][5] = float(field.split("=")[1])
     elif field.startswith("created"):
         document["created"] = json.loads(field.split("=")[1])
+    elif field.startswith("mounting"):
+        document["mounting"] = json.loads(field.split("=")[1])
     else:
         force, relative = [0.0, 2.0, 5.0, 9.0], [0.0, 0.02, 0.05, 0.09]
         taxels["curves"] = {"0": {"force_N": force[::-1] if field == "reversed" else force,
@@ -72,6 +74,12 @@ def broken(field: str) -> dict:
     ('created={"x": 1}', "created: expected an ISO 8601 time as a string, got {'x': 1}"),
     ("created=[1]", "created: expected an ISO 8601 time as a string, got [1]"),
     ("created=null", "created: expected an ISO 8601 time as a string, got None"),  # registry: NOT NULL
+    # a list was a TypeError (unhashable) and a traceback; {}, 0 and null were stored, the service's mounting used
+    ('mounting=["flat"]', "mounting: ['flat'] is not one of flat, curved"),
+    ("mounting=[1.0, 2.0]", "mounting: [1.0, 2.0] is not one of flat, curved"),
+    ("mounting={}", "mounting: {} is not one of flat, curved"),
+    ("mounting=0", "mounting: 0 is not one of flat, curved"),
+    ("mounting=null", "mounting: None is not one of flat, curved"),
 ])
 def test_a_document_the_service_cannot_use_is_not_imported_and_the_field_is_named(tmp_path, capsys, field, message):
     path = tmp_path / "c.json"

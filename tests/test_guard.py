@@ -363,3 +363,28 @@ def test_a_stored_document_whose_created_is_not_a_string_leaves_the_sensor_on_th
         assert state.status_code == 200, state.text
         assert state.json()["id"] == "builtin-table1" and "created: " in state.json()["problem"]
         assert client.get("/health").status_code == 200
+
+
+def _refused_and_nothing_stored(client, sid: int, base: dict, documents: list[tuple[dict, str]]) -> None:
+    """Each of ``documents`` (with the start of the 422's detail that names its field) PUT to
+    ``sid`` after ``base``: a 422 naming it, the registry's rows and the active calibration unchanged."""
+    from service.calibration.registry import Registry
+
+    assert client.put(f"/sensors/{sid}/calibration", json=base).status_code == 200
+    with Registry() as registry:  # TACTILE_REGISTRY: the fixture's own
+        rows = registry.list()
+    for document, named in documents:
+        document = {k: v for k, v in document.items() if k != "id"}
+        answer = client.put(f"/sensors/{sid}/calibration", json=document)
+        assert answer.status_code == 422 and answer.json()["detail"].startswith(named), (named, answer.text)
+    with Registry() as registry:
+        assert registry.list() == rows
+    assert client.get(f"/sensors/{sid}/calibration").json()["id"] == base["id"]
+
+
+def test_a_document_whose_mounting_is_not_a_mounting_is_a_422_naming_it_and_nothing_is_stored(own_registry_client):
+    """A list was a 500 (TypeError: unhashable); {}, 0 and null were a 200, stored, the service's mounting used."""
+    grid, _ = _exported_documents(own_registry_client)
+    _refused_and_nothing_stored(own_registry_client, 0, grid, [
+        ({**grid, "mounting": value}, f"mounting: {value!r} is not one of flat, curved")
+        for value in (["flat"], [1.0, 2.0], {}, 0, None)])

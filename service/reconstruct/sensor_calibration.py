@@ -157,7 +157,19 @@ def from_document(document: dict, info: SensorInfo, mounting: str = "flat") -> S
     if (document.get("rows"), document.get("cols")) != (info.rows, info.cols):
         raise ValueError(f"rows, cols: calibration {cid} is for a {document.get('rows')}x{document.get('cols')} grid, "
                          f"sensor {info.id} is {info.rows}x{info.cols}")
-    return _grid(document, cid, info, document.get("mounting") or mounting)
+    return _grid(document, cid, info, _mounting(document, mounting))
+
+
+def _mounting(document: dict, mounting: str) -> str:
+    """The document's ``mounting`` (absent: ``mounting``, the service's);
+    ValueError unless one of MOUNTINGS: a list was a TypeError (unhashable),
+    {}, 0 and null were stored and the service's taken in their place."""
+    if "mounting" not in document:
+        return mounting
+    given = document["mounting"]
+    if not isinstance(given, str) or given not in MOUNTINGS:
+        raise ValueError(f"mounting: {given!r} is not one of {', '.join(MOUNTINGS)}")
+    return given
 
 
 def _created(document: dict) -> str | None:
