@@ -176,3 +176,22 @@ def test_a_recorded_calibration_the_service_cannot_use_is_skipped_when_served(tm
     assert [key for key, doc in live.items()
             if doc.get("taxels_N", doc.get("fxyz_N")) != [None if v != v else v for v in served[key].forces_N.tolist()]
             or doc["calibration"] != served[key].calibration] == []
+
+
+def test_a_recorded_calibration_that_fails_past_the_checks_is_skipped_too(pressed, caplog, monkeypatch):
+    """A recording is any file: whatever a recorded document raises where it is prepared (here a
+    TypeError, as the list mounting raised before it was checked) skips it, never the replay."""
+    pipeline = Pipeline(Reconstructor())
+    pipeline.feed(pressed[:20000], 1000.0)
+    document = pipeline.set_calibration(pipeline.interpreter.sensors[0], GRID_UPLOAD)
+
+    def unforeseen(*args):
+        raise TypeError("unhashable type: 'list'")
+
+    monkeypatch.setattr(pipeline.reconstructor, "prepare_calibration", unforeseen)
+    with caplog.at_level(logging.WARNING, logger="service.pipeline"):
+        pipeline.redo(0, {**document, "id": "edited"})
+    assert ("sensor 0: the calibration edited set while recording cannot be set again (TypeError: unhashable type: "
+            "'list'); kept the one in use") in caplog.text
+    frames = pipeline.feed(pressed[20000:40000], 1001.0)
+    assert pipeline.reconstructor.calibration(0).id == document["id"] and {f.sensor.id for f in frames} == {0, 1}
