@@ -6,16 +6,17 @@ to and names the bad field. What it carries, per kind:
 
 grid  ``taxels``: ``gain`` (n,) compliance gains of the model curve (κ in
       physics/taxel_response.py), ``gain_se`` (n,) their standard errors
-      (null: unknown), ``c0_pF`` (n,) unloaded capacitances, ``curves``
-      {taxel: {force_N, relative}} monotone empirical curves that replace
-      the model for those taxels (forces 0 to force_max_N, 471 N),
-      ``residual_rms_N`` (n,); optional ``sensitivity_pct_per_N`` (n,)
+      (null: unknown; 0 to the gain), ``c0_pF`` (n,) unloaded capacitances,
+      ``curves`` {taxel: {force_N, relative}} monotone empirical curves that
+      replace the model for those taxels (forces 0 to force_max_N, 471 N),
+      ``residual_rms_N`` (n,) (0 to 471 N); optional ``sensitivity_pct_per_N`` (n,)
       (level0's slopes, 0.1–10 %/N as an upload's; null: the curve's),
       ``max_force_N`` (n,) the largest force pressed (up to 471 N), and
       ``crosstalk`` {mechanical, electrical} measured in the session.
 quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
       optional ``normal_fit_se``/``shear_fit_se`` (the standard errors of
-      the two coefficients; c1's and a's are used), and
+      the two coefficients, not negative; c1's and a's are used, at most c1
+      and a), ``statistics.rms_N`` {x, y, z} (0 to the axis's usable force), and
       ``normal_usable_N``/``shear_usable_N``: where the session's response
       stopped rising (past them a force is held and flagged); optional
       ``c0_pF`` (4,) the electrodes' unloaded capacitances its session
@@ -223,7 +224,7 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
         return np.full(n, np.nan)
     if isinstance(values, list) and len(values) != n:
         raise ValueError(f"taxels.{name}: {len(values)} values for the {n} taxels")
-    if not isinstance(values, list) or any(isinstance(v, bool) for v in values):
+    if not isinstance(values, list) or any(isinstance(v, bool | str) for v in values):  # numpy takes "1" as 1.0
         raise ValueError(f"taxels.{name}: expected a list of {n} numbers")
     if not missing_ok and None in values:  # float(None) would pass as NaN
         raise ValueError(f"taxels.{name}[{values.index(None)}] is null: expected a number")
@@ -237,14 +238,30 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
     return out
 
 
-def _check_within(name: str, values: np.ndarray, low: float, high: float, unit: str, high_in: bool = False) -> None:
-    """ValueError naming the first of ``values`` (n,) outside (low, high), or
-    (low, high] with ``high_in``; NaN (a null: not known) passes."""
+def _check_within(name: str, values: np.ndarray, low: float, high: float, unit: str, high_in: bool = False,
+                  low_in: bool = False) -> None:
+    """ValueError naming the first of ``values`` (n,) outside (low, high), the
+    ends included with ``low_in``, ``high_in``; NaN (a null: not known) passes."""
     above = values > high if high_in else values >= high
-    bad = np.flatnonzero((values <= low) | above)
+    below = values < low if low_in else values <= low
+    bad = np.flatnonzero(below | above)
     if bad.size:
         raise ValueError(f"taxels.{name}[{bad[0]}] = {values[bad[0]]:g} is outside "
-                         f"({low:.3g}, {high:.3g}{']' if high_in else ')'} {unit}")
+                         f"{'[' if low_in else '('}{low:.3g}, {high:.3g}{']' if high_in else ')'} {unit}")
+
+
+def _gain_relative_se(se: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """σ(κ)/κ (n,) of standard errors ``se`` (n,), NaN where not known (the
+    built-in's then); ValueError naming the first outside [0, its gain]: a
+    standard error is not negative, and one past the gain leaves the gain
+    undetermined (its 1-σ interval reaches no sensitivity at all). Fits give
+    ~0.5 % (tactile calibrate), the built-in 7 %. -1e150 gave σ 1e150 N,
+    1e300 an infinite σ (null: saturated) beside a force, unflagged."""
+    bad = np.flatnonzero((se < 0) | (se > gain))
+    if bad.size:
+        raise ValueError(f"taxels.gain_se[{bad[0]}] = {se[bad[0]]:g} is outside [0, {gain[bad[0]]:.4g}], the taxel's "
+                         "gain (past it the gain is undetermined)")
+    return np.where(np.isnan(se), BUILTIN_RELATIVE_SE, se / gain)
 
 
 def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCalibration:
@@ -261,13 +278,14 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
         raise ValueError(f"taxels.gain[{bad[0]}] = {gain[bad[0]]} is outside ({low:g}, {high:g})")
     c0 = _numbers(taxels, "c0_pF", n)
     check_c0("taxels.c0_pF", c0)
-    se = _numbers(taxels, "gain_se", n, missing_ok=True)
-    relative_se = np.where(np.isnan(se), BUILTIN_RELATIVE_SE, np.abs(se) / gain)
-    residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
+    relative_se = _gain_relative_se(_numbers(taxels, "gain_se", n, missing_ok=True), gain)
     table = model_table(mounting)
     response = TaxelResponse(table.force_N, table.relative_change, gain, table.dense)
     response.check()
     force_max = force_max_N(mounting)
+    # an RMS residual in N: none past the largest force a taxel can be calibrated to (1e300 made σ infinite)
+    residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
+    _check_within("residual_rms_N", residual, 0.0, force_max, "N", high_in=True, low_in=True)
     curves, model_sigma = _curves(taxels.get("curves"), n, residual, force_max)
     reach = _numbers(taxels, "max_force_N", n, missing_ok=True) if "max_force_N" in taxels else np.full(n, np.nan)
     _check_within("max_force_N", reach, 0.0, force_max, "N", high_in=True)
@@ -345,18 +363,22 @@ def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) ->
     return curves, model_sigma
 
 
-def _quad_residual(document: dict) -> tuple[float, float, float]:
+def _quad_residual(document: dict, model: QuadModel) -> tuple[float, float, float]:
     """The fit's residual RMS (Fx, Fy, Fz) through the model (statistics.rms_N of a calibrated quad;
-    zeros where absent: an upload of fits alone); ValueError naming a bad one."""
+    zeros where absent: an upload of fits alone); ValueError naming a bad one, or one past its axis's
+    usable force (a fit that misses by more than the range it covers explains nothing: 999 N was taken)."""
     statistics = document.get("statistics")
     if statistics is not None and not isinstance(statistics, dict):
         raise ValueError(f"statistics: expected an object, got {statistics!r}")
     rms = (statistics or {}).get("rms_N") or {}
     out = []
-    for axis in "xyz":
+    for axis, usable in zip("xyz", (model.shear_usable_N, model.shear_usable_N, model.normal_usable_N)):
         value = rms.get(axis, 0.0) if isinstance(rms, dict) else None
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1e3:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"statistics.rms_N.{axis}: {value!r} is not a residual in N")
+        if not 0.0 <= value <= usable:
+            raise ValueError(f"statistics.rms_N.{axis}: {value:g} is outside [0, {usable:.4g}] N, the axis's "
+                             "usable force")
         out.append(float(value))
     return out[0], out[1], out[2]
 
@@ -364,7 +386,9 @@ def _quad_residual(document: dict) -> tuple[float, float, float]:
 def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str], slope: str, value: float) -> float:
     """σ/value of the fit's ``slope`` coefficient (of ``value``) from ``name``
     (the standard errors of its two ``coefficients``), the built-in's where
-    absent; ValueError naming a bad one."""
+    absent; ValueError naming a bad one: a standard error is not negative,
+    and the slope's is at most the slope, as a grid taxel's gain_se (past it
+    the slope is undetermined; fits give 0.004–0.08 %: 1e300 gave σ 3e301 N)."""
     errors = document.get(name)
     if errors is None:
         return BUILTIN_RELATIVE_SE
@@ -372,7 +396,14 @@ def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str],
             and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in errors)):
         raise ValueError(f"{name}: expected the standard errors [{', '.join(coefficients)}] of {name[:-3]}, "
                          f"got {errors!r}")
-    return abs(float(errors[coefficients.index(slope)])) / value
+    for coefficient, error in zip(coefficients, errors):
+        if error < 0:
+            raise ValueError(f"{name}: {coefficient}'s standard error {error:g} is negative")
+    error = float(errors[coefficients.index(slope)])
+    if error > value:
+        raise ValueError(f"{name}: {slope}'s standard error {error:g} is outside [0, {value:.4g}], {slope} itself "
+                         "(past it the slope is undetermined)")
+    return error / value
 
 
 def quad_c0(values) -> np.ndarray | None:
@@ -400,5 +431,6 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
     se = (_slope_relative_se(document, "normal_fit_se", ("c2", "c1"), "c1", model.normal_fit[1]),
           _slope_relative_se(document, "shear_fit_se", ("a", "b"), "a", model.shear_a))
     return SensorCalibration(cid, "quad", _created(document), None, quad=model, quad_relative_se=se,
-                             quad_model_sigma_N=_quad_residual(document), quad_c0_pF=quad_c0(document.get("c0_pF")),
+                             quad_model_sigma_N=_quad_residual(document, model),
+                             quad_c0_pF=quad_c0(document.get("c0_pF")),
                              fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)
