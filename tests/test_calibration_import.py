@@ -36,6 +36,8 @@ def broken(field: str) -> dict:
     elif field.startswith("curve="):  # "curve=F0,F1" on taxel 27
         taxels["curves"] = {"27": {"force_N": [float(f) for f in field.split("=")[1].split(",")],
                                    "relative": [0.0, 0.5]}}
+    elif field.startswith("curve_relative="):  # "curve_relative=JSON" at 0 and 10 N on taxel 27
+        taxels["curves"] = {"27": {"force_N": [0.0, 10.0], "relative": json.loads(field.split("=")[1])}}
     elif field.startswith("max_force"):
         taxels["max_force_N"][5] = float(field.split("=")[1])
     elif field.startswith("created"):
@@ -73,6 +75,15 @@ def broken(field: str) -> dict:
     ("max_force=-3", "taxels.max_force_N[5] = -3 is outside (0, 471] N"),
     ('curves=[1]', "taxels.curves: expected an object {taxel: {force_N, relative}}, got [1]"),
     ('curves="x"', "taxels.curves: expected an object {taxel: {force_N, relative}}, got 'x'"),
+    # each point within what taxels of gain 0.08 to 8 read at its force on the model table, ±0.005: at 10 N
+    # R(0.8 N) - 0.005 = 0.00437 to R(80 N) = the table's top 0.7846 + 0.005. The press scene's 5 N read
+    # 5e-301 N ± 0.013 N with relative [0, 1e300], 0 N with [0.5, 0.6], 5 N at any load with ±1e300; unflagged
+    ("curve_relative=[0, 1e300]", "taxels.curves['27']: relative[1] = 1e+300 at 10 N is outside [0.00437, 0.79]"),
+    ("curve_relative=[0, 0.004]", "taxels.curves['27']: relative[1] = 0.004 at 10 N is outside [0.00437, 0.79]"),
+    ("curve_relative=[0.5, 0.6]", "taxels.curves['27']: relative[0] = 0.5 at 0 N is outside [-0.005, 0.005]"),
+    ("curve_relative=[-1e300, 1e300]", "taxels.curves['27']: relative[0] = -1e+300 at 0 N is outside [-0.005, "),
+    ('curve_relative=["0", "0.1"]', "taxels.curves['27']: expected {force_N: [...], relative: [...]}"),
+    ("curve_relative=[false, true]", "taxels.curves['27']: expected {force_N: [...], relative: [...]}"),
     ("created=1", "created: expected an ISO 8601 time as a string, got 1"),
     ('created={"x": 1}', "created: expected an ISO 8601 time as a string, got {'x': 1}"),
     ("created=[1]", "created: expected an ISO 8601 time as a string, got [1]"),
@@ -148,11 +159,15 @@ def test_a_quad_document_with_a_field_of_another_type_or_out_of_range_is_not_imp
     assert f"{path}: not imported, the service could not use it: {message}" in capsys.readouterr().err
 
 
-def test_standard_errors_up_to_the_gain_and_residuals_up_to_471_N_are_imported(tmp_path):
+def test_values_at_the_ends_of_their_ranges_are_imported(tmp_path):
     """The ends of the ranges: taxel 5's gain_se at 0.9523 (table 1's gain 0.95235), a residual of 471 N,
-    a quad's c1 standard error at c1 (0.0343) and Fz residual at its usable 17.15 N."""
+    a curve just within its bounds, a quad's c1 standard error at c1 (0.0343) and Fz residual at its
+    usable 17.15 N."""
     grid = usable()
     grid["taxels"]["gain_se"][5], grid["taxels"]["residual_rms_N"][5] = 0.9523, 470.9
+    force = [0.25 * k for k in range(49)]  # a concave response the model cannot follow (test_calibration_errors)
+    grid["taxels"]["curves"] = {"2": {"force_N": force, "relative": [0.02 * f - 0.0008 * f * f for f in force]},
+                                "3": {"force_N": [0.0, 10.0], "relative": [0.004, 0.0044]}}
     edge = quad(normal_fit_se=[0.0, 0.0343], statistics={"rms_N": {"x": 8.6, "y": 0.0, "z": 17.1}})
     with reg.Registry(tmp_path / "r.sqlite3") as registry:
         for document in (grid, edge):

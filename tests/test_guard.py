@@ -390,9 +390,10 @@ def test_a_document_whose_mounting_is_not_a_mounting_is_a_422_naming_it_and_noth
         for value in (["flat"], [1.0, 2.0], {}, 0, None)])
 
 
-def test_standard_errors_and_residuals_out_of_range_are_a_422_naming_them_and_nothing_is_stored(own_registry_client):
+def test_standard_errors_residuals_and_curves_out_of_range_are_a_422_naming_them_nothing_stored(own_registry_client):
     """A taxel's gain_se of -1e150 was a 200, its loaded taxels read ~1 N ± 1e150 N; 1e300 gave σ null (which
-    says saturated) beside a number, unflagged; a quad's standard errors and residuals likewise. The ranges:
+    says saturated) beside a number, unflagged; a quad's standard errors and residuals likewise; a curve's
+    ΔC/C0 to 1e300 read 5 N as 5e-301 N, σ 0.013 N. The ranges:
     standard errors from 0 to the value they are of (a taxel's gain; c1 0.0343, a 0.0077), residuals
     from 0 to 471 N (a grid's taxel) or the axis's usable force (a quad's)."""
     client = own_registry_client
@@ -407,8 +408,11 @@ def test_standard_errors_and_residuals_out_of_range_are_a_422_naming_them_and_no
         (taxels("gain_se", -1e150), "taxels.gain_se[5] = -1e+150 is outside [0, "),
         (taxels("gain_se", 1e300), "taxels.gain_se[5] = 1e+300 is outside [0, "),
         (taxels("gain_se", "0.01"), "taxels.gain_se: expected a list of 64 numbers"),
-        (taxels("residual_rms_N", 1e300), "taxels.residual_rms_N[5] = 1e+300 is outside [0, 471] N")])
+        (taxels("residual_rms_N", 1e300), "taxels.residual_rms_N[5] = 1e+300 is outside [0, 471] N"),
+        ({**grid, "taxels": {**grid["taxels"], "curves": {"27": {"force_N": [0.0, 10.0], "relative": [0.0, 1e300]}}}},
+         "taxels.curves['27']: relative[1] = 1e+300 at 10 N is outside [")])
     _refused_and_nothing_stored(client, 1, quad, [
         ({**quad, "normal_fit_se": [0.0, 1e300]}, "normal_fit_se: c1's standard error 1e+300 is outside [0, 0.0343]"),
         ({**quad, "shear_fit_se": [-1e150, 0.0]}, "shear_fit_se: a's standard error -1e+150 is negative"),
-        ({**quad, "statistics": {"rms_N": {"x": 0.0, "y": 0.0, "z": 999.0}}}, "statistics.rms_N.z: 999 is outside [0, ")])
+        ({**quad, "statistics": {"rms_N": {"x": 0.0, "y": 0.0, "z": 999.0}}},
+         "statistics.rms_N.z: 999 is outside [0, ")])

@@ -8,7 +8,8 @@ grid  ``taxels``: ``gain`` (n,) compliance gains of the model curve (κ in
       physics/taxel_response.py), ``gain_se`` (n,) their standard errors
       (null: unknown; 0 to the gain), ``c0_pF`` (n,) unloaded capacitances,
       ``curves`` {taxel: {force_N, relative}} monotone empirical curves that
-      replace the model for those taxels (forces 0 to force_max_N, 471 N),
+      replace the model for those taxels (forces 0 to force_max_N, 471 N;
+      ΔC/C0 what taxels of GAIN_RANGE read there, ±CURVE_TOLERANCE),
       ``residual_rms_N`` (n,) (0 to 471 N); optional ``sensitivity_pct_per_N`` (n,)
       (level0's slopes, 0.1–10 %/N as an upload's; null: the curve's),
       ``max_force_N`` (n,) the largest force pressed (up to 471 N), and
@@ -59,6 +60,9 @@ GAIN_RANGE = (SENSITIVITY_RANGE_PCT_PER_N[0] / 1.25, SENSITIVITY_RANGE_PCT_PER_N
 # A flexible sensor's unloaded taxel: tens of fF to a nF (table 1: 10–11 pF; the quad's electrodes 2.2 pF).
 # Outside, a C0 is a unit slip (F for pF) or garbage: 1e-300 pF made every taxel "loaded", no tare possible.
 C0_RANGE_PF = (0.01, 1000.0)
+# How far an empirical curve's ΔC/C0 may stray from what taxels of a plausible gain read at its
+# forces (its start's noise and offset): 25× a table-1 taxel's reading noise (2 fF on 10 pF), ~0.4 N at gain 1.
+CURVE_TOLERANCE = 0.005
 
 
 def canonical(document: dict) -> bytes:
@@ -286,7 +290,7 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
     # an RMS residual in N: none past the largest force a taxel can be calibrated to (1e300 made σ infinite)
     residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
     _check_within("residual_rms_N", residual, 0.0, force_max, "N", high_in=True, low_in=True)
-    curves, model_sigma = _curves(taxels.get("curves"), n, residual, force_max)
+    curves, model_sigma = _curves(taxels.get("curves"), n, residual, force_max, table)
     reach = _numbers(taxels, "max_force_N", n, missing_ok=True) if "max_force_N" in taxels else np.full(n, np.nan)
     _check_within("max_force_N", reach, 0.0, force_max, "N", high_in=True)
     # level0 divides by it: 0.0001 %/N read a 5 N load as 5.5e4 N, -1.25 as -4.4 N, with a small σ
@@ -327,10 +331,12 @@ def _ls_sensitivity(response: TaxelResponse) -> np.ndarray:
     return ((r - r.mean(axis=0)) * f[:, None]).sum(axis=0) / (f * f).sum()
 
 
-def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) -> tuple[dict, np.ndarray]:
+def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float, table) -> tuple[dict, np.ndarray]:
     """Empirical inverses {taxel: (relative, force)} and the model σ per taxel;
     a curve's forces within [0, ``force_max``] N (a compressive taxel reads no
-    pull: -100..-99 N read a 5 N load as -99.9 ± 0.018 N, unflagged)."""
+    pull: -100..-99 N read a 5 N load as -99.9 ± 0.018 N, unflagged), its
+    ΔC/C0 what a plausible taxel reads there (_check_curve_reading on the
+    mounting's model ``table``)."""
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
@@ -339,8 +345,7 @@ def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) ->
     for key, curve in raw.items():
         try:
             taxel = int(key)
-            force = np.asarray(curve["force_N"], float)
-            relative = np.asarray(curve["relative"], float)
+            force, relative = _curve_numbers(curve["force_N"]), _curve_numbers(curve["relative"])
         except (TypeError, ValueError, KeyError):
             raise ValueError(f"taxels.curves[{key!r}]: expected {{force_N: [...], relative: [...]}}") from None
         if not 0 <= taxel < n:
@@ -358,9 +363,34 @@ def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) ->
         if force[-1] > force_max:
             raise ValueError(f"taxels.curves[{key!r}]: force_N reaches {force[-1]:g} N, past {force_max:.3g} N "
                              "(where the gap of the stiffest plausible taxel closes)")
+        _check_curve_reading(key, relative, force, table)
         curves[taxel] = (relative, force)
         model_sigma[taxel] = 0.0 if math.isnan(residual[taxel]) else residual[taxel]
     return curves, model_sigma
+
+
+def _curve_numbers(values) -> np.ndarray:
+    """A curve's list of numbers as floats; TypeError for anything else (numpy takes true and "1" as 1.0)."""
+    if not isinstance(values, list) or any(isinstance(v, bool | str) for v in values):
+        raise TypeError(f"expected a list of numbers, got {values!r}")
+    return np.asarray(values, float)
+
+
+def _check_curve_reading(key: str, relative: np.ndarray, force: np.ndarray, table) -> None:
+    """ValueError unless each point of an empirical curve (relative, force (m,))
+    reads what a taxel of a plausible gain (GAIN_RANGE on the model ``table``)
+    reads at its force, within CURVE_TOLERANCE. Outside, its inverse gives
+    forces no sensor reads, with the small σ of a fit: relative [0, 1e300]
+    read the press scene's 5 N as 5e-301 N ± 0.013 N, [0.5, 0.6] as 0 N,
+    [-1e300, 1e300] every load as 5 N, unflagged."""
+    low = np.interp(GAIN_RANGE[0] * force, table.force_N, table.relative_change) - CURVE_TOLERANCE
+    high = np.interp(GAIN_RANGE[1] * force, table.force_N, table.relative_change) + CURVE_TOLERANCE
+    bad = np.flatnonzero((relative < low) | (relative > high))
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"taxels.curves[{key!r}]: relative[{i}] = {relative[i]:g} at {force[i]:g} N is outside "
+                         f"[{low[i]:.3g}, {high[i]:.3g}], what taxels of gain {GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g} "
+                         "read there")
 
 
 def _quad_residual(document: dict, model: QuadModel) -> tuple[float, float, float]:
