@@ -416,3 +416,18 @@ def test_standard_errors_residuals_and_curves_out_of_range_are_a_422_naming_them
         ({**quad, "shear_fit_se": [-1e150, 0.0]}, "shear_fit_se: a's standard error -1e+150 is negative"),
         ({**quad, "statistics": {"rms_N": {"x": 0.0, "y": 0.0, "z": 999.0}}},
          "statistics.rms_N.z: 999 is outside [0, ")])
+
+
+def test_a_body_nested_past_the_guards_bound_is_a_422_naming_its_depth(client):
+    """orjson allowed 1024 levels but FastAPI's parser (the stdlib's, within the request's stack) gave up
+    sooner: 1000 deep was a vague 400 "There was an error parsing the body". The guard's bound, 64 levels
+    (a calibration document nests 5), now binds first, brackets within strings not counted."""
+    json_type = {"Content-Type": "application/json"}
+    for depth in (65, 700, 1000, 1023, 1100):
+        for body in (b"[" * depth + b"]" * depth, b'{"schema": 1, "x": ' + b'{"a": ' * (depth - 1) + b"1" + b"}" * depth):
+            answer = client.put("/sensors/0/calibration", content=body, headers=json_type)
+            assert answer.status_code == 422, (depth, answer.text)
+            assert answer.json()["detail"] == f"the body nests {depth} deep; at most 64 levels are taken", depth
+    for body in (b"[" * 64 + b"]" * 64, b'{"schema": 1, "x": "' + b"[" * 100 + b'\\"[{"}'):  # the bound, strings
+        answer = client.put("/sensors/0/calibration", content=body, headers=json_type)
+        assert answer.status_code == 422 and "nests" not in answer.text, answer.text  # the schema's 422
