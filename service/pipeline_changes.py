@@ -102,15 +102,18 @@ class SensorChanges:
     def recalibrate(self, sensor_id: int, document: dict) -> None:
         """A calibration set while recording, set again (replay.py) for the
         sensor described at ``sensor_id`` now; one that no longer fits it
-        (the recording's bytes describe it otherwise) is said and skipped."""
+        (the recording's bytes describe it otherwise, or it was edited) is
+        said and skipped, whatever it raises: a recording is any file, and
+        an error here ended the replay (its export cut short)."""
         info = self.interpreter.sensors.get(sensor_id)
         try:
             if info is None:
                 raise ValueError("no such sensor described yet")
             prepared = self.reconstructor.prepare_calibration(info, document)
-        except ValueError as exc:
+        except Exception as exc:  # noqa: BLE001 — one recorded document is skipped, never the replay
             log.warning("sensor %d: the calibration %s set while recording cannot be set again (%s); kept the one "
-                        "in use", sensor_id, document.get("id"), exc)
+                        "in use", sensor_id, document.get("id"),
+                        exc if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}")
             return
         with self._lock:
             self._calibration_set(info, self.reconstructor.apply_calibration(info, prepared))

@@ -363,3 +363,71 @@ def test_a_stored_document_whose_created_is_not_a_string_leaves_the_sensor_on_th
         assert state.status_code == 200, state.text
         assert state.json()["id"] == "builtin-table1" and "created: " in state.json()["problem"]
         assert client.get("/health").status_code == 200
+
+
+def _refused_and_nothing_stored(client, sid: int, base: dict, documents: list[tuple[dict, str]]) -> None:
+    """Each of ``documents`` (with the start of the 422's detail that names its field) PUT to
+    ``sid`` after ``base``: a 422 naming it, the registry's rows and the active calibration unchanged."""
+    from service.calibration.registry import Registry
+
+    assert client.put(f"/sensors/{sid}/calibration", json=base).status_code == 200
+    with Registry() as registry:  # TACTILE_REGISTRY: the fixture's own
+        rows = registry.list()
+    for document, named in documents:
+        document = {k: v for k, v in document.items() if k != "id"}
+        answer = client.put(f"/sensors/{sid}/calibration", json=document)
+        assert answer.status_code == 422 and answer.json()["detail"].startswith(named), (named, answer.text)
+    with Registry() as registry:
+        assert registry.list() == rows
+    assert client.get(f"/sensors/{sid}/calibration").json()["id"] == base["id"]
+
+
+def test_a_document_whose_mounting_is_not_a_mounting_is_a_422_naming_it_and_nothing_is_stored(own_registry_client):
+    """A list was a 500 (TypeError: unhashable); {}, 0 and null were a 200, stored, the service's mounting used."""
+    grid, _ = _exported_documents(own_registry_client)
+    _refused_and_nothing_stored(own_registry_client, 0, grid, [
+        ({**grid, "mounting": value}, f"mounting: {value!r} is not one of flat, curved")
+        for value in (["flat"], [1.0, 2.0], {}, 0, None)])
+
+
+def test_standard_errors_residuals_and_curves_out_of_range_are_a_422_naming_them_nothing_stored(own_registry_client):
+    """A taxel's gain_se of -1e150 was a 200, its loaded taxels read ~1 N ± 1e150 N; 1e300 gave σ null (which
+    says saturated) beside a number, unflagged; a quad's standard errors and residuals likewise; a curve's
+    ΔC/C0 to 1e300 read 5 N as 5e-301 N, σ 0.013 N. The ranges:
+    standard errors from 0 to the value they are of (a taxel's gain; c1 0.0343, a 0.0077), residuals
+    from 0 to 471 N (a grid's taxel) or the axis's usable force (a quad's)."""
+    client = own_registry_client
+    grid, quad = _exported_documents(client)
+
+    def taxels(name, value):
+        values = list(grid["taxels"].get(name, [None] * 64))
+        values[5] = value
+        return {**grid, "taxels": {**grid["taxels"], name: values}}
+
+    _refused_and_nothing_stored(client, 0, grid, [
+        (taxels("gain_se", -1e150), "taxels.gain_se[5] = -1e+150 is outside [0, "),
+        (taxels("gain_se", 1e300), "taxels.gain_se[5] = 1e+300 is outside [0, "),
+        (taxels("gain_se", "0.01"), "taxels.gain_se: expected a list of 64 numbers"),
+        (taxels("residual_rms_N", 1e300), "taxels.residual_rms_N[5] = 1e+300 is outside [0, 471] N"),
+        ({**grid, "taxels": {**grid["taxels"], "curves": {"27": {"force_N": [0.0, 10.0], "relative": [0.0, 1e300]}}}},
+         "taxels.curves['27']: relative[1] = 1e+300 at 10 N is outside [")])
+    _refused_and_nothing_stored(client, 1, quad, [
+        ({**quad, "normal_fit_se": [0.0, 1e300]}, "normal_fit_se: c1's standard error 1e+300 is outside [0, 0.0343]"),
+        ({**quad, "shear_fit_se": [-1e150, 0.0]}, "shear_fit_se: a's standard error -1e+150 is negative"),
+        ({**quad, "statistics": {"rms_N": {"x": 0.0, "y": 0.0, "z": 999.0}}},
+         "statistics.rms_N.z: 999 is outside [0, ")])
+
+
+def test_a_body_nested_past_the_guards_bound_is_a_422_naming_its_depth(client):
+    """orjson allowed 1024 levels but FastAPI's parser (the stdlib's, within the request's stack) gave up
+    sooner: 1000 deep was a vague 400 "There was an error parsing the body". The guard's bound, 64 levels
+    (a calibration document nests 5), now binds first, brackets within strings not counted."""
+    json_type = {"Content-Type": "application/json"}
+    for depth in (65, 700, 1000, 1023, 1100):
+        for body in (b"[" * depth + b"]" * depth, b'{"schema": 1, "x": ' + b'{"a": ' * (depth - 1) + b"1" + b"}" * depth):
+            answer = client.put("/sensors/0/calibration", content=body, headers=json_type)
+            assert answer.status_code == 422, (depth, answer.text)
+            assert answer.json()["detail"] == f"the body nests {depth} deep; at most 64 levels are taken", depth
+    for body in (b"[" * 64 + b"]" * 64, b'{"schema": 1, "x": "' + b"[" * 100 + b'\\"[{"}'):  # the bound, strings
+        answer = client.put("/sensors/0/calibration", content=body, headers=json_type)
+        assert answer.status_code == 422 and "nests" not in answer.text, answer.text  # the schema's 422

@@ -134,3 +134,64 @@ def test_a_calibration_that_no_longer_fits_is_said_and_skipped(pressed, caplog):
     assert f"sensor 9: the calibration {grid['id']} set while recording cannot be set again (no such sensor" in caplog.text
     frames = pipeline.feed(pressed[20000:40000], 1001.0)
     assert pipeline.reconstructor.calibration(1).id == before and {f.sensor.id for f in frames} == {0, 1}
+
+
+def recorded_with_a_bad_calibration_set(path, data: bytes) -> dict:
+    """``data`` recorded with no upload, but a /calibration_set of sensor 0 before read 300 whose
+    document the service cannot use ("mounting": [1.0, 2.0], id of its content, as a hand-edited
+    recording has); the recording's own forces, by frame (none of them made with it)."""
+    from service.reconstruct.sensor_calibration import calibration_id
+
+    pipeline = Pipeline(Reconstructor())
+    recorder = Recorder(path)
+    recorder.attach(pipeline)
+    for i, chunk in reads(data):
+        if i == 300:
+            good = pipeline.reconstructor.prepare_calibration(pipeline.interpreter.sensors[0], GRID_UPLOAD)[2]
+            bad = {**{k: v for k, v in good.items() if k != "id"}, "mounting": [1.0, 2.0]}
+            for listener in pipeline.calibration_listeners:
+                listener(i, 0, {**bad, "id": calibration_id(bad)})  # before read i, as an upload is
+        pipeline.feed(chunk, 1000.0 + 0.002 * i)
+    recorder.stop()
+    assert [(s, d["mounting"]) for _, s, d in read_changes(path)[None]] == [(0, [1.0, 2.0])]
+    return by_frame(recorded_forces(path))
+
+
+def test_a_recorded_calibration_the_service_cannot_use_is_skipped_and_the_replay_goes_on(tmp_path, pressed, caplog):
+    """It was a TypeError (unhashable list) that ended the replay: tactile replay --export left 334 of
+    2326 lines and exited 1; now the replay says so and gives every frame as recorded."""
+    live = recorded_with_a_bad_calibration_set(tmp_path / "run.mcap", pressed)
+    with caplog.at_level(logging.WARNING, logger="service.pipeline"):
+        again = replayed(tmp_path / "run.mcap")
+    assert again == live and len(live) > 1500
+    assert "sensor 0: the calibration " in caplog.text
+    assert "(mounting: [1.0, 2.0] is not one of flat, curved); kept the one in use" in caplog.text
+
+
+def test_a_recorded_calibration_the_service_cannot_use_is_skipped_when_served(tmp_path, pressed):
+    """tactile replay --serve: the error ended LoopHandover.drain, losing the reads it held."""
+    live = recorded_with_a_bad_calibration_set(tmp_path / "run.mcap", pressed)
+    served = served_forces(tmp_path / "run.mcap", 700, merge=3)
+    assert served.keys() == live.keys()
+    assert [key for key, doc in live.items()
+            if doc.get("taxels_N", doc.get("fxyz_N")) != [None if v != v else v for v in served[key].forces_N.tolist()]
+            or doc["calibration"] != served[key].calibration] == []
+
+
+def test_a_recorded_calibration_that_fails_past_the_checks_is_skipped_too(pressed, caplog, monkeypatch):
+    """A recording is any file: whatever a recorded document raises where it is prepared (here a
+    TypeError, as the list mounting raised before it was checked) skips it, never the replay."""
+    pipeline = Pipeline(Reconstructor())
+    pipeline.feed(pressed[:20000], 1000.0)
+    document = pipeline.set_calibration(pipeline.interpreter.sensors[0], GRID_UPLOAD)
+
+    def unforeseen(*args):
+        raise TypeError("unhashable type: 'list'")
+
+    monkeypatch.setattr(pipeline.reconstructor, "prepare_calibration", unforeseen)
+    with caplog.at_level(logging.WARNING, logger="service.pipeline"):
+        pipeline.redo(0, {**document, "id": "edited"})
+    assert ("sensor 0: the calibration edited set while recording cannot be set again (TypeError: unhashable type: "
+            "'list'); kept the one in use") in caplog.text
+    frames = pipeline.feed(pressed[20000:40000], 1001.0)
+    assert pipeline.reconstructor.calibration(0).id == document["id"] and {f.sensor.id for f in frames} == {0, 1}

@@ -17,7 +17,10 @@ clients sending large bodies.
   Bearer <token>``, checked before its body is read (401, also for a
   malformed header).
 * A state-changing request's body must be ``application/json``, at most
-  ``max_body_bytes`` (413, enforced while reading), and strict JSON: NaN
+  ``max_body_bytes`` (413, enforced while reading), nested at most
+  MAX_JSON_DEPTH deep (422 naming its depth: FastAPI's parser gives up
+  within the stack somewhere under 1000 levels with a vague 400, and
+  deeper documents reach recursive code behind it), and strict JSON: NaN
   and Infinity are not JSON (422).
 * No page of another site may frame the service's (clickjacking: a hidden
   frame of the dashboard under a decoy, the user's click on "Tare all"
@@ -33,11 +36,13 @@ from __future__ import annotations
 import hmac
 import ipaddress
 
+import numpy as np
 import orjson
 
 UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
 DEFAULT_MAX_BODY_BYTES = 1 << 20
+MAX_JSON_DEPTH = 64  # a calibration document, the deepest body the API takes, nests 5
 
 
 def is_ip_address(name: str) -> bool:
@@ -121,6 +126,9 @@ class RequestGuard:
         media = headers.get("content-type", "").split(";")[0].strip().lower()
         if (body or media) and media != "application/json":  # a form's type is refused even with no body
             return (415, f"send the body as application/json, not {media or 'no type'!r}"), receive
+        depth = json_depth(body)
+        if depth > MAX_JSON_DEPTH:
+            return (422, f"the body nests {depth} deep; at most {MAX_JSON_DEPTH} levels are taken"), receive
         if body:
             try:
                 orjson.loads(body)
@@ -136,6 +144,21 @@ class RequestGuard:
             return {"type": "http.request", "body": body, "more_body": False}
 
         return None, replay
+
+
+def json_depth(body: bytes) -> int:
+    """How deep ``body``'s arrays and objects nest (0: none), brackets
+    within strings not counted, without parsing it (what a parser would
+    recurse into): escaped backslashes, then escaped quotes are dropped
+    (left to right, as JSON reads escapes), so the quotes left delimit
+    the strings; the brackets outside them are summed. A 1 MiB body in
+    2-5 ms (the parse beside it: 1-70 ms), on the event loop."""
+    data = np.frombuffer(body.replace(b"\\\\", b"").replace(b'\\"', b""), dtype=np.uint8)
+    within = np.bitwise_xor.accumulate(data == ord('"'))  # odd quotes so far: within a string
+    opening = ((data == ord("[")) | (data == ord("{"))) & ~within
+    closing = ((data == ord("]")) | (data == ord("}"))) & ~within
+    steps = opening.view(np.int8)[opening | closing] * 2 - 1  # +1, -1 in order
+    return int(np.cumsum(steps, dtype=np.int32).max()) if steps.size else 0
 
 
 NOT_FRAMEABLE = [(b"x-frame-options", b"DENY"), (b"content-security-policy", b"frame-ancestors 'none'")]

@@ -6,16 +6,18 @@ to and names the bad field. What it carries, per kind:
 
 grid  ``taxels``: ``gain`` (n,) compliance gains of the model curve (κ in
       physics/taxel_response.py), ``gain_se`` (n,) their standard errors
-      (null: unknown), ``c0_pF`` (n,) unloaded capacitances, ``curves``
-      {taxel: {force_N, relative}} monotone empirical curves that replace
-      the model for those taxels (forces 0 to force_max_N, 471 N),
-      ``residual_rms_N`` (n,); optional ``sensitivity_pct_per_N`` (n,)
+      (null: unknown; 0 to the gain), ``c0_pF`` (n,) unloaded capacitances,
+      ``curves`` {taxel: {force_N, relative}} monotone empirical curves that
+      replace the model for those taxels (forces 0 to force_max_N, 471 N;
+      ΔC/C0 what taxels of GAIN_RANGE read there, ±CURVE_TOLERANCE),
+      ``residual_rms_N`` (n,) (0 to 471 N); optional ``sensitivity_pct_per_N`` (n,)
       (level0's slopes, 0.1–10 %/N as an upload's; null: the curve's),
       ``max_force_N`` (n,) the largest force pressed (up to 471 N), and
       ``crosstalk`` {mechanical, electrical} measured in the session.
 quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
       optional ``normal_fit_se``/``shear_fit_se`` (the standard errors of
-      the two coefficients; c1's and a's are used), and
+      the two coefficients, not negative; c1's and a's are used, at most c1
+      and a), ``statistics.rms_N`` {x, y, z} (0 to the axis's usable force), and
       ``normal_usable_N``/``shear_usable_N``: where the session's response
       stopped rising (past them a force is held and flagged); optional
       ``c0_pF`` (4,) the electrodes' unloaded capacitances its session
@@ -65,6 +67,9 @@ GAIN_RANGE = (SENSITIVITY_RANGE_PCT_PER_N[0] / 1.25, SENSITIVITY_RANGE_PCT_PER_N
 # A flexible sensor's unloaded taxel: tens of fF to a nF (table 1: 10–11 pF; the quad's electrodes 2.2 pF).
 # Outside, a C0 is a unit slip (F for pF) or garbage: 1e-300 pF made every taxel "loaded", no tare possible.
 C0_RANGE_PF = (0.01, 1000.0)
+# How far an empirical curve's ΔC/C0 may stray from what taxels of a plausible gain read at its
+# forces (its start's noise and offset): 25× a table-1 taxel's reading noise (2 fF on 10 pF), ~0.4 N at gain 1.
+CURVE_TOLERANCE = 0.005
 
 
 def canonical(document: dict) -> bytes:
@@ -165,7 +170,19 @@ def from_document(document: dict, info: SensorInfo, mounting: str = "flat") -> S
     if (document.get("rows"), document.get("cols")) != (info.rows, info.cols):
         raise ValueError(f"rows, cols: calibration {cid} is for a {document.get('rows')}x{document.get('cols')} grid, "
                          f"sensor {info.id} is {info.rows}x{info.cols}")
-    return _grid(document, cid, info, document.get("mounting") or mounting)
+    return _grid(document, cid, info, _mounting(document, mounting))
+
+
+def _mounting(document: dict, mounting: str) -> str:
+    """The document's ``mounting`` (absent: ``mounting``, the service's);
+    ValueError unless one of MOUNTINGS: a list was a TypeError (unhashable),
+    {}, 0 and null were stored and the service's taken in their place."""
+    if "mounting" not in document:
+        return mounting
+    given = document["mounting"]
+    if not isinstance(given, str) or given not in MOUNTINGS:
+        raise ValueError(f"mounting: {given!r} is not one of {', '.join(MOUNTINGS)}")
+    return given
 
 
 def _created(document: dict) -> str | None:
@@ -219,7 +236,7 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
         return np.full(n, np.nan)
     if isinstance(values, list) and len(values) != n:
         raise ValueError(f"taxels.{name}: {len(values)} values for the {n} taxels")
-    if not isinstance(values, list) or any(isinstance(v, bool) for v in values):
+    if not isinstance(values, list) or any(isinstance(v, bool | str) for v in values):  # numpy takes "1" as 1.0
         raise ValueError(f"taxels.{name}: expected a list of {n} numbers")
     if not missing_ok and None in values:  # float(None) would pass as NaN
         raise ValueError(f"taxels.{name}[{values.index(None)}] is null: expected a number")
@@ -233,14 +250,30 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
     return out
 
 
-def _check_within(name: str, values: np.ndarray, low: float, high: float, unit: str, high_in: bool = False) -> None:
-    """ValueError naming the first of ``values`` (n,) outside (low, high), or
-    (low, high] with ``high_in``; NaN (a null: not known) passes."""
+def _check_within(name: str, values: np.ndarray, low: float, high: float, unit: str, high_in: bool = False,
+                  low_in: bool = False) -> None:
+    """ValueError naming the first of ``values`` (n,) outside (low, high), the
+    ends included with ``low_in``, ``high_in``; NaN (a null: not known) passes."""
     above = values > high if high_in else values >= high
-    bad = np.flatnonzero((values <= low) | above)
+    below = values < low if low_in else values <= low
+    bad = np.flatnonzero(below | above)
     if bad.size:
         raise ValueError(f"taxels.{name}[{bad[0]}] = {values[bad[0]]:g} is outside "
-                         f"({low:.3g}, {high:.3g}{']' if high_in else ')'} {unit}")
+                         f"{'[' if low_in else '('}{low:.3g}, {high:.3g}{']' if high_in else ')'} {unit}")
+
+
+def _gain_relative_se(se: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """σ(κ)/κ (n,) of standard errors ``se`` (n,), NaN where not known (the
+    built-in's then); ValueError naming the first outside [0, its gain]: a
+    standard error is not negative, and one past the gain leaves the gain
+    undetermined (its 1-σ interval reaches no sensitivity at all). Fits give
+    ~0.5 % (tactile calibrate), the built-in 7 %. -1e150 gave σ 1e150 N,
+    1e300 an infinite σ (null: saturated) beside a force, unflagged."""
+    bad = np.flatnonzero((se < 0) | (se > gain))
+    if bad.size:
+        raise ValueError(f"taxels.gain_se[{bad[0]}] = {se[bad[0]]:g} is outside [0, {gain[bad[0]]:.4g}], the taxel's "
+                         "gain (past it the gain is undetermined)")
+    return np.where(np.isnan(se), BUILTIN_RELATIVE_SE, se / gain)
 
 
 def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCalibration:
@@ -257,14 +290,15 @@ def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCa
         raise ValueError(f"taxels.gain[{bad[0]}] = {gain[bad[0]]} is outside ({low:g}, {high:g})")
     c0 = _numbers(taxels, "c0_pF", n)
     check_c0("taxels.c0_pF", c0)
-    se = _numbers(taxels, "gain_se", n, missing_ok=True)
-    relative_se = np.where(np.isnan(se), BUILTIN_RELATIVE_SE, np.abs(se) / gain)
-    residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
+    relative_se = _gain_relative_se(_numbers(taxels, "gain_se", n, missing_ok=True), gain)
     table = model_table(mounting)
     response = TaxelResponse(table.force_N, table.relative_change, gain, table.dense)
     response.check()
     force_max = force_max_N(mounting)
-    curves, model_sigma = _curves(taxels.get("curves"), n, residual, force_max)
+    # an RMS residual in N: none past the largest force a taxel can be calibrated to (1e300 made σ infinite)
+    residual = _numbers(taxels, "residual_rms_N", n, missing_ok=True)
+    _check_within("residual_rms_N", residual, 0.0, force_max, "N", high_in=True, low_in=True)
+    curves, model_sigma = _curves(taxels.get("curves"), n, residual, force_max, table)
     reach = _numbers(taxels, "max_force_N", n, missing_ok=True) if "max_force_N" in taxels else np.full(n, np.nan)
     _check_within("max_force_N", reach, 0.0, force_max, "N", high_in=True)
     # level0 divides by it: 0.0001 %/N read a 5 N load as 5.5e4 N, -1.25 as -4.4 N, with a small σ
@@ -305,10 +339,12 @@ def _ls_sensitivity(response: TaxelResponse) -> np.ndarray:
     return ((r - r.mean(axis=0)) * f[:, None]).sum(axis=0) / (f * f).sum()
 
 
-def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) -> tuple[dict, np.ndarray]:
+def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float, table) -> tuple[dict, np.ndarray]:
     """Empirical inverses {taxel: (relative, force)} and the model σ per taxel;
     a curve's forces within [0, ``force_max``] N (a compressive taxel reads no
-    pull: -100..-99 N read a 5 N load as -99.9 ± 0.018 N, unflagged)."""
+    pull: -100..-99 N read a 5 N load as -99.9 ± 0.018 N, unflagged), its
+    ΔC/C0 what a plausible taxel reads there (_check_curve_reading on the
+    mounting's model ``table``)."""
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
@@ -317,8 +353,7 @@ def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) ->
     for key, curve in raw.items():
         try:
             taxel = int(key)
-            force = np.asarray(curve["force_N"], float)
-            relative = np.asarray(curve["relative"], float)
+            force, relative = _curve_numbers(curve["force_N"]), _curve_numbers(curve["relative"])
         except (TypeError, ValueError, KeyError):
             raise ValueError(f"taxels.curves[{key!r}]: expected {{force_N: [...], relative: [...]}}") from None
         if not 0 <= taxel < n:
@@ -336,23 +371,52 @@ def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float) ->
         if force[-1] > force_max:
             raise ValueError(f"taxels.curves[{key!r}]: force_N reaches {force[-1]:g} N, past {force_max:.3g} N "
                              "(where the gap of the stiffest plausible taxel closes)")
+        _check_curve_reading(key, relative, force, table)
         curves[taxel] = (relative, force)
         model_sigma[taxel] = 0.0 if math.isnan(residual[taxel]) else residual[taxel]
     return curves, model_sigma
 
 
-def _quad_residual(document: dict) -> tuple[float, float, float]:
+def _curve_numbers(values) -> np.ndarray:
+    """A curve's list of numbers as floats; TypeError for anything else (numpy takes true and "1" as 1.0)."""
+    if not isinstance(values, list) or any(isinstance(v, bool | str) for v in values):
+        raise TypeError(f"expected a list of numbers, got {values!r}")
+    return np.asarray(values, float)
+
+
+def _check_curve_reading(key: str, relative: np.ndarray, force: np.ndarray, table) -> None:
+    """ValueError unless each point of an empirical curve (relative, force (m,))
+    reads what a taxel of a plausible gain (GAIN_RANGE on the model ``table``)
+    reads at its force, within CURVE_TOLERANCE. Outside, its inverse gives
+    forces no sensor reads, with the small σ of a fit: relative [0, 1e300]
+    read the press scene's 5 N as 5e-301 N ± 0.013 N, [0.5, 0.6] as 0 N,
+    [-1e300, 1e300] every load as 5 N, unflagged."""
+    low = np.interp(GAIN_RANGE[0] * force, table.force_N, table.relative_change) - CURVE_TOLERANCE
+    high = np.interp(GAIN_RANGE[1] * force, table.force_N, table.relative_change) + CURVE_TOLERANCE
+    bad = np.flatnonzero((relative < low) | (relative > high))
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"taxels.curves[{key!r}]: relative[{i}] = {relative[i]:g} at {force[i]:g} N is outside "
+                         f"[{low[i]:.3g}, {high[i]:.3g}], what taxels of gain {GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g} "
+                         "read there")
+
+
+def _quad_residual(document: dict, model: QuadModel) -> tuple[float, float, float]:
     """The fit's residual RMS (Fx, Fy, Fz) through the model (statistics.rms_N of a calibrated quad;
-    zeros where absent: an upload of fits alone); ValueError naming a bad one."""
+    zeros where absent: an upload of fits alone); ValueError naming a bad one, or one past its axis's
+    usable force (a fit that misses by more than the range it covers explains nothing: 999 N was taken)."""
     statistics = document.get("statistics")
     if statistics is not None and not isinstance(statistics, dict):
         raise ValueError(f"statistics: expected an object, got {statistics!r}")
     rms = (statistics or {}).get("rms_N") or {}
     out = []
-    for axis in "xyz":
+    for axis, usable in zip("xyz", (model.shear_usable_N, model.shear_usable_N, model.normal_usable_N)):
         value = rms.get(axis, 0.0) if isinstance(rms, dict) else None
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1e3:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"statistics.rms_N.{axis}: {value!r} is not a residual in N")
+        if not 0.0 <= value <= usable:
+            raise ValueError(f"statistics.rms_N.{axis}: {value:g} is outside [0, {usable:.4g}] N, the axis's "
+                             "usable force")
         out.append(float(value))
     return out[0], out[1], out[2]
 
@@ -367,7 +431,9 @@ def _shear_residual_measured(document: dict) -> bool:
 def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str], slope: str, value: float) -> float:
     """σ/value of the fit's ``slope`` coefficient (of ``value``) from ``name``
     (the standard errors of its two ``coefficients``), the built-in's where
-    absent; ValueError naming a bad one."""
+    absent; ValueError naming a bad one: a standard error is not negative,
+    and the slope's is at most the slope, as a grid taxel's gain_se (past it
+    the slope is undetermined; fits give 0.004–0.08 %: 1e300 gave σ 3e301 N)."""
     errors = document.get(name)
     if errors is None:
         return BUILTIN_RELATIVE_SE
@@ -375,7 +441,14 @@ def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str],
             and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in errors)):
         raise ValueError(f"{name}: expected the standard errors [{', '.join(coefficients)}] of {name[:-3]}, "
                          f"got {errors!r}")
-    return abs(float(errors[coefficients.index(slope)])) / value
+    for coefficient, error in zip(coefficients, errors):
+        if error < 0:
+            raise ValueError(f"{name}: {coefficient}'s standard error {error:g} is negative")
+    error = float(errors[coefficients.index(slope)])
+    if error > value:
+        raise ValueError(f"{name}: {slope}'s standard error {error:g} is outside [0, {value:.4g}], {slope} itself "
+                         "(past it the slope is undetermined)")
+    return error / value
 
 
 def quad_c0(values) -> np.ndarray | None:
@@ -402,7 +475,7 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
                                 document.get("normal_usable_N"), document.get("shear_usable_N"))
     se = (_slope_relative_se(document, "normal_fit_se", ("c2", "c1"), "c1", model.normal_fit[1]),
           _slope_relative_se(document, "shear_fit_se", ("a", "b"), "a", model.shear_a))
-    residual = _quad_residual(document)
+    residual = _quad_residual(document, model)
     # A session's normal presses show the electrodes' mismatch as shear in its fit's residual (rms_N.x, .y),
     # which σ then carries; fits alone (an upload) measured none of it.
     mismatch = 0.0 if _shear_residual_measured(document) else ELECTRODE_GAIN_SE
