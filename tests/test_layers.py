@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # The longest matching prefix decides.
 LAYERS = [
     ("service.protocol", 0), ("service.protocol_decoder", 0), ("service.protocol_sequence", 0), ("service.protocol_bulk", 0),
-    ("service.physics", 0), ("service.latency", 0), ("service.sched", 0), ("service.clock_map", 0),
+    ("service.physics", 0), ("service.latency", 0), ("service.sched", 0), ("service.clock_map", 0), ("service.recent", 0),
     ("service.readings", 1), ("service.board_info", 1), ("service.interpreter", 1), ("service.identify", 1),
     ("service.reconstruct", 2),
     ("service.history", 3), ("service.fanout", 3), ("service.record", 3), ("service.sources", 3),
