@@ -8,7 +8,9 @@ above this layer — else the built-in one), the processor built on it
 counts kept for that calibration (fatigue.py). A finished tare is judged
 against the sensor's zero stored before the service started, the first
 after it (stored_zero.py), else against the C0 its calibration measured
-(loaded_tare.py: a grid's taxels, a quad's four electrodes together).
+(loaded_tare.py: a grid's taxels, a quad's four electrodes together); a
+quad's first against that C0's pattern, which may set the calibration
+aside as another quad's (calibration_choice.py).
 Another sensor described at
 its address (identity.py) is made anew the same way, as first seen.
 """
@@ -58,6 +60,8 @@ class SensorState:
     zero_kept: dict | None = None  # what that tare made of it (stored_zero.py)
     judged_once: bool = False  # a tare of it was judged: the stored zero's turn is over
     tared_at: float = 0.0  # Unix time the last tare was judged: an untracked zero's age (stored_zero.py)
+    # (its own calibration, why): set aside for the built-in at a tare, not this quad's (calibration_choice.py)
+    set_aside: tuple[SensorCalibration, str] | None = None
 
 
 class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
@@ -305,7 +309,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         state.tared_at = time.time()
         state.below_c0 = []
         stored, state.stored_zero = state.stored_zero, None
-        if not state.judge_tare or (stored is not None and self._judge_stored(state, stored)):
+        if not state.judge_tare or self._not_its_calibration(state) or \
+                (stored is not None and self._judge_stored(state, stored)):
             return
         baseline = state.baseline
         judged = against_c0(state.calibration, baseline.value, baseline.std, baseline.frames)
