@@ -7,7 +7,17 @@ the built-in one; one that does not fit the sensor is set aside with its
 reason, never a reason to stop its data. Swapping keeps the sensor's zero
 and judges its tare again against the new C0; the window of readings a tare
 takes is the new C0's from then on (a sensor that had no zero tares at its
-first reading inside it). A mixin of SensorStates
+first reading inside it).
+
+A quad's calibration whose measured C0 its tared means show is another
+quad's (loaded_tare.not_its_quad: a pattern no load or temperature makes)
+is set aside at the tare's judgement as one that cannot be resolved is:
+the built-in in its place, the tared means its zero, the reason in
+``calibration_problems`` (/health). It stays aside through a forced tare
+(which judges nothing) and a lookup again (an INFO naming the board);
+a tare judged later that fits it (the calibrated quad plugged back) brings
+it back, and a calibration set through ``set_calibration`` replaces it.
+A mixin of SensorStates
 (sensor_states.py), whose state it reads and changes.
 """
 from __future__ import annotations
@@ -15,9 +25,12 @@ from __future__ import annotations
 import logging
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from ..readings import SensorInfo
 from .calibration_upload import own_level, processor_for, tare_window, upload_document
 from .identity import identity, named
+from .loaded_tare import not_its_quad
 from .sensor_calibration import SensorCalibration, builtin, from_document
 
 if TYPE_CHECKING:
@@ -73,6 +86,9 @@ class CalibrationChoice:
         if self.resolve is None:
             return
         calibration = self._calibration_for(info)
+        if state.set_aside is not None and calibration.id == state.set_aside[0].id:  # still not this quad's
+            self.calibration_problems[info.id] = state.set_aside[1]
+            return
         if calibration.id != state.calibration.id:
             self._swap(state, calibration, processor_for(info, self.level, self.mounting, calibration))
             log.info("sensor %d: calibration %s now that its board's INFO named it", info.id, calibration.id)
@@ -87,7 +103,44 @@ class CalibrationChoice:
         state.baseline.rewindow(tare_window(state.info, self.mounting, calibration))  # a tare expects its C0 now
         state.cycles = self._cycles(state.info, calibration)  # counts belong to a calibration: a new one starts anew
         state.tare_judged, state.below_c0 = False, []  # judged again against the new C0
+        if state.set_aside is not None:  # another calibration, or the one set aside back: its reason goes
+            self.calibration_problems.pop(state.info.id, None)
+            state.set_aside = None
         self._calibration_applied(state.info.id)
+
+    def _not_its_calibration(self, state: SensorState) -> bool:
+        """At a judged tare of a quad whose calibration (or the one set aside
+        for it) measured its C0: whether the tared means say that C0 is
+        another quad's (module docstring). Set aside then, the built-in in
+        its place; one set aside that fits them again is back in use."""
+        own = state.set_aside[0] if state.set_aside is not None else state.calibration
+        if own.quad_c0_pF is None:
+            return False
+        baseline = state.baseline
+        found = not_its_quad(own.quad_c0_pF, baseline.value, baseline.std, baseline.frames)
+        if found is None:
+            if state.set_aside is not None and np.isfinite(baseline.value).all():  # fits it, not merely untold
+                self._swap(state, own, processor_for(state.info, self.level, self.mounting, own))
+                log.info("sensor %d: its tare fits calibration %s's C0 again: back in use", state.info.id, own.id)
+            return False
+        if state.set_aside is None:
+            self._set_aside(state, found)
+        return True
+
+    def _set_aside(self, state: SensorState, found: dict) -> None:
+        """The built-in calibration in place of the sensor's, whose C0 is
+        another quad's (``found``: loaded_tare.not_its_quad's), said why."""
+        own = state.calibration
+        off = "/".join(f"{100 * x:+.1f}" for x in found["off"])
+        why = (f"calibration {own.id}'s measured C0 is not this sensor's: its electrodes tared {off} % off it, "
+               f"a pattern no load or temperature makes (R = {100 * found['R']:.2f} % of C0, beyond "
+               f"{100 * found['limit']:.2f} %); calibrate this sensor (tactile calibrate), or check which sensor "
+               "is plugged in, then tare it unloaded (not forced) to have it judged again")
+        fallback = builtin(state.info, self.mounting)
+        self._swap(state, fallback, processor_for(state.info, self.level, self.mounting, fallback))
+        state.set_aside = (own, why)
+        self.calibration_problems[state.info.id] = why
+        log.warning("sensor %d: %s; the built-in calibration is used", state.info.id, why)
 
     def calibration(self, sensor_id: int) -> SensorCalibration | None:
         """The calibration sensor ``sensor_id`` is reconstructed with (None: not seen yet)."""

@@ -41,6 +41,22 @@ former into shear. Electrodes below C0 by as much are a mismatch as on a
 grid (two of the four): a load lowers none that far unless its shear's
 ΔC/C0 passes its normal's by the margin.
 
+A quad's tared means can also say its calibration is another quad's (one
+without a serial plugged in where the calibrated one was): ``not_its_quad``.
+A normal or shear load leaves the redundant combination R = (r11 + r22 −
+r12 − r21)/4 of the electrodes' mean/C0 − 1 at 0 (physics/quad_model.py),
+temperature moves all four alike (R 0 again), so |R| beyond what is left
+says the C0 is not this quad's, whether or not it is also loaded. What is
+left (R_LOAD_SHARE): each electrode's own allowance, the grid's margin
+(4 × hypot(mean noise, 0.1 % of C0): 0.40 % of C0 at 100 frames of 0.5 fF),
+which R, a quarter of four of them signed, reaches at most at their mean;
+and the model mismatch a loaded frame may show in R before it is called an
+electrode fault, 5 % of |Z| (quad.FAULT_RELATIVE). Another quad whose
+electrodes stand +3.9, +6.6, −3.5 and +7.3 % off the calibrated one's has R
+2.03 % of C0 against a limit of 0.58 %; taken as loaded it read Fx 4.2 N at
+rest, and after a forced tare its Fz was up to 1.14 N off, unflagged, on
+the other quad's fits.
+
 Nothing reads below its zero, so taxels whose tared mean stands *below*
 the calibration's C0 by as much say the C0 is not this sensor's as it is
 now: a calibration made on another sensor of the same shape (the built-in
@@ -55,7 +71,9 @@ from typing import Callable
 
 import numpy as np
 
+from ..physics.quad_model import combinations
 from .baseline import NOISE_FLOOR_PF
+from .quad import FAULT_RELATIVE
 
 C0_DRIFT_RELATIVE = 1e-3
 LOADED_SIGMAS = 4.0
@@ -64,6 +82,8 @@ MISMATCH_SHARE = 0.05
 COMMON_MIN_TAXELS = 8
 COMMON_QUANTILE = 0.25
 COMMON_MAX_DRIFT = 0.02  # a few degrees' worth; a larger common shift is a mismatch, not temperature
+# The share of |Z| a load's model mismatch may show in R at the tare, as in any loaded frame (electrode_fault).
+R_LOAD_SHARE = FAULT_RELATIVE
 
 
 def mean_noise(std_pF: np.ndarray, frames: int) -> np.ndarray:
@@ -149,3 +169,18 @@ def whole_quad(loaded: np.ndarray, usable: np.ndarray) -> np.ndarray:
     zero half tared, half the reference turns the load left in the tared
     electrodes into shear (module docstring)."""
     return usable if loaded.any() else loaded
+
+
+def not_its_quad(c0_pF: np.ndarray, mean_pF: np.ndarray, std_pF: np.ndarray, frames: int) -> dict | None:
+    """Whether a quad's tared means (4,) pF of ``frames`` readings, spread
+    ``std_pF`` (4,), say the C0 (4,) pF its calibration measured is another
+    quad's (module docstring): {off: (4,) mean/C0 − 1, R: their redundant
+    combination, limit: how far |R| may stand (R and limit as ΔC/C0)} when
+    |R| stands beyond the limit; None when it does not or an electrode has
+    no mean (no R without all four)."""
+    off = mean_pF / c0_pF - 1.0
+    if not np.isfinite(off).all():
+        return None
+    _, _, z, r = combinations(off)
+    limit = float(np.mean(c0_margin(c0_pF, std_pF, frames) / c0_pF)) + R_LOAD_SHARE * abs(float(z))
+    return None if abs(float(r)) <= limit else {"off": off, "R": float(r), "limit": limit}

@@ -8,7 +8,9 @@ above this layer — else the built-in one), the processor built on it
 counts kept for that calibration (fatigue.py). A finished tare is judged
 against the sensor's zero stored before the service started, the first
 after it (stored_zero.py), else against the C0 its calibration measured
-(loaded_tare.py: a grid's taxels, a quad's four electrodes together).
+(loaded_tare.py: a grid's taxels, a quad's four electrodes together); a
+quad's first against that C0's pattern, which may set the calibration
+aside as another quad's (calibration_choice.py).
 Another sensor described at
 its address (identity.py) is made anew the same way, as first seen; one
 back there after another was is judged against the zero it left with.
@@ -61,6 +63,8 @@ class SensorState:
     tared_at: float = 0.0  # Unix time the last tare was judged: an untracked zero's age (stored_zero.py)
     tared_t_host: float = float("nan")  # t_host (s) of the reading that completed the last tare: the same, as it left
     last_t_host: float = float("nan")  # t_host (s) of its last reading: when the zero it left with was last tracked
+    # (its own calibration, why): set aside for the built-in at a tare, not this quad's (calibration_choice.py)
+    set_aside: tuple[SensorCalibration, str] | None = None
 
 
 class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
@@ -322,7 +326,8 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         state.tared_at, state.tared_t_host = time.time(), t_host
         state.below_c0 = []
         stored, state.stored_zero = state.stored_zero, None
-        if not state.judge_tare or (stored is not None and self._judge_stored(state, stored, t_host)):
+        if not state.judge_tare or self._not_its_calibration(state) or \
+                (stored is not None and self._judge_stored(state, stored, t_host)):
             return
         baseline = state.baseline
         judged = against_c0(state.calibration, baseline.value, baseline.std, baseline.frames)
