@@ -22,6 +22,8 @@ from service.reconstruct import Reconstructor
 from service.reconstruct.drift import T_WRAP_S, DriftTracker
 from tests import quad_session as qs
 from tests.plate_session import session
+from tests.test_quad_drift import NOISE_FZ_N, settled
+from tests.test_quad_drift import run as qs_run
 from tests.test_drift_reference import run as run_reference
 
 RAMP_START_S = 2.0
@@ -84,3 +86,29 @@ def test_the_unseen_drift_grows_at_the_bound_whatever_the_board_clock_does(clock
     assert unseen[0] == 0.0
     assert unseen[5_000] == pytest.approx(0.01 / 60 * 5.0, rel=1e-3)
     assert unseen[-1] == pytest.approx(0.01 / 60 * 15.0, rel=1e-3)
+
+
+def test_a_quads_sigma_after_a_short_press_under_drift_covers_the_drift_it_hid():
+    """4 N pressed 2.6 s during a 1 %/min warm-up: the drift under it
+    (4.3e-4 ΔC/C0, 0.013 N) shows after the release until the estimate
+    resumes (~1 s); that Fz (truth 0) is within 3σ on ≥ 99 % of the frames
+    of that second (on main none was, up to 10.7σ: σ was back at Z's noise,
+    0.0016 N; now all, up to 1.4σ), and σ holds that drift then
+    (0.012–0.014 N; within 20 %, for the noise of the Z that shows it).
+    (Followed before the press and after, ~1.4 % of frames are beyond 3σ,
+    as on main.)"""
+    t, f, out = qs_run(16.0, lambda t: 0.01 / 60 * t, [qs.press(10.0, 0.3, 2.0, 4.0)])
+    forces, sigma, _ = out[0]
+    resuming = (t >= 12.6) & (t < 13.6)
+    assert np.mean(np.abs(forces[resuming, 2]) <= 3 * sigma[resuming, 2]) >= 0.99
+    assert np.all(sigma[(t >= 12.6) & (t < 13.0), 2] >= 0.8 * 0.01 / 60 * 2.6 / qs.NORMAL[0])
+
+
+def test_a_clean_quads_sigma_stays_the_noise():
+    """No drift, presses: unloaded a second after each release, σ(Fz) is
+    Z's noise through fit 34's slope (1e-4/2 over 0.0343 /N, 0.0015 N),
+    within 10 %."""
+    t, f, out = qs_run(60.0, lambda t: 0.0 * t, qs.presses(55.0, seed=5, hold_s=(2.0, 8.0)))
+    _, sigma, _ = out[0]
+    rest = settled(t, f[:, 2])
+    assert np.median(sigma[rest, 2]) <= 1.1 * NOISE_FZ_N and np.quantile(sigma[rest, 2], 0.99) <= 1.1 * NOISE_FZ_N
