@@ -98,8 +98,11 @@ frames).
 What the estimate cannot have seen is in σ (``follow``'s third value, in
 ΔC/C0; sigma.py adds it in quadrature to a taxel's reading noise): the
 bound times the time since it last stood within a taxel's noise of an
-unloaded median (``_free_t``: not under a held load, not frozen), at least
-how far it is held behind a level it follows at the reach; 0 while it sees
+unloaded median (``_free_t``: not under a held load, not frozen) — or, if
+less, how far the frame's own quiet median stands from it where that is
+within a taxel's noise (after a plate's release, frozen ~1 s more, σ was
+the 20 s at the bound of its hold: 23 times the reading's) — at least how
+far it is held behind a level it follows at the reach; 0 while it sees
 the level. A drift faster than the bound is frozen on within ~1 s and then
 reads as a whole-array load growing faster than σ does, so up to ~2.5 times
 the bound it stays within 3σ (1.5 %/min read 0.21 N/taxel at 12 s with a
@@ -296,9 +299,13 @@ class DriftTracker:
             elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
             # A frame whose own quiet median is the held estimate shows no drift since the freeze (module docstring)
-            confirmed = count and abs(median - drift) <= noise
-            # What it cannot have seen since it last stood at the unloaded level, at least how far it is held behind
+            off = median - drift  # NaN without a median: compares False
+            off = -off if off < 0.0 else off
+            confirmed = count and off <= noise
+            # What it cannot have seen since it last stood at the unloaded level (or, less, what its median
+            # shows), at least how far it is held behind
             unseen = rate * (now - free_t)
+            unseen = off if confirmed and off < unseen else unseen
             behind = -behind if behind < 0.0 else behind
             out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after and not confirmed)
                         or abs(drift) > max_drift, behind if behind > unseen else unseen))

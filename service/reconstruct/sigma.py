@@ -9,8 +9,8 @@ variance is the sum of three independent parts:
   baseline is itself a mean of T = 100 noisy frames; at the full level, in
   quadrature with it, the common-mode drift the tracker cannot have seen
   (drift.py: the bound times the time since its estimate last stood at the
-  unloaded level, at least how far it is held behind the level it follows;
-  ~0 while it sees the level);
+  unloaded level, or less what a frame's quiet median shows, at least how
+  far it is held behind the level it follows; ~0 while it sees the level);
 * the gain's error: F·σ_κ/κ (the calibration's standard error; for the
   built-in table 1 the spread of sensors that are not the paper's,
   sensor_calibration.py);
