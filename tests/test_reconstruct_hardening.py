@@ -749,7 +749,7 @@ def test_a_frozen_drift_estimate_is_suspect_after_10_s_whatever_the_board_clock_
     flags = []
     for chunk in range(0, len(times), 7):  # a few frames a call, as reads come
         ts = times[chunk:chunk + 7]
-        flags += [suspect for _, suspect in tracker.follow(ts, [False] * len(ts), [0.0] * len(ts))]
+        flags += [suspect for _, suspect, _ in tracker.follow(ts, [False] * len(ts), [0.0] * len(ts))]
     first = flags.index(True)
     assert abs(first - 10_000) <= 1 and all(flags[first:])
 

@@ -95,6 +95,21 @@ median crosses the estimate on its way to a drifted level goes unflagged
 for the frames it spends within that noise (1 N lifted over 1 s: 17
 frames).
 
+What the estimate cannot have seen is in σ (``follow``'s third value, in
+ΔC/C0; sigma.py adds it in quadrature to a taxel's reading noise): the
+bound times the time since it last stood within a taxel's noise of an
+unloaded median (``_free_t``: not under a held load, not frozen) — or, if
+less, how far the frame's own quiet median stands from it where that is
+within a taxel's noise (after a plate's release, frozen ~1 s more, σ was
+the 20 s at the bound of its hold: 23 times the reading's) — at least how
+far it is held behind a level it follows at the reach; 0 while it sees
+the level. A drift faster than the bound is frozen on within ~1 s and then
+reads as a whole-array load growing faster than σ does, so up to ~2.5 times
+the bound it stays within 3σ (1.5 %/min read 0.21 N/taxel at 12 s with a
+σ of 0.023 N, 11σ unflagged; now 0.14 N). ``drift_suspect`` keeps its
+``suspect_after_s`` there: all taxels quiet on a level rising faster than
+the bound is also a whole-array plate brought on slowly, which is no drift.
+
 A frame needs MIN_REFERENCE_TAXELS valid taxels to be a reference at all:
 one pressed taxel is left out only where the frame's median lies on an
 unloaded one. A lone taxel is its own median (a 1×1 grid's press was taken
@@ -206,12 +221,13 @@ class DriftTracker:
         (self.drift, self._average, self._slow, self._since, self._variances, self._load, self._anchor,
          self._anchor_t, self._free, self._free_t, self._last_t, self._frozen_since, self._offset) = state
 
-    def follow(self, t_s: list[float], quiet: list[int], medians: list[float]) -> list[tuple[float, bool]]:
+    def follow(self, t_s: list[float], quiet: list[int], medians: list[float]) -> list[tuple[float, bool, float]]:
         """Advance through frames at times ``t_s`` given their quiet medians
         and how many taxels those were (0: not enough; ``quiet_medians``, as
         lists: the recurrence is scalar, and a live read holds a frame or
-        two per sensor); return each frame's drift and whether it is
-        drift-suspect. The median's exponential averages are advanced to
+        two per sensor); return each frame's drift, whether it is
+        drift-suspect, and the drift it cannot have seen (both ΔC/C0; module
+        docstring). The median's exponential averages are advanced to
         each board time ``t`` by dt = t − last (clipped to [0, tau_s]); a
         settled median within reach is followed, any other frame freezes the
         estimate (module docstring). One loop with locals, as an offline
@@ -228,6 +244,7 @@ class DriftTracker:
         last, frozen_since, offset = self._last_t, self._frozen_since, self._offset
         out = []
         for t, count, median in zip(t_s, quiet, medians):
+            behind = 0.0  # how far the estimate is held behind the level it follows
             if last is not None and t < last:  # the clock wrapped, or the board restarted (module docstring)
                 offset += T_WRAP_S if t + T_WRAP_S - last <= MAX_WRAP_STEP_S else last - t
             # min/max spelled as comparisons (the same values, -0.0 and NaN alike): a call each cost per frame
@@ -273,6 +290,7 @@ class DriftTracker:
                 else:  # no faster than drift moves
                     drift = low if low > average - load else average - load
                     drift = high if high < drift else drift
+                    behind = average - load - drift
                     if abs(median - load - drift) <= noise:  # caught up (the average may be settling still)
                         anchor, anchor_t = drift, now
                         if not load:
@@ -281,9 +299,16 @@ class DriftTracker:
             elif frozen_since is None:  # a load (or too few unloaded taxels): frozen
                 frozen_since = now
             # A frame whose own quiet median is the held estimate shows no drift since the freeze (module docstring)
-            confirmed = count and abs(median - drift) <= noise
+            off = median - drift  # NaN without a median: compares False
+            off = -off if off < 0.0 else off
+            confirmed = count and off <= noise
+            # What it cannot have seen since it last stood at the unloaded level (or, less, what its median
+            # shows), at least how far it is held behind
+            unseen = rate * (now - free_t)
+            unseen = off if confirmed and off < unseen else unseen
+            behind = -behind if behind < 0.0 else behind
             out.append((drift, (frozen_since is not None and now - frozen_since >= suspect_after and not confirmed)
-                        or abs(drift) > max_drift))
+                        or abs(drift) > max_drift, behind if behind > unseen else unseen))
         self.drift, self._average, self._slow, self._since = drift, average, slow, since
         self._variances, self._load = (v_fast, v_slow, v_both), load
         self._anchor, self._anchor_t, self._free, self._free_t = anchor, anchor_t, free, free_t

@@ -101,7 +101,8 @@ class GridProcessor(ReadingFlags, GridState):
         self._ratio_bounds = level0.bounds(self.plausible[0] + 1.0, self.plausible[1] + 1.0)
         n = self.calibration.rows * self.calibration.cols
         if n < MIN_REFERENCE_TAXELS:  # never a drift reference (drift.py): untracked, as at the table level, not
-            self.drift.suspect_after_s = math.inf  # a drift_suspect on every frame that would say nothing
+            self.drift.suspect_after_s = math.inf  # a drift_suspect on every frame that would say nothing,
+            self.drift.max_rate_per_s = 0.0  # nor the bound's reach since the tare in σ (it never follows a drift)
         self.gain_relative_se = np.zeros(n) if self.gain_relative_se is None else self.gain_relative_se
         self.model_sigma_N = np.zeros(n) if self.model_sigma_N is None else self.model_sigma_N
         self.calibrated_to_N = np.full(n, np.inf) if self.calibrated_to_N is None else self.calibrated_to_N

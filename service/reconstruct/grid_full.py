@@ -93,7 +93,7 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     flags, stale = _reading_flags(pieces, rows, capacitance, clipped)
     capacitance, ratio = _plausible_ratio(pieces, rows, counts, capacitance, baseline, reference, flags, stale)
     medians, quiet = quiet_medians(ratio - 1.0, band)
-    drift, suspect = _drift(pieces, rows, t_s, quiet, medians)
+    drift, suspect, unseen = _drift(pieces, rows, t_s, quiet, medians)
     scale = 1.0 + drift[:, None]
     relative = ratio / scale - 1.0  # drift removed: (1 + r)/(1 + d) − 1
     for (p, job, _), r, (_, n, *_) in zip(pieces, rows, params):
@@ -112,22 +112,23 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     if clipped is not None:  # a lower bound: held as read, no σ
         saturated |= clipped & (forces == forces)
     sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma, calibrated_to), saturated,
-                   shared)
+                   shared, unseen)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
     return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]
 
 
 def _drift(pieces: list[Piece], rows: list[slice], t_s: np.ndarray, quiet: np.ndarray,
-           medians: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(drift, drift-suspect) (R,) of the stacked rows, each sensor's tracker
-    stepped through its own rows (``quiet``: how many taxels each median is of, 0: too few)."""
+           medians: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(drift, drift-suspect, the drift it cannot have seen) (R,) of the
+    stacked rows, each sensor's tracker stepped through its own rows
+    (``quiet``: how many taxels each median is of, 0: too few)."""
     t_s, quiet, medians = t_s.tolist(), quiet.tolist(), medians.tolist()
     steps = []
     for (p, _, _), r in zip(pieces, rows):
         steps += p.drift.follow(t_s[r], quiet[r], medians[r])
-    steps = np.array(steps, dtype=float).reshape(-1, 2)
-    return steps[:, 0], steps[:, 1] != 0.0
+    steps = np.array(steps, dtype=float).reshape(-1, 3)
+    return steps[:, 0], steps[:, 1] != 0.0, steps[:, 2]
 
 
 def _stacked_rows(pieces: list[Piece], counts: list[int], params: list[tuple]) -> tuple:
@@ -225,9 +226,10 @@ def _inverted(pieces: list[Piece], rows: list[slice], params: list[tuple], compe
 
 
 def _sigma(pieces: list[Piece], rows: list[slice], compensated: np.ndarray, forces: np.ndarray,
-           per_row: tuple, saturated: np.ndarray, shared: bool) -> np.ndarray:
-    """σ of every force (sigma.py); sensors on the same table in one call."""
+           per_row: tuple, saturated: np.ndarray, shared: bool, unseen: np.ndarray) -> np.ndarray:
+    """σ of every force (sigma.py), with the drift each row's tracker cannot
+    have seen (R,) ΔC/C0; sensors on the same table in one call."""
     if shared:
-        return table_sigma(pieces[0][0].response, compensated, forces, *per_row, saturated)
+        return table_sigma(pieces[0][0].response, compensated, forces, *per_row, saturated, unseen)
     return np.concatenate([table_sigma(p.response, compensated[r], forces[r], *(a[r] if a.ndim == 2 else a for a in per_row),
-                                       saturated[r]) for (p, _, _), r in zip(pieces, rows)])
+                                       saturated[r], unseen[r]) for (p, _, _), r in zip(pieces, rows)])

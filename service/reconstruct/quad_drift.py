@@ -37,7 +37,14 @@ an unloaded Z last stood within the band of the estimate, the bound
 MAX_RATE_PER_S times that time (counted from the last such frame, not from
 the freeze: between loads 0.6 s apart the tracker never settles, yet each
 gap shows the level where the estimate is); following at its reach behind a
-level that moves faster, at least the gap between them. ``drift_suspect``
+level that moves faster, at least the gap between them. The band is wide
+(12σ of Z) and a frozen estimate does not move onto the level, so such a
+frame of a frozen one counts what its Z's average shows of the level's
+distance, as the time drift at the bound takes to go so far (no more time
+than had gone unseen already: further off, it is a load coming on):
+counted as 0, a press of 2.6 s under 1 %/min left 4.2e-4 of drift
+(0.013 N) in Fz for the second the estimate took to resume with σ back at
+Z's noise (0.0016 N: up to 10σ). ``drift_suspect``
 as on a grid, on that same clock: 10 s unseen, a drift beyond 1 % ΔC/C0, or
 the estimate behind the level by more than the band. Only the full level
 tracks, as for grids.
@@ -76,7 +83,9 @@ class QuadTracker:
     whether a load is on, ``base`` the estimate when it came on; ``ema``, Z's
     exponential average over the tracker's tau_s (NaN: none yet) at
     unwrapped time ``at``; ``seen``, when an unloaded Z last stood within the
-    band of the estimate (None: not yet)."""
+    band of the estimate, less, where the estimate was frozen, the time drift
+    at the bound takes to cover how far it stood off (never earlier than it
+    was; None: not yet)."""
 
     drift: DriftTracker
     loaded: bool = False
@@ -112,8 +121,14 @@ class QuadTracker:
                 self.ema = z
             self.at = now
         gap = 0.0 if frozen_since is not None else abs(average - drift)  # held at its reach behind the level
-        if self.seen is None or (reference and abs(z - drift) <= tolerance and gap <= tolerance):
-            self.seen = now  # the estimate stands where the unloaded level is: nothing unseen since
+        if self.seen is None:  # the tare's frame: its zero is the level
+            self.seen = now
+        elif reference and abs(z - drift) <= tolerance and gap <= tolerance:
+            # Followed, the estimate stands where the unloaded level is: nothing unseen since. Frozen, within the
+            # band is no agreement: the level (Z's average) stands off it by what drift at the bound covers in
+            # that time, no more than had gone unseen already (further off, it is a load coming on)
+            off = abs(self.ema - drift) / MAX_RATE_PER_S
+            self.seen = now if frozen_since is None else max(self.seen, now - off)
         suspect = now - self.seen >= own.suspect_after_s or abs(drift) > own.max_drift or gap > tolerance
         return drift, suspect, max(gap, MAX_RATE_PER_S * (now - self.seen))  # what it cannot have seen since
 

@@ -6,7 +6,11 @@ variance is the sum of three independent parts:
 
 * the reading's noise: σ_r·dF/dr, σ_r the tare window's spread (the
   converter's noise, grid.py ``noise``) widened by √(1 + 1/T) because the
-  baseline is itself a mean of T = 100 noisy frames;
+  baseline is itself a mean of T = 100 noisy frames; at the full level, in
+  quadrature with it, the common-mode drift the tracker cannot have seen
+  (drift.py: the bound times the time since its estimate last stood at the
+  unloaded level, or less what a frame's quiet median shows, at least how
+  far it is held behind the level it follows; ~0 while it sees the level);
 * the gain's error: F·σ_κ/κ (the calibration's standard error; for the
   built-in table 1 the spread of sensors that are not the paper's,
   sensor_calibration.py);
@@ -37,12 +41,17 @@ TARE_FACTOR = math.sqrt(1.0 + 1.0 / DEFAULT_TARE_FRAMES)
 
 def table_sigma(response, relative: np.ndarray, forces: np.ndarray, noise: np.ndarray, gain: np.ndarray,
                 relative_se: np.ndarray, model_sigma: np.ndarray, calibrated_to: np.ndarray,
-                saturated: np.ndarray) -> np.ndarray:
+                saturated: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
     """σ (N, n) of forces (N, n) inverted from ``relative`` (N, n) with the
     response's curve; noise, gain, relative_se, model_sigma, calibrated_to
-    (the largest force calibrated, inf: none known) (n,) or (N, n)."""
+    (the largest force calibrated, inf: none known) (n,) or (N, n);
+    ``unseen`` (N,) the drift (ΔC/C0) each frame's tracker cannot have seen,
+    None: none tracked."""
     slope = response.inverse_slope(relative, gain)
-    reading = (TARE_FACTOR * noise) * slope
+    spread = TARE_FACTOR * noise
+    if unseen is not None and unseen.any():  # 0 on every frame where the tracker stands at the level
+        spread = np.sqrt(spread * spread + (unseen * unseen)[:, None])
+    reading = spread * slope
     beyond = np.maximum(forces - calibrated_to, 0.0) * BUILTIN_RELATIVE_SE
     sigma = np.sqrt(reading * reading + (forces * relative_se) ** 2 + model_sigma * model_sigma + beyond * beyond)
     if np.count_nonzero(saturated):
