@@ -7,10 +7,12 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from ..physics.quad_model import QuadModel
 from ..reconstruct.fatigue import PAPER_001
+from ..reconstruct.sensor_calibration import undetermined_coupling_se
 from . import registry
 from .alignment import Alignment, align, board_response
-from .quad_fit import QuadFit, fit_quad
+from .quad_fit import COUPLING_MIN_SPREAD_N, QuadFit, fit_quad
 from .reference import Reference, flat_top_said, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
@@ -53,27 +55,39 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
                            {"read": read - started, "align": aligned - read, "fit": done - aligned})
 
 
+def fit_document(fit: QuadFit) -> dict:
+    """The fit's fields of the registry record (sensor_calibration.py reads
+    them): curves, coupling (``coupling_se`` null: not determined), the
+    normal force the shear was measured under, C0, usable ends and the
+    fit's statistics."""
+    return {
+        "normal_fit": list(fit.normal), "normal_fit_se": list(fit.normal_se),
+        "shear_fit": list(fit.shear), "shear_fit_se": list(fit.shear_se),
+        "coupling": fit.coupling, "coupling_se": fit.coupling_se, "coupling_shown_by_data": fit.coupling_kept,
+        "shear_preload_N": fit.shear_preload_N[0],
+        "normal_usable_N": fit.usable_N[0], "shear_usable_N": fit.usable_N[1],
+        "c0_pF": fit.c0_pF.tolist(),
+        "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
+                       "flat_above_N": {"normal": fit.flat_N[0], "shear": fit.flat_N[1]},
+                       "shear_reach_N": fit.shear_reach_N, "shear_preload_spread_N": fit.shear_preload_N[1]},
+    }
+
+
 def quad_document(result: QuadCalibration, created: str | None = None, fatigue: str = "paper") -> dict:
     """The registry record (without id). ``fatigue``: "paper" (paper 001's
     loss from this calibration's count 0: a new sensor) or "none" (a sensor
     whose loss has settled: cycled long before the session)."""
-    fit = result.fit
+    fitted = fit_document(result.fit)
     return {
         "schema": registry.SCHEMA, "kind": "quad",
         "sensor": registry.sensor_identity(result.session.board, result.session.info),
         "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "normal_fit": list(fit.normal), "normal_fit_se": list(fit.normal_se),
-        "shear_fit": list(fit.shear), "shear_fit_se": list(fit.shear_se),
-        "coupling": fit.coupling, "coupling_se": fit.coupling_se, "coupling_shown_by_data": fit.coupling_kept,
-        "normal_usable_N": fit.usable_N[0], "shear_usable_N": fit.usable_N[1],
-        "c0_pF": fit.c0_pF.tolist(),
+        **fitted,
         "fatigue": {"drop": PAPER_001.drop if fatigue == "paper" else 0.0, "tau_cycles": PAPER_001.tau_cycles},
         "sources": [{"role": "session", "name": str(result.session.path), "sha256": result.session.sha256},
                     {"role": "reference", "name": result.reference.path, "sha256": file_sha256(result.reference.path)}],
         "alignment": result.alignment.as_dict(),
-        "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
-                       "flat_above_N": {"normal": fit.flat_N[0], "shear": fit.flat_N[1]},
-                       "shear_reach_N": fit.shear_reach_N,
+        "statistics": {**fitted["statistics"],
                        "reference_skipped_lines": result.reference.skipped,
                        "reference_rest_N": dict(zip("xyz", result.reference.zero_N or (None,) * 3)),
                        "reference_rest_subtracted": result.reference.zero_subtracted,
@@ -92,8 +106,7 @@ def quad_summary(result: QuadCalibration) -> list[str]:
             f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f}",
             f"normal: ΔC/C0 = {c2:.6f}·F² + {c1:.5f}·F  (± {fit.normal_se[0]:.1e}, {fit.normal_se[1]:.1e})",
             f"shear:  ΔC/C0 = {fit.shear[0]:.5f}·F − {fit.shear[1]:.6f}·F²  (± {fit.shear_se[0]:.1e}, {fit.shear_se[1]:.1e})",
-            "coupling: " + (f"c = {fit.coupling:.3f} ± {fit.coupling_se:.3f} (normal load reduces the shear response)"
-                            if fit.coupling_kept else f"not shown by the data (c within {3 * fit.coupling_se:.3f} of 0)"),
+            coupling_said(fit),
             f"residual RMS through the model: Fx {fit.rms_N[0]:.4f}, Fy {fit.rms_N[1]:.4f}, Fz {fit.rms_N[2]:.4f} N "
             f"over {fit.frames} loaded frames; loads {fit.loads}"] + [
             f"{axis} response flat above {flat:.1f} N (the session pressed on without it rising): fitted where it "
@@ -104,3 +117,21 @@ def quad_summary(result: QuadCalibration) -> list[str]:
             [f"shear usable to {fit.usable_N[1]:.1f} N, the largest shear the session pressed: past it the curve "
              "is not measured and may turn (a larger force would read smaller), so the force is held there and "
              "flagged shear_out_of_range (σ null)"] if fit.flat_N[1] is None and fit.usable_N[1] == fit.shear_reach_N else [])
+
+
+def coupling_said(fit: QuadFit) -> str:
+    """The summary's line on the coupling c: fitted, not shown, or not
+    determined (shear under one normal load) and how to measure it."""
+    if fit.coupling_kept:
+        return f"coupling: c = {fit.coupling:.3f} ± {fit.coupling_se:.3f} (normal load reduces the shear response)"
+    if fit.coupling_se is not None:
+        return f"coupling: not shown by the data (c within {3 * fit.coupling_se:.3f} of 0)"
+    preload, spread = fit.shear_preload_N
+    model = QuadModel.from_fits(fit.normal, fit.shear, 0.0, fit.usable_N[0], fit.usable_N[1])
+    return (f"coupling: not determined: the shear was pressed under one normal load ({preload:.1f} N, spread "
+            f"{spread:.2f} N, need ≥ {COUPLING_MIN_SPREAD_N:g} N), where a coupling c (normal load reducing the shear "
+            "response) and the shear slope change the response alike; c = 0 (the model's default), the shear curve "
+            f"is the one under {preload:.1f} N, and shear read under other normal loads carries in its σ what c may "
+            f"make of it (c taken as 0 ± {undetermined_coupling_se(model):.2f}, a third of the largest the model holds)"
+            f"; to measure c, press shear under two preloads at least {2 * COUPLING_MIN_SPREAD_N:g} N apart "
+            "(e.g. 3 and 9 N)")

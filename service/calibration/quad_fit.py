@@ -11,9 +11,24 @@ so the normal curve is a linear least-squares fit of Z on (Fz², Fz) over the
 loaded frames, and the shear curve and the coupling c a nonlinear one of X
 and Y on the same frames (scipy's least_squares, Jacobian-scaled), standard
 errors s²(JᵀJ)⁻¹ widened by √(frames per reference sample) when the board
-is faster than the reference (they share its noise). The coupling is kept
-only where the data shows it: |c| > 3 standard errors, else the shear curve
-is refitted without it. Residuals are reported in newtons through the
+is faster than the reference (they share its noise). The coupling is fitted
+only where the session can tell it: under one normal load n(Fz) is a
+constant, and c scales the shear response exactly as a smaller a and b do
+(the Jacobian's c column is a combination of a's and b's: JᵀJ is singular,
+and its pseudo-inverse showed no error along that line — a tester's shear
+under 2 N alone gave c = 1.921 ± 0.208, truth 1.0, what the reference's
+noise on the zero-shear frames pulled it to). So c is fitted only when the
+normal force under the shear (``shear_preload``: its mean and spread,
+frames weighted by Fx² + Fy², their share in the slope) spreads at least
+COUPLING_MIN_SPREAD_N: two preloads 2 N apart or more. A held preload
+spreads by the reference's noise alone (~0.03 N), and the simulator's 3 and
+9 N (spread 3 N) give c to ±0.002: at 1 N, ±0.005 there, still clear at ten
+times its noise. Otherwise c is not determined: it stays 0 (the model's
+default), the shear curve is the one under that preload, and the
+reconstruction widens σ for what a coupling would make of shear read under
+other normal loads (sensor_calibration.py). A determined c is kept only
+where the data shows it: |c| > 3 standard errors, else the shear curve is
+refitted without it. Residuals are reported in newtons through the
 fitted model's inverse. The reference (interpolated to the board's frame
 times through the alignment) is smooth at the loads' pace, so interpolation
 adds nothing the noise does not.
@@ -67,6 +82,7 @@ LOADED_N = 0.1
 NORMAL_FULL_SCALE_N = 20.0  # fit (34)'s range
 MIN_SHEAR_N = 1.0
 COUPLING_SIGMAS = 3.0
+COUPLING_MIN_SPREAD_N = 1.0  # the normal force under the shear spreads this far (weighted σ) for c to be fitted
 FLAT_BIN_N = 0.25
 FLAT_SIGMAS = OUT_OF_RANGE_SIGMAS  # a reading at the flat level is flagged as a grid's out-of-range one is
 FLAT_MIN_N = 1.0  # pressed at least this far on without the response rising: a session that ends near a
@@ -81,8 +97,9 @@ class QuadFit:
     shear: tuple[float, float]  # a, b
     shear_se: tuple[float, float]
     coupling: float
-    coupling_se: float
+    coupling_se: float | None  # None: not determined (shear under one normal load)
     coupling_kept: bool
+    shear_preload_N: tuple[float, float]  # the normal force under the shear: mean, spread (shear_preload)
     rms_N: tuple[float, float, float]  # Fx, Fy, Fz through the fitted model's inverse, within the usable ranges
     usable_N: tuple[float, float]  # normal, shear: the model's usable ends
     flat_N: tuple[float | None, float | None]  # normal, shear: where the fitted curve reaches the flat level (None: none)
@@ -164,14 +181,24 @@ def _flat_ends(flat: tuple[float, float, float] | None, slope: float, bend: floa
     return float(ends[0]), float(ends[1])
 
 
-def _fit_shear(fxy, normal, xy, widen):
-    """(a, b, c), their standard errors and whether c was kept (module docstring)."""
-    params, se = _shear(fxy, normal, xy, True, widen)
-    kept = abs(params[2]) > COUPLING_SIGMAS * se[2]
-    if not kept:
-        params, se = _shear(fxy, normal, xy, False, widen)
-        params, se = np.r_[params, 0.0], np.r_[se, 0.0]
-    return params, se, bool(kept)
+def shear_preload(fxyz: np.ndarray) -> tuple[float, float]:
+    """(mean, spread) N of the normal force under the shear of frames (k, 3):
+    Fz's mean and standard deviation, each frame weighted by Fx² + Fy² (its
+    share in the shear slope's fit)."""
+    weights = fxyz[:, 0] ** 2 + fxyz[:, 1] ** 2
+    mean = float(np.average(fxyz[:, 2], weights=weights))
+    return mean, float(np.sqrt(np.average((fxyz[:, 2] - mean) ** 2, weights=weights)))
+
+
+def _fit_shear(fxy, normal, xy, widen, determined: bool):
+    """(a, b, c), their standard errors (c's NaN when not ``determined``: not
+    fitted) and whether c was kept (module docstring)."""
+    if determined:
+        params, se = _shear(fxy, normal, xy, True, widen)
+        if abs(params[2]) > COUPLING_SIGMAS * se[2]:
+            return params, se, True
+    params, se = _shear(fxy, normal, xy, False, widen)
+    return np.r_[params, 0.0], np.r_[se, 0.0 if determined else np.nan], False
 
 
 def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray, per_frame: float) -> QuadFit:
@@ -193,14 +220,18 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
     widen = max(per_frame, 1.0)
     cov = np.linalg.inv(design.T @ design) * float(residual @ residual) / max(z.size - 2, 1) * widen
     normal = (c2 * fxyz[:, 2] + c1) * fxyz[:, 2]
-    params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen)
+    preload = shear_preload(fxyz[kept])
+    params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen,
+                                     preload[1] >= COUPLING_MIN_SPREAD_N)
     # The shear curve t shows only through the coupling: X, Y divided by 1 − c·n, both axes pooled by sign.
     t = axes[kept, :2] / (1.0 - params[2] * normal[kept])[:, None]
     shear_noise = float(np.hypot(*noise[:2]) / np.sqrt(2))
     shear_flat = flat_from(np.abs(fxyz[kept, :2]).ravel(), (np.sign(fxyz[kept, :2]) * t).ravel(), shear_noise)
     if shear_flat:
         kept &= (np.abs(fxyz[:, :2]) <= shear_flat[0]).all(axis=1)
-        params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen)
+        preload = shear_preload(fxyz[kept])
+        params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen,
+                                         preload[1] >= COUPLING_MIN_SPREAD_N)
     normal_ends = _flat_ends(normal_flat, c1, -c2, noise[2])
     shear_ends = _flat_ends(shear_flat, params[0], params[1], shear_noise)
     reach = float(np.abs(fxyz[:, :2]).max())
@@ -211,5 +242,6 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
     rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[usable, k]) ** 2))) for k in range(3))
     return QuadFit(c0, (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
                    (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(max(params[2], 0.0)),
-                   float(se[2]), coupled, rms, (model.normal_usable_N, model.shear_usable_N),
+                   None if np.isnan(se[2]) else float(se[2]), coupled, preload,
+                   rms, (model.normal_usable_N, model.shear_usable_N),
                    (normal_ends[0], shear_ends[0]), reach, int(kept.sum()), loads)

@@ -32,7 +32,8 @@ def processor_for(info: SensorInfo, level: str, mounting: str,
     """The sensor's processor at ``level`` on ``calibration``; crosstalk
     measured in a calibration session is the full level's starting point."""
     if info.kind == "quad":
-        return QuadProcessor(level, calibration.quad, calibration.quad_relative_se, calibration.quad_model_sigma_N)
+        return QuadProcessor(level, calibration.quad, calibration.quad_relative_se, calibration.quad_model_sigma_N,
+                             calibration.quad_coupling_sigma)
     crosstalk = None
     if level == "full" and calibration.crosstalk is not None:
         crosstalk = Crosstalk(info.rows, info.cols, *calibration.crosstalk)
