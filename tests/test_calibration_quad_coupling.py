@@ -81,12 +81,12 @@ def _capacitance(f, coupling, rng):
 
 
 def session(preloads, coupling, seed=0):
-    """(capacitance (N, 4) pF, the reference's forces at the frames (N, 3)) of a calibration session."""
+    """(capacitance (N, 4) pF, the reference's forces at the frames (N, 3), the true ones) of a calibration session."""
     loads, end = _loads(preloads, seed)
     t = np.arange(0.0, end, 1.0 / RATE_HZ)
     f = _forces(t, loads)
     rng = np.random.default_rng(seed + 100)
-    return _capacitance(f, coupling, rng), f + rng.normal(0.0, REFERENCE_NOISE_N, f.shape)
+    return _capacitance(f, coupling, rng), f + rng.normal(0.0, REFERENCE_NOISE_N, f.shape), f
 
 
 def validation(coupling, seed=9):
@@ -104,7 +104,7 @@ def validation(coupling, seed=9):
 
 
 def fitted(preloads, coupling, seed=0):
-    capacitance, reference = session(preloads, coupling, seed)
+    capacitance, reference, _ = session(preloads, coupling, seed)
     return fit_quad(capacitance, reference, np.zeros(len(reference), bool), 1.0)
 
 
@@ -157,3 +157,26 @@ def test_two_preloads_determine_the_coupling():
     assert coupling_said(fit).startswith("coupling: c = ")
     truth, forces, sigma = read_back(fit, 1.0)
     assert np.sqrt(((forces - truth)[:, :2] ** 2).mean()) < 0.05
+
+
+def test_a_negative_coupling_is_left_out_with_the_slope_fitted_without_it():
+    """The model holds c ≥ 0 only (normal load reduces the shear response).
+    A fit of c < 0 standing 3σ clear of 0 was kept and stored as 0 with the
+    slope fitted along with it (tester: raw c = −3.75, a = 0.00447 for
+    0.00889, 0.44 N residual); now the slope is refitted without c, so the
+    stored a is the c = 0 least-squares slope of the session (here, on the
+    noiseless shear, its closed form: linear in a and b)."""
+    coupling = -0.3
+    capacitance, reference, f = session((3.0, 9.0), coupling)
+    fit = fit_quad(capacitance, reference, np.zeros(len(reference), bool), 1.0)
+    assert not fit.coupling_kept and fit.coupling == 0.0
+    assert fit.coupling_fitted[0] == pytest.approx(coupling, abs=0.02)
+    n = NORMAL[0] * f[:, 2] + NORMAL[1] * f[:, 2] ** 2
+    shear = np.abs(f[:, :2]).max(axis=1) > 0.1
+    force = f[shear][:, :2].ravel()
+    response = (_odd(f[shear][:, :2], *SHEAR) * (1.0 - coupling * n[shear])[:, None]).ravel()
+    (a, minus_b), *_ = np.linalg.lstsq(np.stack([force, -np.sign(force) * force * force], axis=1), response, rcond=None)
+    assert a > 1.04 * SHEAR[0]  # the loads show the (negative) coupling
+    assert fit.shear[0] == pytest.approx(a, rel=0.01)
+    assert fit.shear[1] == pytest.approx(minus_b, rel=0.05)
+    assert "c = -0.30" in coupling_said(fit) and "fitted without it" in coupling_said(fit)

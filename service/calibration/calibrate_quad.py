@@ -12,7 +12,7 @@ from ..reconstruct.fatigue import PAPER_001
 from ..reconstruct.sensor_calibration import undetermined_coupling_se
 from . import registry
 from .alignment import Alignment, align, board_response
-from .quad_fit import COUPLING_MIN_SPREAD_N, QuadFit, fit_quad
+from .quad_fit import COUPLING_MIN_SPREAD_N, COUPLING_SIGMAS, QuadFit, fit_quad
 from .reference import Reference, flat_top_said, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
@@ -124,6 +124,11 @@ def coupling_said(fit: QuadFit) -> str:
     determined (shear under one normal load) and how to measure it."""
     if fit.coupling_kept:
         return f"coupling: c = {fit.coupling:.3f} ± {fit.coupling_se:.3f} (normal load reduces the shear response)"
+    if fit.coupling_fitted is not None and fit.coupling_fitted[0] < -COUPLING_SIGMAS * fit.coupling_fitted[1]:
+        c, se = fit.coupling_fitted
+        return (f"coupling: the data gave c = {c:.2f} ± {se:.2f}, normal load raising the shear response, which the "
+                "model does not hold (c ≥ 0): fitted without it, the shear curve is the one under "
+                f"{fit.shear_preload_N[0]:.1f} N (the mean normal load under the shear)")
     if fit.coupling_se is not None:
         return f"coupling: not shown by the data (c within {3 * fit.coupling_se:.3f} of 0)"
     preload, spread = fit.shear_preload_N

@@ -27,8 +27,11 @@ times its noise. Otherwise c is not determined: it stays 0 (the model's
 default), the shear curve is the one under that preload, and the
 reconstruction widens σ for what a coupling would make of shear read under
 other normal loads (sensor_calibration.py). A determined c is kept only
-where the data shows it: |c| > 3 standard errors, else the shear curve is
-refitted without it. Residuals are reported in newtons through the
+where the data shows it: c > 3 standard errors, else the shear curve is
+refitted without it — also when c < 0, which the model does not hold
+(normal load raising the shear response): stored as 0 beside the slope
+fitted with it, that slope was another c's (a tester's −3.75 left a at half
+the sensor's, 0.44 N residual). Residuals are reported in newtons through the
 fitted model's inverse. The reference (interpolated to the board's frame
 times through the alignment) is smooth at the loads' pace, so interpolation
 adds nothing the noise does not.
@@ -99,6 +102,7 @@ class QuadFit:
     coupling: float
     coupling_se: float | None  # None: not determined (shear under one normal load)
     coupling_kept: bool
+    coupling_fitted: tuple[float, float] | None  # c and its standard error as fitted (None: not determined)
     shear_preload_N: tuple[float, float]  # the normal force under the shear: mean, spread (shear_preload)
     rms_N: tuple[float, float, float]  # Fx, Fy, Fz through the fitted model's inverse, within the usable ranges
     usable_N: tuple[float, float]  # normal, shear: the model's usable ends
@@ -192,13 +196,16 @@ def shear_preload(fxyz: np.ndarray) -> tuple[float, float]:
 
 def _fit_shear(fxy, normal, xy, widen, determined: bool):
     """(a, b, c), their standard errors (c's NaN when not ``determined``: not
-    fitted) and whether c was kept (module docstring)."""
+    fitted), whether c was kept and (c, its standard error) as fitted (None:
+    not determined) (module docstring)."""
+    fitted = None
     if determined:
         params, se = _shear(fxy, normal, xy, True, widen)
-        if abs(params[2]) > COUPLING_SIGMAS * se[2]:
-            return params, se, True
+        fitted = (float(params[2]), float(se[2]))
+        if params[2] > COUPLING_SIGMAS * se[2]:
+            return params, se, True, fitted
     params, se = _shear(fxy, normal, xy, False, widen)
-    return np.r_[params, 0.0], np.r_[se, 0.0 if determined else np.nan], False
+    return np.r_[params, 0.0], np.r_[se, 0.0 if determined else np.nan], False, fitted
 
 
 def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray, per_frame: float) -> QuadFit:
@@ -221,8 +228,8 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
     cov = np.linalg.inv(design.T @ design) * float(residual @ residual) / max(z.size - 2, 1) * widen
     normal = (c2 * fxyz[:, 2] + c1) * fxyz[:, 2]
     preload = shear_preload(fxyz[kept])
-    params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen,
-                                     preload[1] >= COUPLING_MIN_SPREAD_N)
+    params, se, coupled, fitted = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen,
+                                             preload[1] >= COUPLING_MIN_SPREAD_N)
     # The shear curve t shows only through the coupling: X, Y divided by 1 − c·n, both axes pooled by sign.
     t = axes[kept, :2] / (1.0 - params[2] * normal[kept])[:, None]
     shear_noise = float(np.hypot(*noise[:2]) / np.sqrt(2))
@@ -230,18 +237,18 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
     if shear_flat:
         kept &= (np.abs(fxyz[:, :2]) <= shear_flat[0]).all(axis=1)
         preload = shear_preload(fxyz[kept])
-        params, se, coupled = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen,
-                                         preload[1] >= COUPLING_MIN_SPREAD_N)
+        params, se, coupled, fitted = _fit_shear(fxyz[kept, :2], normal[kept], axes[kept, :2], widen,
+                                                 preload[1] >= COUPLING_MIN_SPREAD_N)
     normal_ends = _flat_ends(normal_flat, c1, -c2, noise[2])
     shear_ends = _flat_ends(shear_flat, params[0], params[1], shear_noise)
     reach = float(np.abs(fxyz[:, :2]).max())
-    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], max(params[2], 0.0), normal_ends[1],
+    model = QuadModel.from_fits([c2, c1], [params[0], params[1]], params[2], normal_ends[1],
                                 reach if shear_ends[1] is None else min(reach, shear_ends[1]))
     usable = (fxyz[:, 2] <= model.normal_usable_N) & (np.abs(fxyz[:, :2]) <= model.shear_usable_N).all(axis=1)
     forces, _ = model.inverse(capacitance_pF[loaded][usable] / c0 - 1.0)
     rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[usable, k]) ** 2))) for k in range(3))
     return QuadFit(c0, (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
-                   (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(max(params[2], 0.0)),
-                   None if np.isnan(se[2]) else float(se[2]), coupled, preload,
+                   (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(params[2]),
+                   None if np.isnan(se[2]) else float(se[2]), coupled, fitted, preload,
                    rms, (model.normal_usable_N, model.shear_usable_N),
                    (normal_ends[0], shear_ends[0]), reach, int(kept.sum()), loads)
