@@ -180,3 +180,37 @@ def test_a_negative_coupling_is_left_out_with_the_slope_fitted_without_it():
     assert fit.shear[0] == pytest.approx(a, rel=0.01)
     assert fit.shear[1] == pytest.approx(minus_b, rel=0.05)
     assert "c = -0.30" in coupling_said(fit) and "fitted without it" in coupling_said(fit)
+
+
+def test_a_coupling_left_out_keeps_what_the_data_said_of_it():
+    """c left out was stored with ``coupling_se`` 0 and said "c within 0.000
+    of 0". Now its σ is what the fit said of it, √(c² + se²) about the 0
+    stored, and shear read away from the session's mean preload carries it:
+    with c = −0.3 left out, read under 2–10 N within 2σ (its error up to
+    0.3·(n(10 N) − n(6 N)) = 3.7 % of the shear; with σ_c 0, 3.3 % of Fy
+    beyond 2σ, the worst 3.4σ)."""
+    fit = fitted((3.0, 9.0), 0.0)
+    c, se = fit.coupling_fitted
+    assert not fit.coupling_kept and abs(c) < 3 * se
+    assert fit.coupling_se == pytest.approx(np.hypot(c, se)) and fit.coupling_se > 0
+    said = coupling_said(fit)
+    assert f"c = {c:.3f} ± {se:.3f}" in said and "within 0.000" not in said and "not shown by the data" in said
+
+    negative = fitted((3.0, 9.0), -0.3)
+    assert negative.coupling_se == pytest.approx(0.3, abs=0.01)
+    truth, forces, sigma = read_back(negative, -0.3)
+    error = np.abs(forces - truth)
+    assert error[:, :2].max() > 0.1  # the coupling shows
+    assert (error > 2 * sigma).mean(axis=0).max() < 0.003 and not (error > 3 * sigma).any()
+
+
+def test_older_documents_load_with_their_coupling_se():
+    """Documents stored before (``coupling_se`` 0, no ``shear_preload_N``)
+    load as they did: no coupling term in σ."""
+    fit = fitted((3.0, 9.0), 0.0)
+    document = {**fit_document(fit), "id": "old-quad", "kind": "quad", "coupling_se": 0.0}
+    del document["shear_preload_N"]
+    calibration = from_document(document, QUAD)
+    assert calibration.quad.coupling == 0.0 and calibration.quad_coupling_sigma is None
+    with pytest.raises(ValueError, match="coupling_se: -1"):
+        from_document({**fit_document(fit), "id": "bad", "kind": "quad", "coupling_se": -1}, QUAD)

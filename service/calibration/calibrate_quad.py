@@ -128,9 +128,13 @@ def coupling_said(fit: QuadFit) -> str:
         c, se = fit.coupling_fitted
         return (f"coupling: the data gave c = {c:.2f} ± {se:.2f}, normal load raising the shear response, which the "
                 "model does not hold (c ≥ 0): fitted without it, the shear curve is the one under "
-                f"{fit.shear_preload_N[0]:.1f} N (the mean normal load under the shear)")
-    if fit.coupling_se is not None:
-        return f"coupling: not shown by the data (c within {3 * fit.coupling_se:.3f} of 0)"
+                f"{fit.shear_preload_N[0]:.1f} N (the mean normal load under the shear), and shear read under other "
+                f"normal loads carries c = 0 ± {fit.coupling_se:.2f} in its σ")
+    if fit.coupling_fitted is not None:
+        c, se = fit.coupling_fitted
+        return (f"coupling: not shown by the data: c = {c:.3f} ± {se:.3f} (within {COUPLING_SIGMAS:g}σ of 0), "
+                f"fitted without it (c = 0 ± {fit.coupling_se:.3f}, in the shear's σ away from "
+                f"{fit.shear_preload_N[0]:.1f} N, the mean normal load under the shear)")
     preload, spread = fit.shear_preload_N
     model = QuadModel.from_fits(fit.normal, fit.shear, 0.0, fit.usable_N[0], fit.usable_N[1])
     return (f"coupling: not determined: the shear was pressed under one normal load ({preload:.1f} N, spread "

@@ -31,10 +31,12 @@ where the data shows it: c > 3 standard errors, else the shear curve is
 refitted without it — also when c < 0, which the model does not hold
 (normal load raising the shear response): stored as 0 beside the slope
 fitted with it, that slope was another c's (a tester's −3.75 left a at half
-the sensor's, 0.44 N residual). Residuals are reported in newtons through the
-fitted model's inverse. The reference (interpolated to the board's frame
-times through the alignment) is smooth at the loads' pace, so interpolation
-adds nothing the noise does not.
+the sensor's, 0.44 N residual). A c left out keeps what the data said of
+it as the σ of the 0 stored, √(c² + se²) (it was stored as 0 ± 0), which
+the reconstruction carries as an undetermined one's. Residuals are
+reported in newtons through the fitted model's inverse. The reference
+(interpolated to the board's frame times through the alignment) is smooth
+at the loads' pace, so interpolation adds nothing the noise does not.
 
 A sensor's response can stop rising before the fits' turns (a dielectric
 compressed solid, an overlap that cannot grow further): pressed past it,
@@ -100,7 +102,7 @@ class QuadFit:
     shear: tuple[float, float]  # a, b
     shear_se: tuple[float, float]
     coupling: float
-    coupling_se: float | None  # None: not determined (shear under one normal load)
+    coupling_se: float | None  # None: not determined (shear under one normal load); left out: √(c² + se²) as fitted
     coupling_kept: bool
     coupling_fitted: tuple[float, float] | None  # c and its standard error as fitted (None: not determined)
     shear_preload_N: tuple[float, float]  # the normal force under the shear: mean, spread (shear_preload)
@@ -205,7 +207,8 @@ def _fit_shear(fxy, normal, xy, widen, determined: bool):
         if params[2] > COUPLING_SIGMAS * se[2]:
             return params, se, True, fitted
     params, se = _shear(fxy, normal, xy, False, widen)
-    return np.r_[params, 0.0], np.r_[se, 0.0 if determined else np.nan], False, fitted
+    # the 0 stored is off the data's c by c ± its error: σ √(c² + se²) (0 was stored, and read as exact)
+    return np.r_[params, 0.0], np.r_[se, np.hypot(*fitted) if determined else np.nan], False, fitted
 
 
 def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray, per_frame: float) -> QuadFit:
