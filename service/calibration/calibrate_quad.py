@@ -12,7 +12,7 @@ from ..reconstruct.fatigue import PAPER_001
 from ..reconstruct.sensor_calibration import undetermined_coupling_se
 from . import registry
 from .alignment import Alignment, align, board_response
-from .quad_fit import COUPLING_MIN_SPREAD_N, COUPLING_SIGMAS, QuadFit, fit_quad
+from .quad_fit import COUPLING_MIN_SPREAD_N, COUPLING_SIGMAS, REST_MIN_S, QuadFit, fit_quad
 from .reference import Reference, flat_top_said, read_reference
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
@@ -46,7 +46,7 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
     fxyz = np.stack([np.interp(session.t_s[inside], t_ref_board, reference.fxyz_N[:, k]) for k in range(3)], axis=1)
     aligned = time.perf_counter()
     try:  # a refusal says whether the reference's rest level may be why
-        fit = fit_quad(session.capacitance_pF[inside], fxyz, session.saturated[inside],
+        fit = fit_quad(session.t_s[inside], session.capacitance_pF[inside], fxyz, session.saturated[inside],
                        session.rate_hz / reference.rate_hz)
     except ValueError as exc:
         raise with_zero_hint(reference, exc) from None
@@ -69,7 +69,8 @@ def fit_document(fit: QuadFit) -> dict:
         "c0_pF": fit.c0_pF.tolist(),
         "statistics": {"frames_fitted": fit.frames, "loads": fit.loads, "rms_N": dict(zip("xyz", fit.rms_N)),
                        "flat_above_N": {"normal": fit.flat_N[0], "shear": fit.flat_N[1]},
-                       "shear_reach_N": fit.shear_reach_N, "shear_preload_spread_N": fit.shear_preload_N[1]},
+                       "shear_reach_N": fit.shear_reach_N, "shear_preload_spread_N": fit.shear_preload_N[1],
+                       "c0_moved": fit.c0_moved, "c0_rests": fit.c0_rests},
     }
 
 
@@ -104,6 +105,7 @@ def quad_summary(result: QuadCalibration) -> list[str]:
             f"{zero_said(result.reference)}",
             *filter(None, [flat_top_said(result.reference)]),
             f"alignment: t_ref = t_board·(1 {a.rate_ppm:+.1f} ppm) {a.offset_s:+.4f} s; match {a.quality:.4f}",
+            c0_said(fit),
             f"normal: ΔC/C0 = {c2:.6f}·F² + {c1:.5f}·F  (± {fit.normal_se[0]:.1e}, {fit.normal_se[1]:.1e})",
             f"shear:  ΔC/C0 = {fit.shear[0]:.5f}·F − {fit.shear[1]:.6f}·F²  (± {fit.shear_se[0]:.1e}, {fit.shear_se[1]:.1e})",
             coupling_said(fit),
@@ -144,3 +146,13 @@ def coupling_said(fit: QuadFit) -> str:
             f"make of it (c taken as 0 ± {undetermined_coupling_se(model):.2f}, a third of the largest the model holds)"
             f"; to measure c, press shear under two preloads at least {2 * COUPLING_MIN_SPREAD_N:g} N apart "
             "(e.g. 3 and 9 N)")
+
+
+def c0_said(fit: QuadFit) -> str:
+    """The summary's line on C0: how far it moved over the session (the
+    most of an electrode's, and as Fz on the fitted curve's small-force
+    slope) and between how many rests it was followed."""
+    moved = f"C0 moved {100 * fit.c0_moved:.1f} % during the session (as much as {fit.c0_moved / fit.normal[1]:.2f} N of Fz)"
+    if fit.c0_rests < 2:
+        return f"{moved}; fewer than two rest stretches of {REST_MIN_S:g} s: one C0 (the unloaded frames' mean) throughout"
+    return f"{moved}, followed linearly between its {fit.c0_rests} rest stretches"

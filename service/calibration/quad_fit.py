@@ -1,7 +1,15 @@
 """Calibrating a quad sensor from a force/torque reference (paper 001's curves and §5.3 coupling).
 
-The electrodes' ΔC/C0 (against each electrode's unloaded mean) combine into
-Z (normal), X and Y (shear) and the redundant R (physics/quad_model.py).
+The electrodes' ΔC/C0 combine into Z (normal), X and Y (shear) and the
+redundant R (physics/quad_model.py), each electrode against its C0 where
+the frame is: the mean of each rest stretch between loads, followed
+linearly between them (``rest_c0``; the grid takes each taxel's C0 from the
+pauses around its own presses, segmentation.py). Temperature moves C0
+during a session: one C0 for all of it (the unloaded frames' mean) left a
+tester's quad, warming 2 % over 100 s, at 0.20 N of Fz residual (0.012 N
+without), and the drift in the noise figure made its rising curve look flat
+from 13.3 N ("usable to 11.4 N"; it rose to ~19 N). The stored C0 is still
+the unloaded frames' mean; how far it moved is said (``c0_moved``).
 The model is
 
     Z = c2·Fz² + c1·Fz,     X = t(Fx)·(1 − c·n(Fz)),   Y = t(Fy)·(1 − c·n(Fz)),
@@ -80,7 +88,7 @@ import numpy as np
 from ..physics.quad_model import QuadModel, combinations
 from ..physics.shear import shear_force
 from ..physics.taxel_response import OUT_OF_RANGE_SIGMAS
-from .segmentation import find_runs
+from .segmentation import GUARD_S, find_runs
 
 UNLOADED_N = 0.05
 LOADED_N = 0.1
@@ -88,6 +96,7 @@ NORMAL_FULL_SCALE_N = 20.0  # fit (34)'s range
 MIN_SHEAR_N = 1.0
 COUPLING_SIGMAS = 3.0
 COUPLING_MIN_SPREAD_N = 1.0  # the normal force under the shear spreads this far (weighted σ) for c to be fitted
+REST_MIN_S = 0.1  # a rest stretch, GUARD_S clear of the loads on either side, lasts this long for a C0 of its own
 FLAT_BIN_N = 0.25
 FLAT_SIGMAS = OUT_OF_RANGE_SIGMAS  # a reading at the flat level is flagged as a grid's out-of-range one is
 FLAT_MIN_N = 1.0  # pressed at least this far on without the response rising: a session that ends near a
@@ -96,7 +105,9 @@ FLAT_MIN_N = 1.0  # pressed at least this far on without the response rising: a 
 
 @dataclass
 class QuadFit:
-    c0_pF: np.ndarray  # (4,)
+    c0_pF: np.ndarray  # (4,) the unloaded frames' mean
+    c0_moved: float  # the most an electrode's C0 moved over the session's rest stretches, relative
+    c0_rests: int  # the rest stretches C0 was followed between (rest_c0)
     normal: tuple[float, float]  # c2, c1
     normal_se: tuple[float, float]
     shear: tuple[float, float]  # a, b
@@ -137,6 +148,26 @@ def check(fxyz: np.ndarray, saturated: np.ndarray, unloaded: np.ndarray) -> dict
     if thin:
         raise ValueError(f"fewer than 2 loads along {', '.join(a.upper() for a in thin)} (need at least 2 each)")
     return loads
+
+
+def rest_c0(t_s: np.ndarray, capacitance_pF: np.ndarray, unloaded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(C0 (N, 4) pF at each frame, the rest stretches' C0 (m, 4)) from
+    frames at ``t_s`` (N,) s, (N, 4) pF and the unloaded mask (N,): each rest
+    stretch's mean (a run of unloaded frames, GUARD_S clear of the loads on
+    either side, at least REST_MIN_S long), followed linearly between the
+    stretches' mean times and held before the first and after the last. With
+    fewer than two stretches, the unloaded frames' mean throughout."""
+    times, levels = [], []
+    for a, b in find_runs(unloaded.astype(float), 0.5, 0.5):
+        t = t_s[a:b]
+        inner = (t >= t[0] + GUARD_S) & (t <= t[-1] - GUARD_S)
+        if inner.any() and t[inner][-1] - t[inner][0] >= REST_MIN_S:
+            times.append(t[inner].mean())
+            levels.append(np.nanmean(capacitance_pF[a:b][inner], axis=0))
+    if len(times) < 2:
+        return np.broadcast_to(np.nanmean(capacitance_pF[unloaded], axis=0), capacitance_pF.shape), np.array(levels)
+    levels = np.array(levels)
+    return np.stack([np.interp(t_s, times, levels[:, k]) for k in range(levels.shape[1])], axis=1), levels
 
 
 def _shear_residual(params: np.ndarray, fxy: np.ndarray, normal: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -211,12 +242,15 @@ def _fit_shear(fxy, normal, xy, widen, determined: bool):
     return np.r_[params, 0.0], np.r_[se, np.hypot(*fitted) if determined else np.nan], False, fitted
 
 
-def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray, per_frame: float) -> QuadFit:
-    """Fit frames (N, 4) pF against the reference forces at their times (N, 3)."""
+def fit_quad(t_s: np.ndarray, capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray,
+             per_frame: float) -> QuadFit:
+    """Fit frames at ``t_s`` (N,) s, (N, 4) pF against the reference forces at their times (N, 3)."""
     unloaded = np.linalg.norm(fxyz, axis=1) < UNLOADED_N
     loads = check(fxyz, saturated, unloaded)
     c0 = np.nanmean(capacitance_pF[unloaded], axis=0)
-    axes = combinations(capacitance_pF / c0 - 1.0)
+    followed, rests = rest_c0(t_s, capacitance_pF, unloaded)
+    moved = float(np.max(np.ptp(rests, axis=0) / np.mean(rests, axis=0))) if len(rests) > 1 else 0.0
+    axes = combinations(capacitance_pF / followed - 1.0)
     noise = np.nanstd(axes[unloaded], axis=0)  # one frame's σ of X, Y, Z
     loaded = (np.linalg.norm(fxyz, axis=1) > LOADED_N) & np.isfinite(axes).all(axis=1)
     fxyz, axes = fxyz[loaded], axes[loaded]
@@ -248,9 +282,9 @@ def fit_quad(capacitance_pF: np.ndarray, fxyz: np.ndarray, saturated: np.ndarray
     model = QuadModel.from_fits([c2, c1], [params[0], params[1]], params[2], normal_ends[1],
                                 reach if shear_ends[1] is None else min(reach, shear_ends[1]))
     usable = (fxyz[:, 2] <= model.normal_usable_N) & (np.abs(fxyz[:, :2]) <= model.shear_usable_N).all(axis=1)
-    forces, _ = model.inverse(capacitance_pF[loaded][usable] / c0 - 1.0)
+    forces, _ = model.inverse(capacitance_pF[loaded][usable] / followed[loaded][usable] - 1.0)
     rms = tuple(float(np.sqrt(np.mean((forces[:, k] - fxyz[usable, k]) ** 2))) for k in range(3))
-    return QuadFit(c0, (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
+    return QuadFit(c0, moved, len(rests), (float(c2), float(c1)), tuple(float(v) for v in np.sqrt(np.diag(cov))),
                    (float(params[0]), float(params[1])), (float(se[0]), float(se[1])), float(params[2]),
                    None if np.isnan(se[2]) else float(se[2]), coupled, fitted, preload,
                    rms, (model.normal_usable_N, model.shear_usable_N),
