@@ -7,13 +7,14 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from ..physics.quad_fits import invert_fit
 from ..physics.quad_model import QuadModel
 from ..reconstruct.fatigue import PAPER_001
 from ..reconstruct.sensor_calibration import undetermined_coupling_se
 from . import registry
 from .alignment import Alignment, align, board_response
 from .quad_fit import COUPLING_MIN_SPREAD_N, COUPLING_SIGMAS, REST_MIN_S, QuadFit, fit_quad
-from .reference import Reference, flat_top_said, read_reference
+from .reference import Reference, flat_top_said, read_reference, unit_hint
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .session import BoardSession, file_sha256, load_session
 
@@ -45,11 +46,13 @@ def calibrate_quad(session_path, reference_path, sensor_id: int | None = None,
     inside = (session.t_s >= t_ref_board[0]) & (session.t_s <= t_ref_board[-1])
     fxyz = np.stack([np.interp(session.t_s[inside], t_ref_board, reference.fxyz_N[:, k]) for k in range(3)], axis=1)
     aligned = time.perf_counter()
-    try:  # a refusal says whether the reference's rest level may be why
+    try:  # a refusal says whether the reference's rest level, or its unit, may be why
         fit = fit_quad(session.t_s[inside], session.capacitance_pF[inside], fxyz, session.saturated[inside],
                        session.rate_hz / reference.rate_hz)
     except ValueError as exc:
-        raise with_zero_hint(reference, exc) from None
+        hint = unit_hint(_normal_ratio(response[inside], fxyz[:, 2]), "the board's response gives through paper "
+                         "001's fit 34")
+        raise with_zero_hint(reference, ValueError(f"{exc}; note: {hint}") if hint else exc) from None
     done = time.perf_counter()
     return QuadCalibration(session, reference, alignment, fit,
                            {"read": read - started, "align": aligned - read, "fit": done - aligned})
@@ -72,6 +75,17 @@ def fit_document(fit: QuadFit) -> dict:
                        "shear_reach_N": fit.shear_reach_N, "shear_preload_spread_N": fit.shear_preload_N[1],
                        "c0_moved": fit.c0_moved, "c0_rests": fit.c0_rests},
     }
+
+
+def _normal_ratio(response: np.ndarray, fz: np.ndarray) -> float:
+    """The reference's Fz (k,) over the normal force the board's summed
+    response (k,) (alignment.board_response: four times Z above its rest)
+    gives through fit 34, the median over the frames loaded past half the
+    largest such force: ~1 for a reference in N, whatever its thresholds
+    make of another unit; NaN without loads."""
+    board, _ = invert_fit(QuadModel().normal_fit, response / 4.0)
+    loaded = board > 0.5 * board.max()
+    return float(np.median(fz[loaded] / board[loaded])) if board.max() > 0 else float("nan")
 
 
 def quad_document(result: QuadCalibration, created: str | None = None, fatigue: str = "paper") -> dict:
