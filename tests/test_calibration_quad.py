@@ -122,6 +122,17 @@ def test_a_session_without_enough_normal_range_is_refused(tmp_path):
         calibrate_quad(tmp_path / "s.bin", tmp_path / "r2.csv")
 
 
+def test_shear_pressed_one_way_only_is_refused():
+    """The check said "need ≥ 1 N both ways" but measured |F|: shear toward
+    +X and +Y only was fitted, its curve taken as odd, and −X, −Y never seen."""
+    from tests.quad_ft_session import session
+
+    one_way = session(directions=((1, 0), (0, 1)))
+    with pytest.raises(ValueError, match=r"shear along X reaches \+[0-9.]+ N and −0\.0\d N \(need ≥ 1 N both ways\)"):
+        one_way.fit()
+    assert session().fit().loads["x"] == 8  # both ways, twice, under 3 and 9 N
+
+
 @pytest.mark.parametrize("unit, newtons", [("lbf", 4.448222), ("kgf", 9.80665), ("mN", 1e-3)])
 def test_a_reference_in_another_unit_is_named(run, tmp_path, unit, newtons):
     """An F/T log in lbf or kgf was refused as "normal force range 0–3.52 N

@@ -140,10 +140,10 @@ def check(fxyz: np.ndarray, saturated: np.ndarray, unloaded: np.ndarray) -> dict
     if fxyz[:, 2].max() < 0.5 * NORMAL_FULL_SCALE_N:
         raise ValueError(f"normal force range 0–{fxyz[:, 2].max():.2f} N is under half of full scale "
                          f"({NORMAL_FULL_SCALE_N:g} N)")
-    for k, axis in enumerate("xy"):
-        if np.abs(fxyz[:, k]).max() < MIN_SHEAR_N:
-            raise ValueError(f"shear along {axis.upper()} reaches only {np.abs(fxyz[:, k]).max():.2f} N "
-                             f"(need ≥ {MIN_SHEAR_N:g} N both ways)")
+    for k, axis in enumerate("xy"):  # each way: the shear curve is taken as odd, so both must be seen
+        if min(fxyz[:, k].max(), -fxyz[:, k].min()) < MIN_SHEAR_N:
+            raise ValueError(f"shear along {axis.upper()} reaches {fxyz[:, k].max():+.2f} N and "
+                             f"−{abs(fxyz[:, k].min()):.2f} N (need ≥ {MIN_SHEAR_N:g} N both ways)")
     thin = [axis for axis, n in loads.items() if n < 2]
     if thin:
         raise ValueError(f"fewer than 2 loads along {', '.join(a.upper() for a in thin)} (need at least 2 each)")
