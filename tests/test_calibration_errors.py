@@ -313,22 +313,29 @@ def test_presses_far_past_the_full_scale_are_named_where_the_alignment_fails(tmp
         calibrate(*files(tmp_path, presses), full_scale_N=5.0)
 
 
-def lbf(ref):
-    """The reference rewritten as an instrument logging lbf under a force_N header would."""
+def lbf(ref, newtons=4.448222):
+    """The reference rewritten as an instrument logging lbf (or another unit of ``newtons``) under a force_N header would."""
     lines = ref.read_text().splitlines()
-    ref.write_text("\n".join([lines[0]] + [f"{line.split(',')[0]},{float(line.split(',')[1]) / 4.448222}"
+    ref.write_text("\n".join([lines[0]] + [f"{line.split(',')[0]},{float(line.split(',')[1]) / newtons}"
                                            if line and line[0].isdigit() else line for line in lines[1:]]) + "\n")
 
 
 def test_a_reference_in_lbf_is_named_as_a_possible_unit_mistake(tmp_path, capsys):
     """lbf under a force_N header was refused as 'force range under half of full scale', without a word of units;
-    with --full-scale 2.2 it was stored, 4.4× the paper's sensitivities, without a word."""
+    with --full-scale 2.2 it was stored, 4.4× the paper's sensitivities, without a word. Then a note after every
+    taxel's refusal said lbf or kgf might be why; now the refusal starts with the unit the reference's forces stand
+    at against the board's response (table 1's taxels within ±15 % of the model curve at gain 1)."""
     from service.cli import main
 
     raw, ref = files(tmp_path, probe_schedule(range(6), seed=1))
     lbf(ref)
-    with pytest.raises(ValueError, match=r"never exceeds \d\.\d\d N: if it logs another unit than N \(lbf"):
+    with pytest.raises(ValueError, match=r"^cannot calibrate: the reference logs 0\.2\d+× the force the board's response "
+                                         r"gives .*, as one in lbf would \(4\.44822 N each\): convert it to N; taxel"):
         calibrate(raw, ref)
+    lbf(ref, 9.80665 / 4.448222)  # now in kgf
+    with pytest.raises(ValueError, match=r"^cannot calibrate: the reference logs 0\.1\d+× .*, as one in kgf would"):
+        calibrate(raw, ref)
+    lbf(ref, 4.448222 / 9.80665)  # back in lbf
     registry = tmp_path / "r.sqlite3"
     assert main(["calibrate", str(raw), "--reference", str(ref), "--full-scale", "2.2", "--partial",
                  "--registry", str(registry)]) == 0

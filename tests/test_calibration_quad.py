@@ -122,6 +122,36 @@ def test_a_session_without_enough_normal_range_is_refused(tmp_path):
         calibrate_quad(tmp_path / "s.bin", tmp_path / "r2.csv")
 
 
+def test_shear_pressed_one_way_only_is_refused():
+    """The check said "need ≥ 1 N both ways" but measured |F|: shear toward
+    +X and +Y only was fitted, its curve taken as odd, and −X, −Y never seen."""
+    from tests.quad_ft_session import session
+
+    one_way = session(directions=((1, 0), (0, 1)))
+    with pytest.raises(ValueError, match=r"shear along X reaches \+[0-9.]+ N and −0\.0\d N \(need ≥ 1 N both ways\)"):
+        one_way.fit()
+    assert session().fit().loads["x"] == 8  # both ways, twice, under 3 and 9 N
+
+
+@pytest.mark.parametrize("unit, newtons", [("lbf", 4.448222), ("kgf", 9.80665), ("mN", 1e-3)])
+def test_a_reference_in_another_unit_is_named(run, tmp_path, unit, newtons):
+    """An F/T log in lbf or kgf was refused as "normal force range 0–3.52 N
+    is under half of full scale (20 N)" (a user would press 4.4× harder), one
+    in mN as "normal_fit: c1 = 3.95e-05 per N is outside the plausible
+    range": neither said what the grid's refusal hints at. Now the refusal
+    names the unit whose factor the reference's Fz stands at against the
+    board's response read through fit 34."""
+    _, out, _ = run
+    lines = (out / "reference.csv").read_text().splitlines()
+    scaled = [lines[0]] + [",".join([t, *(f"{float(v) / newtons:.6g}" for v in forces)])
+                           if t[:1].isdigit() else line
+                           for line in lines[1:] for t, *forces in [line.split(",")]]
+    (tmp_path / "r.csv").write_text("\n".join(scaled) + "\n")
+    with pytest.raises(ValueError, match=rf"; note: the reference logs [0-9.e+]+× the force the board's response gives "
+                                         rf"through paper 001's fit 34, as one in {unit} would"):
+        calibrate_quad(out / "session.bin", tmp_path / "r.csv")
+
+
 def test_a_calibrated_quads_sigma_covers_its_errors_on_a_separate_sequence(run, tmp_path):
     """σ left out what the calibration's own fit could not explain: on the
     tester's quad Fz was within 1σ for 13 % of loaded frames (σ 0.005 N

@@ -17,8 +17,8 @@ import numpy as np
 from . import registry
 from .alignment import Alignment, align, board_response
 from .crosstalk_session import session_crosstalk, unleaked
-from .fit import MIN_RANGE_FRACTION, TaxelError, TaxelFit, fit_taxel, table_cells
-from .reference import Reference, flat_top_said, read_reference
+from .fit import MIN_RANGE_FRACTION, TaxelError, TaxelFit, fit_taxel, table_cells, unit_response
+from .reference import Reference, flat_top_said, read_reference, unit_hint
 from .reference_zero import with_zero_hint, zero_said, zeroed
 from .segmentation import Press, noise_sigma, segment, taxel_samples, unloaded
 from .session import BoardSession, file_sha256, load_session
@@ -110,16 +110,36 @@ def calibrate(session_path, reference_path, sensor_id: int | None = None, full_s
         lap("fit")
         if problems and not allow_partial:
             reach = float(np.max(reference.force_N))
+            hint = unit_hint(_force_ratio(samples, mounting), "the board's response gives through the model curve "
+                             "at gain 1 (the median taxel's)")
             units = (f"; note: the reference never exceeds {reach:.2f} N: if it logs another unit than N (lbf: 4.45 N "
                      "each, kgf: 9.81), convert it, or press to the full scale (--full-scale)"
-                     if reach < MIN_RANGE_FRACTION * full_scale_N else "")
-            raise ValueError("cannot calibrate: " + "; ".join(problems[t] for t in sorted(problems)) + units)
+                     if reach < MIN_RANGE_FRACTION * full_scale_N and not hint else "")
+            # the unit first: every taxel is refused by it, and the list of them would hide it
+            raise ValueError("cannot calibrate: " + (f"{hint}; " if hint else "")
+                             + "; ".join(problems[t] for t in sorted(problems)) + units)
         if not fits:
             raise ValueError(f"{session.path}: no taxel could be calibrated ({len(presses)} presses found)")
         return Calibration(session, reference, alignment, presses, fits, problems, noise, mounting, full_scale_N, samples,
                            timings, crosstalk)
     except ValueError as exc:
         raise with_zero_hint(reference, exc) from None
+
+
+def _force_ratio(samples: dict, mounting: str) -> float:
+    """The reference's force over the force a taxel's ΔC/C0 gives on the
+    mounting's model curve at gain 1 (table 1's taxels are within ±15 % of
+    it), per taxel the median over its samples loaded past half its largest
+    such force, then the median over the taxels (``samples``: taxel →
+    segmentation.TaxelSamples); NaN without any."""
+    unit = unit_response(mounting)
+    ratios = []
+    for data in samples.values():
+        board = unit.inverse(data.relative[:, None])[0][:, 0]
+        loaded = board > 0.5 * np.nanmax(board, initial=0.0)
+        if loaded.any():
+            ratios.append(np.median(data.force_N[loaded] / board[loaded]))
+    return float(np.median(ratios)) if ratios else float("nan")
 
 
 def identity(session: BoardSession) -> dict:

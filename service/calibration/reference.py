@@ -77,6 +77,26 @@ def parse_reference(text: str, path: str = "<reference>") -> Reference:
     return Reference(path, table[:, 0], table[:, -1], len(skipped), tuple(skipped[:MAX_LISTED_SKIPS]), fxyz)
 
 
+# Units an instrument may log under a force_N header, in N each. lbf and kgf are 2.2× apart, gram-force and
+# mN likewise; a sensor is within ±25 % of the papers' curves (a tester's quads), so UNIT_TOLERANCE splits them.
+UNITS_N = {"lbf": 4.448222, "kgf": 9.80665, "gram-force": 9.80665e-3, "mN": 1e-3, "kN": 1e3}
+UNIT_TOLERANCE = 1.45
+
+
+def unit_hint(ratio: float, board: str) -> str | None:
+    """What to say of a reference that logs ``ratio`` (> 0) times the force
+    the board's response gives (``board`` says how it was read): the unit it
+    likely logs, when ``ratio`` is within UNIT_TOLERANCE of 1/its newtons;
+    None when none is (N, a sensor unlike the papers', or no ratio)."""
+    if not (math.isfinite(ratio) and ratio > 0):
+        return None
+    for unit, newtons in UNITS_N.items():
+        if abs(math.log(ratio * newtons)) < math.log(UNIT_TOLERANCE):
+            return (f"the reference logs {ratio:.3g}× the force {board}, as one in {unit} would "
+                    f"({newtons:g} N each): convert it to N")
+    return None
+
+
 FLAT_TOP_SAMPLES = 5  # consecutive samples at exactly the log's largest value: one stretch
 FLAT_TOP_STRETCHES = 3  # stretches in which an instrument at its limit shows (a held press's noise rarely repeats)
 

@@ -118,10 +118,10 @@ class QuadModel:
         if isinstance(coupling, bool) or not isinstance(coupling, (int, float)):
             raise ValueError(f"coupling: expected a number, got {coupling!r}")
         coupling = float(coupling)
-        top = (c2 * normal_usable + c1) * normal_usable
-        if not (math.isfinite(coupling) and 0.0 <= coupling and coupling * top <= 0.9):
+        largest = max_coupling((c2, c1), normal_usable)
+        if not (math.isfinite(coupling) and 0.0 <= coupling <= largest):
             raise ValueError(f"coupling: c = {coupling} must be ≥ 0 and leave a tenth of the shear response at "
-                             f"{normal_usable:.3g} N (c ≤ {0.9 / top:.3g})")
+                             f"{normal_usable:.3g} N (c ≤ {largest:.3g})")
         model = cls((c2, c1, 0.0), a, b, normal_usable, shear_usable, coupling)
         model.check()
         return model
@@ -194,6 +194,14 @@ class QuadModel:
         # A negative normal change below noise is just noise around zero force.
         normal_out = (normal_out & (axes[..., 2] > 0)) | beyond
         return forces, {"normal_out_of_range": normal_out, "shear_out_of_range": shear_out, "combinations": axes}
+
+
+def max_coupling(normal_fit, normal_usable_N: float) -> float:
+    """The largest coupling c a model holds: the one that leaves a tenth of
+    the shear response at the normal curve's usable end, from ``normal_fit``
+    [c2, c1] and that end (N)."""
+    c2, c1 = normal_fit
+    return 0.9 / ((c2 * normal_usable_N + c1) * normal_usable_N)
 
 
 def _pair(field_name: str, values, names: tuple[str, str]) -> tuple[float, float]:

@@ -33,7 +33,7 @@ def processor_for(info: SensorInfo, level: str, mounting: str,
     measured in a calibration session is the full level's starting point."""
     if info.kind == "quad":
         return QuadProcessor(level, calibration.quad, calibration.quad_relative_se, calibration.quad_model_sigma_N,
-                             calibration.quad_electrode_gain_se)
+                             calibration.quad_electrode_gain_se, calibration.quad_coupling_sigma)
     crosstalk = None
     if level == "full" and calibration.crosstalk is not None:
         crosstalk = Crosstalk(info.rows, info.cols, *calibration.crosstalk)

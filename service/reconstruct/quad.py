@@ -51,6 +51,9 @@ class QuadProcessor:
     relative_se: tuple[float, float] = (0.0, 0.0)  # σ/value of the normal and shear slopes (sigma.py)
     model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz: what the calibration's fit leaves unexplained
     electrode_gain_se: float = 0.0  # σ/value of each electrode's gain about the others' (sensor_calibration.py)
+    # (σ of a coupling c left out of the model, the normal ΔC/C0 n_ref its shear slope was measured under):
+    # shear read under another normal load is off by c·(n(Fz) − n_ref) of itself (sensor_calibration.py)
+    coupling_sigma: tuple[float, float] | None = None
     _noise_for: tuple | None = None
     _noisy_for: tuple | None = field(default=None, repr=False, compare=False)
     # (last reading (4,) pF, its electrodes' run lengths (4,)) that the next frames continue (stuck.py).
@@ -65,7 +68,8 @@ class QuadProcessor:
     def __post_init__(self) -> None:
         if self.level not in QUAD_LEVELS:
             raise ValueError(f"unknown quad level {self.level!r}; known: {', '.join(QUAD_LEVELS)}")
-        self.batch_key = (self.level, astuple(self.model), self.relative_se, self.model_sigma_N, self.electrode_gain_se)
+        self.batch_key = (self.level, astuple(self.model), self.relative_se, self.model_sigma_N, self.electrode_gain_se,
+                          self.coupling_sigma)
         self.plausible = plausible_relative(self.model.top_relative)
         self._bounds = bounds(*self.plausible)
         # sigma's per-axis constants, made once: at 1 kHz a call's small arrays are its cost
@@ -117,7 +121,9 @@ class QuadProcessor:
         ``drift`` (N,), the drift estimate's own σ in ΔC/C0: quad_drift.py;
         X's and Y's with the electrodes' gain mismatch, ``mismatch``), the
         force times its slope's relative error, what the calibration's fit
-        left unexplained (``model_sigma_N``), and FATIGUE_SIGMA_SHARE of
+        left unexplained (``model_sigma_N``), a shear force times what a
+        coupling left out may change its slope by at this normal load
+        (``coupling_sigma``: σ_c·|n(Fz) − n_ref|), and FATIGUE_SIGMA_SHARE of
         the fatigue compensation (``sensitivity``, scalar or (N,), as
         ``process``). Frames without forces, and an axis held at its usable
         end (a lower bound, as a grid's saturated force): NaN."""
@@ -140,6 +146,9 @@ class QuadProcessor:
             if drift is not None:
                 reading[:, 2] = np.hypot(reading[:, 2], drift / np.maximum(slopes[:, 2], 1e-9))
         variance = reading * reading + (forces * self._se) ** 2
+        if self.coupling_sigma is not None and self.level != "level0":
+            sigma_c, n_ref = self.coupling_sigma
+            variance[:, :2] += (forces[:, :2] * (sigma_c * (self.model.normal_response(forces[:, 2:3]) - n_ref))) ** 2
         if self._model_variance is not None:
             variance += self._model_variance
         s = np.asarray(sensitivity, dtype=float)

@@ -22,7 +22,15 @@ quad  ``normal_fit`` [c2, c1], ``shear_fit`` [a, b] (QuadModel.from_fits),
       stopped rising (past them a force is held and flagged); optional
       ``c0_pF`` (4,) the electrodes' unloaded capacitances its session
       measured (``tactile calibrate``), which set the window a tare takes
-      and judge it (loaded_tare.judge_quad).
+      and judge it (loaded_tare.judge_quad); optional ``coupling`` c,
+      ``coupling_se`` (null: not determined) and ``shear_preload_N``, the
+      normal force the shear slope was measured under: with c = 0 (not
+      fitted) shear read under another normal load may be off by
+      c·(n(Fz) − n(preload)) of itself, which σ carries
+      (``quad_coupling_sigma``), with c's σ a third of the largest coupling
+      the model holds when not determined (the session pressed shear under
+      one normal load: nothing tells c; the paper gives no figure, the
+      model's bound is c·n(top) ≤ 0.9, 2.4 on a quad like fits 34/35).
 both  ``created``: an ISO 8601 string (absent: not known).
 
 ``builtin`` is what a sensor without a calibration of its own uses: table 1
@@ -48,7 +56,7 @@ import numpy as np
 from ..physics.mountings import MOUNTINGS
 from ..physics.paper_data import (BUILTIN_GRID_ID, BUILTIN_QUAD_ID, TABLE1_COLS, TABLE1_ROWS, GridCalibration,
                                   grid_calibration)
-from ..physics.quad_model import QuadModel
+from ..physics.quad_model import QuadModel, max_coupling
 from ..physics.taxel_response import SENSITIVITY_RANGE_PCT_PER_N, TaxelResponse, model_table, taxel_response
 from ..readings import SensorInfo
 from .crosstalk import Crosstalk
@@ -123,6 +131,8 @@ class SensorCalibration:
     quad_relative_se: tuple[float, float] = (BUILTIN_RELATIVE_SE, BUILTIN_RELATIVE_SE)  # normal, shear slopes
     quad_model_sigma_N: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Fx, Fy, Fz residual RMS of a quad's fit
     quad_electrode_gain_se: float = ELECTRODE_GAIN_SE  # σ/value of each electrode's gain about the others'
+    # (σ of a coupling left out of the model, the normal ΔC/C0 the shear slope was measured under); None: none
+    quad_coupling_sigma: tuple[float, float] | None = None
     fatigue: FatigueModel | None = None  # sensitivity lost to load cycles (fatigue.py); None: not compensated
     tare_c0_pF: np.ndarray | None = None  # grid (n,): C0 as the multiplexer reads it (leakage applied), what a tare sees
     calibrated_to_N: np.ndarray | None = None  # grid (n,): the largest force its session pressed; None: unknown
@@ -468,6 +478,32 @@ def quad_c0(values) -> np.ndarray | None:
     return c0
 
 
+UNDETERMINED_COUPLING_SHARE = 1.0 / 3.0  # of the model's largest coupling: c's σ when the session could not tell it
+
+
+def undetermined_coupling_se(model: QuadModel) -> float:
+    """σ of a coupling the calibration session could not tell: the model's
+    bound (c·n(normal usable end) ≤ 0.9) taken as its 3σ."""
+    return UNDETERMINED_COUPLING_SHARE * max_coupling(model.normal_fit[:2], model.normal_usable_N)
+
+
+def _coupling_sigma(document: dict, model: QuadModel) -> tuple[float, float] | None:
+    """(σ of c, the normal curve's ΔC/C0 at ``shear_preload_N``) for a
+    model without a coupling whose document says under which normal load its
+    shear slope was measured; None otherwise (c in the model, or an older
+    document); ValueError naming a bad field."""
+    preload = document.get("shear_preload_N")
+    if preload is None or model.coupling:
+        return None
+    if isinstance(preload, bool) or not isinstance(preload, (int, float)) or not 0.0 <= preload <= 1e3:
+        raise ValueError(f"shear_preload_N: {preload!r} is not a normal force in N")
+    se = document.get("coupling_se")
+    if se is not None and (isinstance(se, bool) or not isinstance(se, (int, float)) or not 0.0 <= se < 1e3):
+        raise ValueError(f"coupling_se: {se!r} is not a standard error (null: not determined)")
+    return (undetermined_coupling_se(model) if se is None else float(se),
+            float(model.normal_response(float(preload))))
+
+
 def _quad(document: dict, cid: str) -> SensorCalibration:
     coupling = document.get("coupling")
     model = QuadModel.from_fits(document.get("normal_fit"), document.get("shear_fit"),
@@ -481,5 +517,6 @@ def _quad(document: dict, cid: str) -> SensorCalibration:
     mismatch = 0.0 if _shear_residual_measured(document) else ELECTRODE_GAIN_SE
     return SensorCalibration(cid, "quad", _created(document), None, quad=model, quad_relative_se=se,
                              quad_model_sigma_N=residual, quad_electrode_gain_se=mismatch,
+                             quad_coupling_sigma=_coupling_sigma(document, model),
                              quad_c0_pF=quad_c0(document.get("c0_pF")),
                              fatigue=FatigueModel.from_document(document.get("fatigue"), PAPER_001), document=document)
