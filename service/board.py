@@ -73,7 +73,8 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
     """Which calibration sensor ``sid`` uses: its id, whether it is a
     built-in (the papers', not measured on this sensor), when it was made
     and its age, when it was activated in the registry, why the sensor's own
-    could not be used, the taxels loaded at the last tare, and what the
+    could not be used, the one activated in the registry that could not be
+    (``not_applied``: {id, reason, kept}), the taxels loaded at the last tare, and what the
     first tare made of the zero stored before the service started."""
     reconstructor = pipeline.reconstructor
     calibration = reconstructor.calibration(sid)
@@ -90,6 +91,7 @@ def calibration_state(pipeline, sid: int, now: float, book=None) -> dict | None:
         "activated": None if book is None or info is None else book.activated_at(pipeline.interpreter.board, info,
                                                                                             calibration.id),
         "problem": reconstructor.calibration_problems.get(sid),
+        "not_applied": pipeline.not_applied.get(sid),
         "loaded_at_tare": reconstructor.loaded_at_tare(sid),
         "stored_zero": reconstructor.zero_kept(sid),
         "below_c0": reconstructor.below_c0(sid),
@@ -124,6 +126,10 @@ class Board:
             self.pipeline.reconstructor.load_zero = lambda info, cid: load_zero(board_of(info), info, cid)
         if self.source.startswith("replay://"):
             self._schedule_recorded_changes()
+        # A replay's calibrations are its recording's (or fixed for its run), never today's registry's.
+        self.follows_registry = calibrations.follows_registry and not self.source.startswith("replay://")
+        self._tried: dict[str, str] = {}  # sensor key → the active calibration id last tried for it
+        self._registry_error: str | None = None  # the last registry error logged (said once, until it changes)
 
     def _schedule_recorded_changes(self) -> None:
         """A recording served through the live path starts from the zeros it
@@ -195,6 +201,55 @@ class Board:
             self.calibrations.save_zeros(self.pipeline.interpreter.board, zeros)
         except Exception as exc:  # noqa: BLE001 — kept again at the next period
             log.warning("zeros of board %s not kept: %s", self.name, exc)
+
+    def follow_registry(self) -> None:
+        """Apply each sensor's calibration activated in the registry since its
+        own was chosen (``tactile calibrations activate``, ``tactile calibrate``
+        from another process) as an upload is applied: validated, swapped in
+        under the pipeline's lock from the next frame, told to a recording.
+        One the sensor cannot use is not applied, tried once, and said
+        (/health); the one in use stays. Called every few seconds off the event
+        loop (live_service.py): one registry query; a registry that cannot be
+        read is logged once and asked again next time."""
+        if not self.follows_registry:
+            return
+        in_force = self.pipeline.calibrations_in_force()
+        try:
+            active = self.calibrations.registry_active(self.pipeline.interpreter.board, [info for info, _ in in_force])
+            for info, in_use in in_force:
+                sensor, wanted = active.get(info.id, (None, None))
+                refused = self.pipeline.not_applied.get(info.id)
+                if refused is not None and (refused["id"], refused["kept"]) != (wanted, in_use):
+                    del self.pipeline.not_applied[info.id]  # another activated since, or the one in use changed
+                if wanted == in_use:  # the registry agrees: one refused before and activated again is tried again
+                    self._tried.pop(sensor["key"], None)
+                elif wanted is not None and self._tried.get(sensor["key"]) != wanted:
+                    self._switch(info, sensor, in_use, wanted)
+        except Exception as exc:  # noqa: BLE001 — the data goes on with the calibrations in use
+            if str(exc) != self._registry_error:
+                log.warning("board %s: the calibration registry cannot be read to follow its activations (%s: %s); "
+                            "asked again in a few seconds", self.name, type(exc).__name__, exc)
+            self._registry_error = str(exc)
+            return
+        self._registry_error = None
+
+    def _switch(self, info, sensor: dict, in_use: str, wanted: str) -> None:
+        """Calibration ``wanted`` (the registry's active one) in place of ``in_use`` for sensor ``info``."""
+        document = self.calibrations.document(wanted)
+        self._tried[sensor["key"]] = wanted
+        try:
+            self.pipeline.set_calibration(info, document, sensor)
+        except Exception as exc:  # noqa: BLE001 — whatever the document lacks, this sensor cannot use it
+            reason = f"calibration {wanted}, activated in the registry: {exc}"
+            log.warning("sensor %s: %s; not applied, it keeps calibration %s", info.address, reason, in_use)
+            if in_use.startswith("builtin"):  # /health's line of a sensor whose own could not be used says it
+                self.pipeline.reconstructor.calibration_problems[info.id] = f"{type(exc).__name__}: {reason}"
+            else:
+                self.pipeline.not_applied[info.id] = {"id": wanted, "reason": str(exc), "kept": in_use}
+            return
+        self.pipeline.reconstructor.calibration_problems.pop(info.id, None)
+        self.calibrations.forget_activation_times()
+        log.info("sensor %s: calibration %s in place of %s, activated in the registry", info.address, wanted, in_use)
 
     def set_calibration(self, info, upload: dict) -> dict:
         """Validate an upload (ValueError naming the field), store it in the

@@ -144,6 +144,9 @@ def _problems(link: dict, sensors: dict, errors: dict, dropping: dict[str, str] 
                  for sid, error in errors.items() if error["active"]]
     problems += [f"sensor {sid} uses the built-in calibration: its own could not be used ({s['calibration']['problem']})"
                  for sid, s in sensors.items() if (s.get("calibration") or {}).get("problem")]
+    problems += [f"sensor {sid}: calibration {refused['id']}, activated in the registry, cannot be used for it "
+                 f"({refused['reason']}): not applied, it keeps calibration {refused['kept']}"
+                 for sid, s in sensors.items() if (refused := (s.get("calibration") or {}).get("not_applied"))]
     problems += [f"sensor {sid}: taxels {s['calibration']['below_c0']} read below the C0 of calibration "
                  f"{s['calibration']['id']} at the tare: it is not this sensor's as it is now (made on another "
                  "sensor, or C0 drifted), so loaded taxels cannot be told" for sid, s in sensors.items()

@@ -32,6 +32,7 @@ from .sources import DEFAULT_SOURCE
 log = logging.getLogger(__name__)
 
 CYCLES_SAVE_S = 10.0  # a crash loses at most this much of the load-cycle counts, and zeros this much older
+ACTIVE_POLL_S = 2.0  # a calibration activated in the registry by another process is in use within this (board.py)
 RECORDING_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,122}\.mcap")
 
 
@@ -137,7 +138,7 @@ class TactileService:
             board.pipeline.listeners += [self._measure_published, self.hub.publish]
             board.start(loop)
         self._cycles_stop.clear()
-        threading.Thread(target=self._keep_cycles, name="tactile-cycles", daemon=True).start()
+        threading.Thread(target=self._registry_work, name="tactile-registry", daemon=True).start()
         if self.zenoh is not None:
             self.zenoh.attach(self)
 
@@ -174,10 +175,17 @@ class TactileService:
             board.save_cycles()
             board.save_zeros()
 
-    def _keep_cycles(self) -> None:
-        """Every CYCLES_SAVE_S, off the event loop (a registry write takes milliseconds)."""
-        while not self._cycles_stop.wait(CYCLES_SAVE_S):
-            self.save_cycles()
+    def _registry_work(self) -> None:
+        """Off the event loop (a registry query takes milliseconds): every
+        ACTIVE_POLL_S each board follows its sensors' active calibrations,
+        every CYCLES_SAVE_S the load-cycle counts and zeros are kept."""
+        saved = time.monotonic()
+        while not self._cycles_stop.wait(ACTIVE_POLL_S):
+            for board in self._boards:
+                board.follow_registry()
+            if time.monotonic() - saved >= CYCLES_SAVE_S:
+                saved = time.monotonic()
+                self.save_cycles()
 
     def stop_recording(self) -> dict | None:
         with self._recording_lock:

@@ -115,6 +115,8 @@ class Pipeline(SensorChanges):
         # (the recorder writes them there, and a replay makes them there again).
         self.tare_listeners: list[TareListener] = []
         self.calibration_listeners: list[CalibrationListener] = []  # calibrations set, placed as tares are
+        # A calibration activated in the registry that the sensor cannot use, by sensor: {id, reason, kept} (board.py).
+        self.not_applied: dict[int, dict] = {}
         self.reads = 0  # reads decoded so far
         self._reconstructed = {"grid": 0, "other": 0}  # reads whose grids / other sensors are reconstructed
         self._lock = threading.Lock()

@@ -99,6 +99,12 @@ class SensorChanges:
             self._calibration_set(info, document)
             return document
 
+    def calibrations_in_force(self) -> list[tuple[SensorInfo, str]]:
+        """(the sensor as its calibration was chosen for it, that calibration's
+        id) of each sensor seen, read under the lock from any thread."""
+        with self._lock:
+            return self.reconstructor.in_force()
+
     def recalibrate(self, sensor_id: int, document: dict) -> None:
         """A calibration set while recording, set again (replay.py) for the
         sensor described at ``sensor_id`` now; one that no longer fits it

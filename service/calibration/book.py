@@ -14,7 +14,9 @@ In this order, the first that has one for the sensor:
    ``builtin-mean-RxC`` for grids, ``builtin-fits34-35`` for quads) pins the
    built-in calibration for every sensor of its kind not pinned otherwise
    (to compare against it);
-3. the registry's active calibration of the sensor's identity;
+3. the registry's active calibration of the sensor's identity — followed
+   while a live service runs: ``registry_active`` tells which is active now,
+   board.py swaps it in;
 4. none: the reconstruction's built-in one (table 1, fits 34/35), which
    every frame then names.
 
@@ -174,6 +176,40 @@ class CalibrationBook:
                 self.problems.append(problem)
                 log.warning("%s; sensors use the built-in calibrations", problem)
             return None
+
+    @property
+    def follows_registry(self) -> bool:
+        """Whether sensors follow the registry's activations while the service
+        runs: a book with a registry, not a replay's (its calibrations are its recording's)."""
+        return self.use_registry and not self.replaying
+
+    def registry_active(self, board: dict, sensors: list[SensorInfo]) -> dict[int, tuple[dict, str]]:
+        """{sensor id: (its identity (registry.sensor_identity), the id of the
+        calibration active for it in the registry)} of those of ``sensors``
+        that have one and whose calibration is the registry's (none pinned for
+        them), in one query; {} when the book does not follow the registry.
+        The registry's errors are raised."""
+        if not self.follows_registry:
+            return {}
+        identities = {}
+        for info in sensors:
+            sensor = sensor_identity(info.board_info or board, info)  # as for_sensor looked it up
+            if self._pinned_for(sensor["key"], info) is None:
+                identities[info.id] = sensor
+        if not identities:
+            return {}
+        with Registry(self.registry_path) as registry:
+            active = registry.active_ids([sensor["key"] for sensor in identities.values()])
+        return {sid: (sensor, active[sensor["key"]]) for sid, sensor in identities.items() if sensor["key"] in active}
+
+    def document(self, calibration_id: str) -> dict:
+        """The registry's document of ``calibration_id``, with its id (UnknownCalibration naming it)."""
+        with Registry(self.registry_path) as registry:
+            return registry.get(calibration_id)
+
+    def forget_activation_times(self) -> None:
+        """A sensor's active calibration changed: ``activated_at`` reads the registry again."""
+        self._activated.clear()
 
     def load_cycles(self, board: dict, info: SensorInfo, calibration_id: str) -> list[int] | None:
         """Load cycles kept for the sensor under this calibration: a

@@ -181,6 +181,15 @@ class Registry:
         row = self._db.execute("SELECT calibration_id FROM active WHERE sensor_key = ?", (sensor_key,)).fetchone()
         return self.get(row[0]) if row else None
 
+    def active_ids(self, sensor_keys: list[str]) -> dict[str, str]:
+        """{sensor key: its active calibration's id} of those of ``sensor_keys`` that have one, in one query
+        (a running service asks every few seconds whether another process activated another)."""
+        if not sensor_keys:
+            return {}
+        rows = self._db.execute(f"SELECT sensor_key, calibration_id FROM active WHERE sensor_key IN "
+                                f"({', '.join('?' * len(sensor_keys))})", list(sensor_keys)).fetchall()
+        return dict(rows)
+
     def activated_at(self, sensor_key: str) -> str | None:
         row = self._db.execute("SELECT activated FROM active WHERE sensor_key = ?", (sensor_key,)).fetchone()
         return row[0] if row else None
