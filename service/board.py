@@ -22,7 +22,7 @@ from .history import Histories
 from .pipeline import Pipeline
 from .readout import DEFAULT_SILENCE_S, INFO_REPLY_S, Readout
 from .reconstruct import DEFAULT_LEVEL, Reconstructor
-from .sources.protocol_replay import recorded_baselines, recorded_changes
+from .sources.protocol_replay import recorded_baselines, recorded_changes, recorded_identification
 
 log = logging.getLogger(__name__)
 
@@ -126,10 +126,23 @@ class Board:
             self.pipeline.reconstructor.load_zero = lambda info, cid: load_zero(board_of(info), info, cid)
         if self.source.startswith("replay://"):
             self._schedule_recorded_changes()
+            self._hold_as_recorded()
         # A replay's calibrations are its recording's (or fixed for its run), never today's registry's.
         self.follows_registry = calibrations.follows_registry and not self.source.startswith("replay://")
         self._tried: dict[str, str] = {}  # sensor key → the active calibration id last tried for it
         self._registry_error: str | None = None  # the last registry error logged (said once, until it changes)
+
+    def _hold_as_recorded(self) -> None:
+        """A recording served through the live path holds the frames its
+        live link held for the board's INFO, where they were held (its link's
+        events are among its recorded changes)."""
+        try:
+            identify = recorded_identification(self.source)
+            if identify is not None:
+                self.pipeline.identify_as_recorded(identify)
+        except (ValueError, OSError) as exc:
+            log.warning("%s: its frames are served as they came, none held for the board's INFO (%s)",
+                        self.source, exc)
 
     def _schedule_recorded_changes(self) -> None:
         """A recording served through the live path starts from the zeros it

@@ -11,9 +11,13 @@ it, or under the description in force when it is refused as invalid), in
 their order; a board that has not answered ``wait_s`` after the first frame
 held is read as before, under the description in force. A board that
 answers at once costs nothing: its INFO comes before or with its first scans.
-Live links only (board.py): a recording's bytes are read as they came.
+Live links (board.py); a recording keeps the state when it began and the
+link's events (record/recorder.py), and its replay holds as live did
+(``as_recorded``): the same frames, released at the same read.
 """
 from __future__ import annotations
+
+import math
 
 from .protocol import Frame, FrameType
 
@@ -23,10 +27,13 @@ Held = list[tuple[list[Frame], float]]  # frames with the receive time of their 
 class Identification:
     """Which frames wait for the board's INFO; the pipeline reads the rest."""
 
-    def __init__(self, wait_s: float) -> None:
+    def __init__(self, wait_s: float, timed: bool = True) -> None:
+        """``timed`` False (a replay): a hold ends at its INFO, or where the
+        recording says its wait passed (``expire``), never by receive times."""
         if not wait_s > 0:
             raise ValueError(f"wait_s must be > 0, got {wait_s}")
         self.wait_s = wait_s
+        self.timed = timed
         self._expecting: str | None = "opened"  # why the next frames wait: a link opened (the first connect too), or
         # the board restarted without its INFO
         self._held: Held = []
@@ -34,6 +41,31 @@ class Identification:
         self.holds = 0  # holds begun, each one's number (a timer knows whether its hold is still on)
         self.unanswered = 0  # holds that ended without an INFO (their wait passed, or their link dropped)
         self._restarts_seen = 0  # the decoder's restarts_without_info, as last seen
+
+    @classmethod
+    def as_recorded(cls, state: dict) -> Identification:
+        """A replay's, from ``state`` (``state()`` when the recording began):
+        its holds end at their INFO or at the recording's events, whose
+        times the live loop's timer decided (no recorded time gives them).
+        ValueError naming a ``state`` no recording writes (a recording is any file)."""
+        try:
+            wait_s, expecting, holding = state["wait_s"], state["expecting"], state["holding"]
+        except (KeyError, TypeError):
+            raise ValueError(f"the wait's state {state!r} lacks wait_s, expecting or holding") from None
+        if expecting not in (None, "opened") or not isinstance(holding, bool) or not isinstance(wait_s, (int, float)):
+            raise ValueError(f"the wait's state {state!r} is none a recording writes (wait_s a number, expecting "
+                             f"null or \"opened\", holding true or false)")
+        identification = cls(wait_s, timed=False)
+        identification._expecting = expecting
+        if holding:  # the frames held before the recording are not in it: those after it wait as live
+            identification._until = math.inf
+            identification.holds = 1
+        return identification
+
+    def state(self) -> dict:
+        """{"wait_s", "expecting": why the next frames will wait, or None,
+        "holding": frames wait now}: what a recording begun now replays from."""
+        return {"wait_s": self.wait_s, "expecting": self._expecting, "holding": self.holding}
 
     @property
     def holding(self) -> bool:
@@ -71,7 +103,7 @@ class Identification:
         self._held.append((frames, t_host))
         if any(frame.type == FrameType.INFO for frame in frames):
             return now + self._release(info_first=True), began
-        if t_host >= self._until:
+        if self.timed and t_host >= self._until:
             self.unanswered += 1
             return now + self._release(info_first=False), began
         return now, began

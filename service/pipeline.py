@@ -8,7 +8,9 @@ under the pipeline's lock;
 frame listeners (the fan-out hub, the recorder) see each batch of
 ForceFrames. Tares and calibrations: pipeline_changes.py. On a live link,
 frames wait for the board's INFO after each (re)open and after a restart
-whose INFO was lost (identify.py: ``identify_on_link``).
+whose INFO was lost (identify.py: ``identify_on_link``); link listeners (the
+recorder) hear where the link dropped and where a wait passed, so that a
+replay holds the same frames (``identify_as_recorded``).
 """
 from __future__ import annotations
 
@@ -35,12 +37,16 @@ from .reconstruct.sensor_calibration import SensorCalibration
 
 Listener = Callable[[list[ForceFrame]], None]
 ByteListener = Callable[[bytes, float], None]
+LinkListener = Callable[[str, int], None]  # (LINK_EVENTS' event, before read)
 Defer = Callable[[Callable[[], None]], object]
 Later = Callable[[float, Callable[[], None]], object]
 
 log = logging.getLogger(__name__)
 
 RATE_WINDOW_S = 1.0
+# What the link did between two reads, as a recording keeps it: "lost" (link_lost: the link dropped), "expired"
+# (frames held for the board's INFO went on without it: its wait passed).
+LINK_EVENTS = ("lost", "expired")
 
 
 class CalibrationSource(Protocol):
@@ -117,6 +123,7 @@ class Pipeline(SensorChanges):
         self.calibration_listeners: list[CalibrationListener] = []  # calibrations set, placed as tares are
         # A calibration activated in the registry that the sensor cannot use, by sensor: {id, reason, kept} (board.py).
         self.not_applied: dict[int, dict] = {}
+        self.link_listeners: list[LinkListener] = []  # LINK_EVENTS, each with the pipeline's number of the next read
         self.reads = 0  # reads decoded so far
         self._reconstructed = {"grid": 0, "other": 0}  # reads whose grids / other sensors are reconstructed
         self._lock = threading.Lock()
@@ -139,9 +146,17 @@ class Pipeline(SensorChanges):
         self.identification = Identification(wait_s)
         self._ask_info, self._later = ask_info, later
 
-    def schedule_recorded(self, changes: list[tuple[int, int, bool | dict]]) -> None:
+    def identify_as_recorded(self, state: dict) -> None:
+        """A recording's frames held as they were live, from ``state`` (the
+        wait's when it began: Identification.state); each hold ends at its
+        INFO or where the recording's events say (``redo``), not by a clock:
+        nothing is asked of a recording, and its waits are never timed here."""
+        self.identification = Identification.as_recorded(state)
+        self._ask_info, self._later = (lambda: None), (lambda delay, fn: None)
+
+    def schedule_recorded(self, changes: list[tuple[int, int | None, bool | dict | str]]) -> None:
         """Recorded changes (byte offset in the stream, sensor id, change:
-        see ``redo``) to make again where the stream reaches each offset: a
+        see ``redo``; the link's events too) to make again where the stream reaches each offset: a
         recording served through the live path (replay:// gives the offsets:
         its reads are not cut as they were recorded, its bytes are the same)."""
         self._recorded = sorted(changes, key=lambda change: change[0])
@@ -155,7 +170,10 @@ class Pipeline(SensorChanges):
         decoded with its own receive time, all reconstructed in one batch and
         published in arrival order — the frames each read alone gives, bit
         for bit (a frame's forces do not depend on its batch), for one call
-        per step instead of one per read."""
+        per step instead of one per read. Frames held for the board's INFO
+        (identify_as_recorded) stay held across calls, as they were live
+        across reads; a replay splits its joins where the link's events
+        were recorded, as at its tares."""
         if not chunks:
             return []
         return self._reconstruct(self._decode(chunks), chunks[-1][1], {"grid": len(chunks), "other": len(chunks)})
@@ -206,9 +224,12 @@ class Pipeline(SensorChanges):
         self.feed_reads(after, defer)
 
     def finish(self, t_host: float) -> list[ForceFrame]:
-        """End of a finite stream: decode what is left, release held frames."""
+        """End of a finite stream: decode what is left, release held frames
+        (those waiting for an INFO too: the recording ended first)."""
         with self._lock:
             readings = self.interpreter.interpret_many(self.decoder.finish(), t_host)
+            if self.identification is not None and self.identification.holding:
+                readings = self._unidentified(self.identification.lost(), "the stream ended first") + readings
             frames = (self.reconstructor.process_many(readings) if readings else []) + self.reconstructor.flush()
         self._publish(frames, t_host)
         return frames
@@ -219,10 +240,27 @@ class Pipeline(SensorChanges):
         for the board's INFO go on without it; the next link's wait for its own."""
         with self._lock:
             self.decoder.reset()
+            self._link_event("lost")
             if self.identification is None:
                 return
             readings = self._unidentified(self.identification.lost(), "the link dropped first")
         self._flush(readings)
+
+    def relink(self, event: str) -> None:
+        """A recorded LINK_EVENTS' event made again where it was (``redo``)."""
+        if event == "lost":
+            self.link_lost()
+        elif event == "expired":
+            if self.identification is not None:
+                self._hold_expired(self.identification.holds)
+        else:  # a recording is any file: an event it should not hold is said and skipped, never the replay
+            log.warning("board %s: the link event %r recorded is none of %s: skipped", self.interpreter.name, event,
+                        ", ".join(LINK_EVENTS))
+
+    def _link_event(self, event: str) -> None:
+        """Tell the link listeners (a recording), under the lock, before which read ``event`` happened."""
+        for listener in self.link_listeners:
+            listener(event, self.reads)
 
     def diagnostics(self) -> dict:
         """The decoder's counters and the interpreter's rejections (a recording's /diagnostics)."""
@@ -260,6 +298,7 @@ class Pipeline(SensorChanges):
         if began == "restarted":
             self._ask_info()
         if identification.unanswered != unanswered:
+            self._link_event("expired")
             return self._unidentified(go, f"none within {identification.wait_s:.2f} s")
         return self._read(go)
 
@@ -267,7 +306,10 @@ class Pipeline(SensorChanges):
         """``wait_s`` after hold number ``hold`` began: its frames, if no INFO
         came meanwhile, read under the description in force and published."""
         with self._lock:
+            unanswered = self.identification.unanswered
             held = self.identification.expire(hold)
+            if self.identification.unanswered != unanswered:
+                self._link_event("expired")
             readings = self._unidentified(held, f"none within {self.identification.wait_s:.2f} s")
         self._flush(readings)
 

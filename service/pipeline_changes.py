@@ -1,7 +1,8 @@
 """Changes to the sensors' reconstruction while a stream runs: tares (one
 refused while its sensor reads loaded), calibrations set, and either one
-recorded made again where a replay reaches it; each under the pipeline's
-lock, from any thread (pipeline.py feeds)."""
+recorded made again where a replay reaches it (with the link's recorded
+events: pipeline.py); each under the pipeline's lock, from any thread
+(pipeline.py feeds)."""
 from __future__ import annotations
 
 import logging
@@ -27,8 +28,8 @@ class LoadedAtTare(RuntimeError):
 
 class SensorChanges:
     """``Pipeline``'s changes to its sensors (its ``_lock``, ``reconstructor``,
-    ``interpreter``, ``latest``, ``tare_listeners``, ``calibration_listeners``
-    and ``_reconstructed``)."""
+    ``interpreter``, ``latest``, ``tare_listeners``, ``calibration_listeners``,
+    ``_reconstructed`` and ``relink``)."""
 
     def tare(self, sensor_id: int | None = None, force: bool = False) -> list[int]:
         """Restart the baseline of one sensor (or all). Unless ``force``,
@@ -50,10 +51,13 @@ class SensorChanges:
                     listener(before_read, not force)
             return tared
 
-    def redo(self, sensor_id: int, change: bool | dict) -> None:
+    def redo(self, sensor_id: int | None, change: bool | dict | str) -> None:
         """A change recorded while recording, made again (replay.py): a tare
-        (``change`` its ``judge``) or a calibration set (``change`` its document)."""
-        if isinstance(change, dict):
+        (``change`` its ``judge``), a calibration set (``change`` its document)
+        or the link's event (``change`` its name, no sensor: Pipeline.relink)."""
+        if isinstance(change, str):
+            self.relink(change)
+        elif isinstance(change, dict):
             self.recalibrate(sensor_id, change)
         else:
             self.retare(sensor_id, change)

@@ -4,7 +4,7 @@ A recording is a sequence of timed byte chunks (record/readers.py); they go
 through the same pipeline as live data, paced by a ``Pacer`` (injectable
 clock, any speed, or as fast as possible). As fast as possible, the bytes
 go in large chunks (a raw capture is not decoded just to time them; a
-recording's reads are joined, JOIN_READS a call, split at its tares and calibrations set) and
+recording's reads are joined, JOIN_READS a call, split at its tares, calibrations set and link events) and
 the pipeline keeps no history: an export needs neither, and the forces do
 not depend on how the stream is cut.
 A raw capture's readings are held until each sensor's auto-tare is
@@ -12,7 +12,12 @@ complete, so every exported frame has forces. A recording is replayed as it
 ran live (the tare window null and flagged), with the tares made while it
 was recorded made again before the same read, and so the calibrations set then (uploads), and at the level and mounting
 it was recorded with (unless told otherwise), so its forces come out bit for
-bit as recorded. One begun on a running service starts from the zeros then
+bit as recorded; frames a live link held for the board's INFO (after a
+reopen, a restart whose INFO was lost) are held likewise, from the state the
+recording began with to where its INFO came or the recording's ``/link``
+says the wait passed or the link dropped, so they are read under the same
+description, on the same side of a tare (one made before 2026-11-25 has no
+``/link``: its frames are read as they came). One begun on a running service starts from the zeros then
 in force (recorded as ``/baselines``), not from a tare on whatever load it
 begins with; the full level's tracked state (drift, crosstalk estimates)
 starts afresh, so its forces are close to the recorded ones, not equal.
@@ -90,6 +95,10 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
                 reconstructor, clock=lambda: 0.0,
                 keep_history=False, calibrations=calibrations, map_clock=not hold,
                 board_name=board or only or began.get("board"))
+            # Frames held for the board's INFO as live held them (its link's events are among the changes).
+            identify = (resumed[board] if board in resumed else recorded).get("identify")
+            if identify is not None:
+                _hold_as_recorded(pipeline, identify, path)
             if writer is not None:
                 pipeline.listeners.append(writer.write)
             if began.get("info"):
@@ -101,7 +110,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
     paced = not math.isinf(pacer.speed)
     # A raw capture's reads are not numbered (no tares to place among them).
     chunks = read_numbered(path) if not hold else ((None, 0, t, chunk) for t, chunk in timed_chunks(path, paced=paced))
-    changes = {} if hold else read_changes(path)  # tares and calibrations set while recording, where they were
+    changes = {} if hold else read_changes(path)  # tares, calibrations set and the link's events, where they were
     zeros = {} if hold else read_baselines(path)  # a recording begun on a running service: the zeros it began with
     settings = {} if hold else read_settings(path)
     resumes = {} if hold else read_resumes(path)
@@ -178,4 +187,15 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
         if own:
             writer.close()
     return {pipeline.interpreter.name: pipeline for pipeline in pipelines.values()}
+
+
+def _hold_as_recorded(pipeline: Pipeline, state: dict, path: str | Path) -> None:
+    """``pipeline``'s frames held for the board's INFO as live held them,
+    from the recorded ``state``; one no recording writes is said, and the
+    replay holds nothing (its frames read as they came)."""
+    try:
+        pipeline.identify_as_recorded(state)
+    except ValueError as exc:
+        log.warning("%s: board %s's frames are replayed as they came, none held for its INFO: %s", path,
+                    pipeline.interpreter.name, exc)
 

@@ -124,21 +124,24 @@ def raw_board(topic: str, channel: str = "raw") -> str | None | bool:
     return parts[1] if len(parts) == 3 and parts[0] == "" and parts[2] == channel else False
 
 
-def read_changes(path: str | Path) -> dict[str | None, list[tuple[int, int, bool | dict]]]:
+def read_changes(path: str | Path) -> dict[str | None, list[tuple[int, int | None, bool | dict | str]]]:
     """What was changed while recording, per board (as ``read_boards`` names
     them), to make again where it was made (Pipeline.redo): (reads of that
     board before it took effect, sensor id, change: a tare's ``judge``, or
-    the document of a calibration set), by read and in the order made."""
-    changes: dict[str | None, list[tuple[int, int, bool | dict]]] = {}
+    the document of a calibration set; or None, the link's event: /link),
+    by read and in the order made."""
+    changes: dict[str | None, list[tuple[int, int | None, bool | dict | str]]] = {}
 
     def recorded(topic: str) -> bool:
-        return raw_board(topic, "tare") is not False or raw_board(topic, "calibration_set") is not False
+        return any(raw_board(topic, channel) is not False for channel in ("tare", "calibration_set", "link"))
 
     for topic, message in _topics_of(path, recorded):
         doc = orjson.loads(message.data)
         if topic.endswith("/tare"):
             changes.setdefault(raw_board(topic, "tare"), []).extend(
                 (int(s["after_reads"]), int(s["sensor"]), bool(doc["judge"])) for s in doc["sensors"])
+        elif topic.endswith("/link"):
+            changes.setdefault(raw_board(topic, "link"), []).append((int(doc["after_reads"]), None, str(doc["event"])))
         else:
             changes.setdefault(raw_board(topic, "calibration_set"), []).append(
                 (int(doc["after_reads"]), int(doc["sensor"]), doc["document"]))
@@ -159,11 +162,14 @@ def read_calibrations_set(path: str | Path) -> set[tuple[int | str, str]]:
 def read_settings(path: str | Path) -> dict[str | None, dict]:
     """{board (as ``read_boards`` names them): {"level", "mounting"}} its
     forces were reconstructed with while recording (the first said; none
-    in a recording made before they were recorded)."""
+    in a recording made before they were recorded), with "identify": its
+    frames' wait for the board's INFO when the recording began, where it
+    had one (Identification.state)."""
     settings: dict[str | None, dict] = {}
     for topic, message in _topics_of(path, lambda topic: raw_board(topic, "settings") is not False):
         doc = orjson.loads(message.data)
-        settings.setdefault(raw_board(topic, "settings"), {"level": doc["level"], "mounting": doc["mounting"]})
+        settings.setdefault(raw_board(topic, "settings"), {"level": doc["level"], "mounting": doc["mounting"],
+                                                           **({"identify": doc["identify"]} if "identify" in doc else {})})
     return settings
 
 

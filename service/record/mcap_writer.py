@@ -12,7 +12,8 @@ calibration document, written before the first frame that uses it, so a
 replay reconstructs with it whatever the registry holds then), ``/tare``
 (tactile.Tare: a tare made while recording, with the read before which it
 took effect, so a replay makes it there), ``/calibration_set`` (tactile.CalibrationSet: a calibration
-set while recording, an upload, likewise placed), ``/resume`` (tactile.Resume: once a second of reads, the
+set while recording, an upload, likewise placed), ``/link`` (tactile.Link: where the link dropped, and where
+frames held for the board's INFO went on without it, so a replay holds the same frames), ``/resume`` (tactile.Resume: once a second of reads, the
 zeros, INFO and calibrations in force before a read, where a replay whose start was lost to a damaged chunk begins), ``/settings`` (tactile.Settings: the level and mounting the
 board's forces were reconstructed with, which its replay takes). log_time is the host receive time (ns); publish_time the
 board time of the frame where there is one.
@@ -57,7 +58,7 @@ class McapLog:
             for name, schema in (("raw", schemas.RAW_BYTES), ("frame", schemas.RAW_FRAME), ("forces", schemas.FORCES),
                                  ("diag", schemas.DIAGNOSTICS), ("grid", schemas.FOXGLOVE_GRID),
                                  ("calibration", schemas.CALIBRATION), ("tare", schemas.TARE),
-                                 ("calibration_set", schemas.CALIBRATION_SET),
+                                 ("calibration_set", schemas.CALIBRATION_SET), ("link", schemas.LINK),
                                  ("baselines", schemas.BASELINES), ("resume", schemas.RESUME),
                                  ("settings", schemas.SETTINGS))
         }
@@ -112,6 +113,10 @@ class McapLog:
         self._add(f"{prefix}/calibration_set", "calibration_set", t_host,
                   {"board": board, "sensor": sensor, "after_reads": after_reads, "document": document})
 
+    def link(self, board: str, event: str, after_reads: int, t_host: float, prefix: str = "") -> None:
+        """The link's ``event`` (pipeline.LINK_EVENTS) before the board's read ``after_reads`` of the recording."""
+        self._add(f"{prefix}/link", "link", t_host, {"board": board, "event": event, "after_reads": after_reads})
+
     def baselines(self, board: str, sensors: list[dict], info: dict | None, t_host: float, prefix: str = "",
                   left: list[dict] = ()) -> None:
         """``sensors``: each tared sensor's {sensor, baseline_pF, std_pF, loaded, …} when the recording
@@ -123,22 +128,27 @@ class McapLog:
                    **({"left": left} if left else {})})
 
     def resume(self, board: str, after_reads: int, sensors: list[dict], info: dict | None, described: list[int],
-               in_force: list[tuple], left: list[dict], t_host: float, prefix: str = "") -> None:
+               in_force: list[tuple], left: list[dict], identify: dict | None, t_host: float,
+               prefix: str = "") -> None:
         """The zeros (``sensors``, as ``baselines``) and INFO in force before the board's read ``after_reads``
         of the recording, the sensors then described (``described``, tared or not) and ``in_force``: (SensorInfo,
         calibration id) each seen sensor was reconstructed with (named as in /calibrations, whose entry for it
-        may be lost with the recording's start); ``left`` as ``baselines``."""
+        may be lost with the recording's start); ``left`` as ``baselines``; ``identify`` as ``settings``."""
         calibrations = [{"board": sensor.board, "sensor": sensor.id, "id": calibration_id,
                          "key": sensor_identity(sensor.board_info or {}, sensor)["key"]}
                         for sensor, calibration_id in in_force]
         self._add(f"{prefix}/resume", "resume", t_host, {"board": board, "after_reads": after_reads, "sensors": sensors,
                                                          "described": described, "calibrations": calibrations,
                                                          **({"info": info} if info is not None else {}),
-                                                         **({"left": left} if left else {})})
+                                                         **({"left": left} if left else {}),
+                                                         **({"identify": identify} if identify else {})})
 
-    def settings(self, board: str, level: str, mounting: str, t_host: float, prefix: str = "") -> None:
-        """How the board's forces are reconstructed, before its first read."""
-        self._add(f"{prefix}/settings", "settings", t_host, {"board": board, "level": level, "mounting": mounting})
+    def settings(self, board: str, level: str, mounting: str, identify: dict | None, t_host: float,
+                 prefix: str = "") -> None:
+        """How the board's forces are reconstructed, before its first read; ``identify``: its frames' wait for
+        the board's INFO then (Identification.state; None: none, a recording's or replay's bytes)."""
+        self._add(f"{prefix}/settings", "settings", t_host, {"board": board, "level": level, "mounting": mounting,
+                                                             **({"identify": identify} if identify else {})})
 
     def diagnostics(self, t_host: float, diagnostics: dict, prefix: str = "") -> None:
         """``diagnostics``: {"counters": the decoder's, "rejected": the interpreter's}, as the schema says."""

@@ -80,6 +80,7 @@ class Recorder:
         pipeline.listeners = [*pipeline.listeners, listeners.on_frames]
         pipeline.tare_listeners = [*pipeline.tare_listeners, listeners.on_tare]
         pipeline.calibration_listeners = [*pipeline.calibration_listeners, listeners.on_calibration]
+        pipeline.link_listeners = [*pipeline.link_listeners, listeners.on_link]
 
     def detach(self) -> None:
         """Stop listening, each pipeline's diagnostics written as they stand
@@ -96,6 +97,7 @@ class Recorder:
                 pipeline.tare_listeners = [f for f in pipeline.tare_listeners if f != listeners.on_tare]
                 pipeline.calibration_listeners = [f for f in pipeline.calibration_listeners
                                                   if f != listeners.on_calibration]
+                pipeline.link_listeners = [f for f in pipeline.link_listeners if f != listeners.on_link]
                 if self.active:
                     self._queue.put(("diag", (pipeline, pipeline.diagnostics()), time.time()))
 
@@ -184,6 +186,9 @@ class Recorder:
         elif kind == "calibration_set":
             self._log.calibration_set(pipeline.interpreter.name, *payload, t_host, prefix)
             self.messages += 1
+        elif kind == "link":
+            self._log.link(pipeline.interpreter.name, *payload, t_host, prefix)
+            self.messages += 1
         elif kind == "settings":
             self._log.settings(pipeline.interpreter.name, *payload, t_host, prefix)
             self.messages += 1
@@ -231,7 +236,7 @@ class _Listeners:
         if self._first_read is None:  # this read's number
             self._first_read = self.pipeline.reads
             reconstructor = self.pipeline.reconstructor
-            put(("settings", (self.pipeline, (reconstructor.level, reconstructor.mounting)), t_host))
+            put(("settings", (self.pipeline, (reconstructor.level, reconstructor.mounting, self._identify())), t_host))
             zeros = self.pipeline.reconstructor.baselines()
             info = self.pipeline.interpreter.info_document()
             left = reconstructor.replacements.left_zeros()  # a sensor back later is judged against its own
@@ -250,7 +255,7 @@ class _Listeners:
                 interpreter, reconstructor = self.pipeline.interpreter, self.pipeline.reconstructor
                 put(("resume", (self.pipeline, (after_reads, reconstructor.baselines(), interpreter.info_document(),
                                                 sorted(interpreter.sensors), reconstructor.in_force(),
-                                                reconstructor.replacements.left_zeros())), t_host))
+                                                reconstructor.replacements.left_zeros(), self._identify())), t_host))
         put(("raw", (self.pipeline, data), t_host))
 
     def on_tare(self, before_read: dict[int, int], judge: bool) -> None:
@@ -260,6 +265,19 @@ class _Listeners:
             first = self._first_read if self._first_read is not None else self.pipeline.reads
             after_reads = {sid: max(0, n - first) for sid, n in before_read.items()}
             self.recorder._queue.put(("tare", (self.pipeline, (after_reads, judge)), time.time()))
+
+    def on_link(self, event: str, before_read: int) -> None:
+        """The link's event (pipeline.LINK_EVENTS) before the pipeline's read
+        ``before_read``; under the pipeline's lock, so in order with its tares."""
+        if self.recorder.active:
+            first = self._first_read if self._first_read is not None else self.pipeline.reads
+            self.recorder._queue.put(("link", (self.pipeline, (event, max(0, before_read - first))), time.time()))
+
+    def _identify(self) -> dict | None:
+        """The wait for the board's INFO as it stands (identify.py; None: no
+        wait on this pipeline, a recording's or a replay's bytes)."""
+        identification = self.pipeline.identification
+        return None if identification is None else identification.state()
 
     def on_calibration(self, before_read: int, sensor_id: int, document: dict) -> None:
         """A calibration set (an upload), from the pipeline's read ``before_read`` on."""

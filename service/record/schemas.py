@@ -94,6 +94,17 @@ BASELINES = {
     },
 }
 
+IDENTIFY = {
+    "type": "object",
+    "description": "the board's frames' wait for its INFO (identify.py) as it stood (absent: no wait, the bytes of a "
+                   "recording or a replay, or a recording made before 2026-11-25: its replay holds nothing)",
+    "properties": {
+        "wait_s": {"type": "number", "description": "the longest a hold lasted live (INFO_REPLY_S)"},
+        "expecting": {"type": ["string", "null"], "description": "\"opened\": the next frames wait (a link opened)"},
+        "holding": {"type": "boolean", "description": "frames waited then (those before the recording are not in it)"},
+    },
+}
+
 RESUME = {
     "title": "tactile.Resume",
     "description": "Once a second of reads, the zeros, INFO and calibrations in force before the board's read "
@@ -109,7 +120,8 @@ RESUME = {
                                     "items": {"type": "object", "properties": {
                                         "board": {"type": "string"}, "sensor": {"type": "integer"},
                                         "id": {"type": "string"},
-                                        "key": {"type": "string", "description": "its identity, as /calibrations"}}}}},
+                                        "key": {"type": "string", "description": "its identity, as /calibrations"}}}},
+                   "identify": IDENTIFY},
 }
 
 TARE = {
@@ -150,6 +162,22 @@ SETTINGS = {
         "board": {"type": "string"},
         "level": {"type": "string", "description": "fidelity level in use (level0, table, full; auto's choice)"},
         "mounting": {"type": "string"},
+        "identify": IDENTIFY,
+    },
+}
+
+LINK = {
+    "title": "tactile.Link",
+    "description": "What the link did before the board's read after_reads (counted from the recording's first read "
+                   "of that board), where a replay does it too: \"lost\" the link dropped (the partial frame dropped, "
+                   "frames held for the INFO went on without it, the next link's wait for theirs), \"expired\" frames "
+                   "held for the board's INFO went on without it (its wait passed: by the loop's timer, which no "
+                   "recorded time gives, or at a read received after it)",
+    "type": "object",
+    "properties": {
+        "board": {"type": "string"},
+        "event": {"type": "string", "enum": ["lost", "expired"]},
+        "after_reads": {"type": "integer"},
     },
 }
 

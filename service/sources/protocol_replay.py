@@ -15,7 +15,7 @@ import urllib.parse
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from ..record.mcap_reader import boards_in, read_baselines, read_changes, read_numbered
+from ..record.mcap_reader import boards_in, read_baselines, read_changes, read_numbered, read_settings
 from ..record.pacing import Pacer, parse_speed
 from ..record.readers import is_timed_by_host, timed_chunks
 from ..record.resume import lost_start
@@ -76,11 +76,23 @@ def recorded_baselines(url: str) -> dict:
     return resumed or read_baselines(recording[0]).get(recording[1], {})
 
 
-def recorded_changes(url: str) -> list[tuple[int, int, bool | dict]]:
-    """The tares made and calibrations set while the URL's recording was
-    made, as (offset in the bytes this port streams, sensor id, change:
-    Pipeline.redo): the read each took effect before, placed by the raw
-    channel's read numbers (pipeline.schedule_recorded). A raw capture has none."""
+def recorded_identification(url: str) -> dict | None:
+    """The URL's recording's frames' wait for the board's INFO where its
+    replay begins (Identification.state: pipeline.identify_as_recorded);
+    None for a recording made without one (or before 2026-11-25), a raw capture."""
+    recording = _recording(url)
+    if recording is None:
+        return None
+    _, resumed = lost_start(*recording)
+    return (resumed if resumed else read_settings(recording[0]).get(recording[1], {})).get("identify")
+
+
+def recorded_changes(url: str) -> list[tuple[int, int | None, bool | dict | str]]:
+    """The tares made, calibrations set and the link's events while the
+    URL's recording was made, as (offset in the bytes this port streams,
+    sensor id, change: Pipeline.redo): the read each took effect before,
+    placed by the raw channel's read numbers (pipeline.schedule_recorded).
+    A raw capture has none."""
     recording = _recording(url)
     if recording is None:
         return []
