@@ -16,6 +16,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from service.board import Board, BoardSpec
+from service.calibration.book import CalibrationBook
 from service.history import Histories
 from service.pipeline import Pipeline
 from service.readout import INFO_REPLY_S
@@ -44,8 +45,9 @@ def received(frame, clock: bool = True) -> tuple:
     ``clock`` False leaves out clock_suspect (replay:// stamps its reads with
     the replay's own clock: it says how they came, not what they hold)."""
     flags = [flag for flag in frame.flags if clock or flag != "clock_suspect"]
+    sigma = None if frame.sigma_N is None else frame.sigma_N.tobytes()
     return (frame.sensor.id, frame.seq, frame.t_us, frame.sensor.board_info.get("serial"), frame.sensor.serial,
-            frame.calibration, flags, frame.forces_N.tobytes(), None if frame.sigma_N is None else frame.sigma_N.tobytes())
+            frame.calibration, flags, frame.forces_N.tobytes(), sigma)
 
 
 def by_sensor(frames, clock: bool = True) -> dict[int, list[tuple]]:
@@ -71,7 +73,7 @@ def served(path, read_size: int = 4096, merge: int = 1):
     replay:// URL, its port read ``read_size`` bytes at a time and ``merge``
     port reads fed as one (not as recorded), as the loop feeds them."""
     url = f"replay://{path}?speed=max"
-    board = Board(BoardSpec(url, level="table"), None, Histories())
+    board = Board(BoardSpec(url, level="table"), CalibrationBook(use_registry=False), Histories())
     frames = []
     board.pipeline.listeners.append(frames.extend)
     port = Serial(url)
@@ -233,7 +235,8 @@ def test_a_recording_whose_link_state_is_none_written_replays_as_it_came(by_hand
     assert by_sensor(exported(tmp_path / "odd.mcap")) == by_sensor(exported(tmp_path / "old.mcap"))
     assert "'expecting': 'closed'" in caplog.text and "the link event 'dropped' recorded is none of lost, expired" \
         in caplog.text
-    assert by_sensor(served(tmp_path / "odd.mcap"), clock=False) == by_sensor(exported(tmp_path / "old.mcap"), clock=False)
+    old = by_sensor(exported(tmp_path / "old.mcap"), clock=False)
+    assert by_sensor(served(tmp_path / "odd.mcap"), clock=False) == old
 
 
 # Live: a board behind TCP, the service's Board on an event loop, a recording of it.
@@ -248,7 +251,8 @@ def record_live(path) -> tuple[list, dict]:
     published, done = [], {}
 
     async def run():
-        board = Board(BoardSpec(f"socket://127.0.0.1:{device.port}", level="table"), None, Histories())
+        spec = BoardSpec(f"socket://127.0.0.1:{device.port}", level="table")
+        board = Board(spec, CalibrationBook(use_registry=False), Histories())
         board.pipeline.listeners.append(published.extend)
         recorder = Recorder(path)
         recorder.attach(board.pipeline)

@@ -168,8 +168,8 @@ def read_settings(path: str | Path) -> dict[str | None, dict]:
     settings: dict[str | None, dict] = {}
     for topic, message in _topics_of(path, lambda topic: raw_board(topic, "settings") is not False):
         doc = orjson.loads(message.data)
-        settings.setdefault(raw_board(topic, "settings"), {"level": doc["level"], "mounting": doc["mounting"],
-                                                           **({"identify": doc["identify"]} if "identify" in doc else {})})
+        wait = {"identify": doc["identify"]} if "identify" in doc else {}
+        settings.setdefault(raw_board(topic, "settings"), {"level": doc["level"], "mounting": doc["mounting"], **wait})
     return settings
 
 
