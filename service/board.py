@@ -128,7 +128,9 @@ class Board:
             self._schedule_recorded_changes()
             self._hold_as_recorded()
         # A replay's calibrations are its recording's (or fixed for its run), never today's registry's.
-        self.follows_registry = calibrations.follows_registry and not self.source.startswith("replay://")
+        # None (built-in calibrations, as the pipeline takes it) follows nothing.
+        follows = getattr(calibrations, "follows_registry", False)
+        self.follows_registry = follows and not self.source.startswith("replay://")
         self._tried: dict[str, str] = {}  # sensor key → the active calibration id last tried for it
         self._registry_error: str | None = None  # the last registry error logged (said once, until it changes)
 
