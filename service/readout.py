@@ -21,6 +21,10 @@ loop costs two wake-ups instead of one, and under load each wake-up can come
 a couple of milliseconds late. Sources without one (``sim://``,
 ``replay://``), or any source without a loop, are read by the thread
 (``sink.from_thread``), which a blocking driver cannot stall.
+Each read is stamped with its arrival, or with the time its source gives it
+(``Source.read_time``: a replay:// read's recorded receive time on the
+replay's timeline, so the clock map sees the recorded intervals, not the
+replaying host's delays).
 While the loop is busy, a watched source's bytes wait in the kernel's and
 the device's buffers (tens of KB: tens of ms at 8 sensors); a loop stalled
 longer makes the board drop scans and report OVERRUN, as any host that falls
@@ -196,7 +200,7 @@ class Readout:
         while not self._stop_event.is_set():
             data = source.read(0.05)
             if data:
-                self._sink.from_thread(data, self._received(data))
+                self._sink.from_thread(data, self._received(source))
             elif source.finished():
                 self.link.finished = True
                 self._stop_event.wait()
@@ -234,10 +238,13 @@ class Readout:
                 return False
             return True
 
-    def _received(self, data: bytes) -> float:
+    def _received(self, source: Source) -> float:
+        """The stamp of a read just taken: its arrival, or the time the source
+        gives it (``Source.read_time``). The link's last data is its arrival."""
         now = self._clock()
         self.link.last_data_time = now
-        return now
+        stamp = source.read_time()
+        return now if stamp is None else stamp
 
     def _read_on_loop(self, source: Source, fd: int) -> None:
         """The loop reads ``source`` whenever ``fd`` is readable; this thread
@@ -254,7 +261,7 @@ class Readout:
                 gone.set()
                 return
             if data:
-                self._sink.on_loop(data, self._received(data))
+                self._sink.on_loop(data, self._received(source))
 
         def watch() -> None:
             if self._watched_fd == fd:  # not stopped meanwhile

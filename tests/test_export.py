@@ -287,3 +287,28 @@ def test_binary_version_3_records_from_a_service_not_yet_upgraded_still_decode()
                 + np.asarray(grid.capacitance_pF, "<f4").tobytes())  # a v3 grid record: raw alone, n = 0
     with pytest.raises(ValueError, match="cannot be sized"):
         decode_binary(struct.pack("<H", 1) + raw_only)
+
+
+def test_a_frame_in_the_tare_window_exports_one_null_sigma_per_force_as_the_api_gives():
+    """A recording replays its tare window as it ran live: forces null, no σ.
+    docs/api.md: ``sigma_N`` is one σ per force, null where there is none —
+    the WebSocket frame's ``[null, …]`` — where the JSON line gave one null
+    for the whole list and the Parquet row a null list (the tester's s3b: 99
+    such lines). Both now give a null per force, for grids and quads."""
+    from firmware_sim.board import BoardConfig, capture
+    from service.record.export_parquet import table
+
+    pipeline = Pipeline(Reconstructor())  # live: the tare window is published, null and flagged
+    published = []
+    pipeline.listeners.append(published.extend)
+    pipeline.feed(capture(BoardConfig(scene="idle", seed=2), 0.3)[0], 1000.0)
+    taring = [f for f in published if f.sigma_N is None]
+    assert {(f.sensor.kind, f.forces_N.size) for f in taring} == {("grid", 64), ("quad", 3)}
+    docs = [orjson.loads(line) for line in export.encode_lines(taring).splitlines()]
+    rows = table(taring).to_pylist()
+    for frame, doc, row in zip(taring, docs, rows, strict=True):
+        nulls = [None] * (64 if frame.sensor.kind == "grid" else 3)
+        assert doc["sigma_N"] == nulls and row["sigma_N"] == nulls
+        api = orjson.loads(orjson.dumps(encoding.to_json_dict(frame), option=orjson.OPT_SERIALIZE_NUMPY))
+        assert doc["sigma_N"] == (api["sigma_N"] if frame.sensor.kind == "grid"
+                                  else [api["wrench_sigma"]["force"][axis] for axis in "xyz"])

@@ -135,3 +135,18 @@ def test_a_calibration_in_force_whose_document_was_lost_is_said_and_never_named_
     assert {doc["calibration"] for key, doc in rest.items() if key[0] == 0} == {"builtin-table1"}
     assert all(value is not None for key, doc in rest.items() if key[0] == 0 for value in doc["taxels_N"])
     assert [key for key in rest if key[0] == 1 and rest[key] != live[key]] == []
+
+
+def test_a_damaged_chunk_is_said_once_however_often_the_replay_reads_the_file(tmp_path, pressed, caplog):
+    """A replay reads a recording's file once per kind of message (raw reads, tares, zeros, settings,
+    /resume points, …): its damaged first chunk was said 6 times by one `tactile replay`, and again
+    by each pass of a served one. Now once, its resume point once."""
+    record(tmp_path / "run.mcap", pressed, {})
+    damaged = damaged_copy(tmp_path / "run.mcap")
+    registry = tmp_path / "empty.sqlite3"
+    with caplog.at_level(logging.WARNING):
+        replayed(damaged, registry)
+        served(damaged, registry)
+    messages = [record.getMessage() for record in caplog.records]
+    assert sum("is damaged" in message for message in messages) == 1
+    assert sum(f"replayed from read {RESUMED_AT}" in message for message in messages) == 1

@@ -74,6 +74,12 @@ def sensor_name(frame: ForceFrame) -> str:
     return f"{frame.sensor.kind}{frame.sensor.id}"
 
 
+def sigma_of(frame: ForceFrame) -> np.ndarray:
+    """The frame's 1-σ of each force, shape of ``forces_N``: NaN (null) per force
+    where it has none (the tare window), as docs/api.md's ``sigma_N`` says."""
+    return frame.sigma_N if frame.sigma_N is not None else np.full(len(frame.forces_N), np.nan)
+
+
 def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> dict:
     info = frame.sensor
     out: dict = {
@@ -91,7 +97,7 @@ def to_json_dict(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> 
     }
     if frame.instance:
         out["header"]["instance"] = frame.instance
-    sigma = frame.sigma_N if frame.sigma_N is not None else np.full(len(frame.forces_N), np.nan)
+    sigma = sigma_of(frame)
     if info.kind == "grid":
         out["rows"], out["cols"] = info.rows, info.cols
         if "force" in fields:
@@ -125,11 +131,11 @@ def to_export_dict(frame: ForceFrame) -> dict:
     info = frame.sensor
     if info.kind == "grid":  # the shape, which the flat taxel list does not say (a 4×4 and a 2×8 grid both have 16)
         return {"board": info.board, "sensor": info.id, "seq": frame.seq, "t_us": frame.t_us, "kind": info.kind,
-                "rows": info.rows, "cols": info.cols, "taxels_N": frame.forces_N, "sigma_N": frame.sigma_N,
+                "rows": info.rows, "cols": info.cols, "taxels_N": frame.forces_N, "sigma_N": sigma_of(frame),
                 "calibration": frame.calibration, "flags": frame.flags,
                 "taxel_flags": taxel_flag_lists(frame.taxel_flags), "contact": frame.contact}
     return {"board": info.board, "sensor": info.id, "seq": frame.seq, "t_us": frame.t_us, "kind": info.kind,
-            "fxyz_N": frame.forces_N, "sigma_N": frame.sigma_N, "calibration": frame.calibration, "flags": frame.flags}
+            "fxyz_N": frame.forces_N, "sigma_N": sigma_of(frame), "calibration": frame.calibration, "flags": frame.flags}
 
 
 def to_binary(frame: ForceFrame, fields: frozenset[str] = DEFAULT_FIELDS) -> bytes:

@@ -11,8 +11,8 @@ calibration id and the 1-σ of each force:
     flags list<string> · taxel_flags map<string, list<i32>> (grids)
     contact struct<total_N f64, cop_x_mm f64, cop_y_mm f64, area_mm2 f64, contacts i32> (grids;
             null for a frame without any force; the centre of pressure null without contact)
-    calibration string · sigma_N list<f32> (null where the frame has none; an element
-            null where its force has no σ)
+    calibration string · sigma_N list<f32> (one per force; an element null where its
+            force has no σ: all of them in the tare window)
 
 Forces are the reconstruction's float64, bit for bit; a value the JSON
 line gives as null is a Parquet null, never NaN (a number to pandas'
@@ -31,6 +31,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ..fanout.encoding import sigma_of
 from ..reconstruct import ForceFrame
 from .arrow_columns import fixed_lists, floats, lists, numbers, strings, structs
 from .contact_batch import columns, sigmas
@@ -103,13 +104,11 @@ def _taxel_flags(frames: list[ForceFrame], grid: np.ndarray) -> pa.Array:
 
 
 def _sigma(frames: list[ForceFrame]) -> pa.Array:
-    sigma = [f.sigma_N for f in frames]
-    present = np.fromiter((s is not None for s in sigma), bool, len(sigma))
-    given = [s for s in sigma if s is not None]
-    sizes = np.zeros(len(sigma), np.int64)
-    sizes[present] = [s.size for s in given]
-    values = np.concatenate(given).astype(np.float32, copy=False) if given else np.empty(0, np.float32)
-    return lists(floats(values, pa.float32()), sizes, present)
+    """One σ per force, null where there is none (the tare window: all null), as the JSON line."""
+    sigma = [sigma_of(f) for f in frames]
+    sizes = np.fromiter((s.size for s in sigma), np.int64, len(sigma))
+    values = np.concatenate(sigma).astype(np.float32, copy=False) if sigma else np.empty(0, np.float32)
+    return lists(floats(values, pa.float32()), sizes)
 
 
 def table(frames: list[ForceFrame]) -> pa.Table:

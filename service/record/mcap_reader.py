@@ -38,6 +38,17 @@ def check_mcap(path: str | Path) -> None:
 _WARNED: set[tuple[str, int, int]] = set()  # (file, size, where) of damage already reported
 
 
+def _first_report(path: str | Path, where: int) -> bool:
+    """Whether damage at byte ``where`` of ``path`` (as it is now) is new: a
+    replay reads a file once per kind of message it needs (raw reads, tares,
+    zeros, settings, /resume, …), and the damage is said once, not each time."""
+    key = (str(path), Path(path).stat().st_size, where)
+    if key in _WARNED:
+        return False
+    _WARNED.add(key)
+    return True
+
+
 def iter_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[tuple[str, Message]]:
     """(topic, message) in file order: a complete file through its index
     (only the messages asked for are parsed: mcap's readers parse every
@@ -65,8 +76,7 @@ def _messages(path: str | Path, topics: set[str] | None) -> Iterator[tuple[str, 
                         yield topic, record
         except (McapError, EOFError, struct.error, ValueError) as exc:
             size, at = Path(path).stat().st_size, stream.tell()
-            if (str(path), size, at) not in _WARNED:  # said once, not once per pass over the file
-                _WARNED.add((str(path), size, at))
+            if _first_report(path, at):
                 lost = "" if size - at < 4096 else f"; the {size - at} bytes after it are not read"
                 log.warning("%s cannot be read past byte %d of %d (%s): read what came before it, as after a "
                             "crash%s", path, at, size, str(exc) or type(exc).__name__, lost)
@@ -281,8 +291,9 @@ def _chunk_messages(path: str | Path, chunk_indexes: list, topics: dict[int, str
                     messages.append((topics[cid], Message.read(ReadDataStream(io.BytesIO(data[at + 9 : at + 9 + length])),
                                                                length)))
             except Exception as exc:  # noqa: BLE001 — whatever the decompressor raises: one chunk lost, not the file
-                log.warning("%s: the chunk at byte %d (or its index) is damaged (%s): its messages skipped", path,
-                            chunk_index.chunk_start_offset, str(exc) or type(exc).__name__)
+                if _first_report(path, chunk_index.chunk_start_offset):
+                    log.warning("%s: the chunk at byte %d (or its index) is damaged (%s): its messages skipped", path,
+                                chunk_index.chunk_start_offset, str(exc) or type(exc).__name__)
                 continue
             yield from messages
 

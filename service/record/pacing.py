@@ -26,6 +26,28 @@ def parse_speed(text: str) -> float:
     return speed
 
 
+class Timeline:
+    """Recorded times moved onto a replay's own timeline on the host's wall
+    clock: the first is now, each later one ``(t − t_first)/speed`` after it
+    (a replay's stamps then keep the recorded intervals, not the delays of
+    the host that replays them). At ``math.inf`` there is none (``at``: None)."""
+
+    def __init__(self, speed: float = 1.0, clock: Callable[[], float] = time.time) -> None:
+        if not speed > 0:
+            raise ValueError(f"replay speed must be > 0, got {speed}")
+        self.speed = speed
+        self._clock = clock
+        self._anchor: tuple[float, float] | None = None
+
+    def at(self, t_recorded: float) -> float | None:
+        """Wall-clock seconds of recorded time ``t_recorded`` (s); None at speed max."""
+        if math.isinf(self.speed):
+            return None
+        if self._anchor is None:
+            self._anchor = (t_recorded, self._clock())
+        return self._anchor[1] + (t_recorded - self._anchor[0]) / self.speed
+
+
 class Pacer:
     """Releases recorded times at ``speed`` × real time (math.inf: no waiting).
 

@@ -34,6 +34,13 @@ class Source(abc.ABC):
         holds; a device or a socket never is."""
         return False
 
+    def read_time(self) -> float | None:
+        """The host time (s since the epoch) the last read's bytes stand for,
+        when the source knows it better than their arrival does: a recording
+        replayed on its own timeline, so that its host's pacing delays do not
+        pass for the board's. None (a device, a socket): stamp them on arrival."""
+        return None
+
     def fileno(self) -> int | None:
         """A descriptor that selects readable when bytes arrive, so an event
         loop can read the source without a thread; None when there is none."""

@@ -4,7 +4,7 @@
 ``tactile replay FILE --serve`` serves the API and dashboard from a
 recording through exactly the live code path: the readout thread opens
 this URL like a device. Reads release the recording's bytes paced by their
-recorded times; at the end the port stays open and silent (like a board
+recorded times, stamped with them on the replay's timeline (``read_time``); at the end the port stays open and silent (like a board
 that stopped), and ``/health`` shows the replay:// source.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ import urllib.parse
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from ..record.mcap_reader import boards_in, read_baselines, read_changes, read_numbered, read_settings
-from ..record.pacing import Pacer, parse_speed
+from ..record.pacing import Pacer, Timeline, parse_speed
 from ..record.readers import is_timed_by_host, timed_chunks
 from ..record.resume import lost_start
 
@@ -122,6 +122,7 @@ class Serial(SerialBase):
         self._pending = bytearray()
         self._lock = threading.Lock()
         self.finished = False
+        self.read_time: float | None = None  # the last chunk's recorded time on the replay's timeline (Source.read_time)
         super().__init__(*args, **kwargs)
 
     def open(self) -> None:
@@ -133,7 +134,7 @@ class Serial(SerialBase):
             self._chunks = iter(timed_chunks(path, board=board, from_read=resumed["after_reads"] if resumed else 0))
         except (ValueError, OSError) as exc:
             raise SerialException(str(exc)) from None
-        self._pacer = Pacer(speed)
+        self._pacer, self._timeline = Pacer(speed), Timeline(speed)
         self.is_open = True
 
     def close(self) -> None:
@@ -160,6 +161,7 @@ class Serial(SerialBase):
                     raise SerialException(str(exc)) from None
                 else:
                     self._pacer.wait(t_recorded)
+                    self.read_time = self._timeline.at(t_recorded)
                     self._pending += chunk
             if not self._pending and self.finished and self._timeout:
                 time.sleep(self._timeout)

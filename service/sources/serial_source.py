@@ -46,6 +46,9 @@ class SerialSource(Source):
     def finished(self) -> bool:
         return bool(getattr(self._port, "finished", False))  # replay:// says so
 
+    def read_time(self) -> float | None:
+        return getattr(self._port, "read_time", None)  # replay:// knows it
+
     def _plain_socket(self):
         """The socket of pyserial's socket:// port (private there, without
         fileno()); None for any other port (rfc2217:// has a socket too, but
