@@ -29,7 +29,7 @@ from .baseline import Baseline
 from .calibration_upload import expected_c0, own_level, processor_for, tare_window
 from .fatigue import CycleCounter
 from .grid import GridProcessor
-from .identity import Replacements, named
+from .identity import Replacements, identity, named
 from .loaded_tare import judge, judge_quad
 from .quad import QuadProcessor
 from .quad_drift import resume, where
@@ -153,8 +153,11 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         address; ``restart``: its reading is a board's first after a power-up (_same_sensor)."""
         state = self._sensors.get(info.id)
         if state is not None and state.info is not info and _same_sensor(state.info, info, restart):
+            known_as = (identity(state.info), state.calibration.id)
             self._described_again(state, info)
-            if not state.judged_once:  # the INFO may name it only now: its stored zero is known by its name
+            # The INFO may name it only now (or its calibration): its stored zero is known by that. An INFO that
+            # changes neither (a reply to INFO?) keeps the one found: the zero it left with was handed over then.
+            if not state.judged_once and known_as != (identity(info), state.calibration.id):
                 state.stored_zero = self._stored_zero(info, state.calibration.id)
         if state is None or state.info is not info:
             # A sensor that left for another address (a swap) takes its counter along, and tares there: neither
