@@ -124,7 +124,6 @@ class Pipeline(SensorChanges):
         self.identification: Identification | None = None  # a live link's frames waiting for INFO (identify_on_link)
         self._ask_info: Callable[[], object] | None = None
         self._later: Later | None = None
-        self._unreadable = 0  # data frames the description in force could not read, as last seen
 
     def identify_on_link(self, wait_s: float, ask_info: Callable[[], object], later: Later) -> None:
         """A live link's frames wait for its board's INFO, from its first
@@ -290,12 +289,12 @@ class Pipeline(SensorChanges):
             self._reconstruct(readings, readings[-1].t_host, {})
 
     def _ask_if_unreadable(self) -> None:
-        """Ask the board INFO? when data frames did not fit the description in
-        force (another shape, or none known): its INFO may have been lost."""
-        rejected = self.interpreter.rejected
-        unreadable = rejected["shape_mismatch"] + rejected["unknown_shape"]
-        if unreadable != self._unreadable:
-            self._unreadable = unreadable
+        """Ask the board INFO? when a sensor's data frames first did not fit the
+        description in force (another shape, or none known): its INFO may have
+        been lost. Once per sensor and INFO in force (the same answer again
+        re-describes every sensor for nothing), never for one the INFO leaves
+        undescribed on purpose (Interpreter.newly_unreadable)."""
+        if self.interpreter.newly_unreadable():
             self._ask_info()
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:
