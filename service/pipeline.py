@@ -226,7 +226,7 @@ class Pipeline(SensorChanges):
         return {"counters": self.decoder.counters.as_dict(), "rejected": dict(self.interpreter.rejected)}
 
     def _decode(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
-        readings = []
+        readings, restarted = [], False
         for data, t_host in chunks:
             # The byte listeners under the lock with the read's decoding: a recorder stopping (recorder.py)
             # takes the lock, so it never has a read whose counts are not in the decoder's counters yet.
@@ -241,24 +241,24 @@ class Pipeline(SensorChanges):
                 if self.identification is None or not self.identification.wants(self.decoder.restarts_without_info):
                     readings += self.interpreter.interpret_many(frames, t_host, self.clock)
                 else:
-                    readings += self._identify(frames, t_host)
+                    held, began = self._identify(frames, t_host)
+                    readings += held
+                    restarted = restarted or began == "restarted"
         if self._ask_info is not None:
-            self._ask_if_unreadable()
+            self._ask_if_unknown(restarted)
         return readings
 
-    def _identify(self, frames: list[Frame], t_host: float) -> list[Reading]:
-        """A read's frames through the identification: those it lets go, read;
-        a hold that begins times itself out, and at a restart asks the board INFO?."""
+    def _identify(self, frames: list[Frame], t_host: float) -> tuple[list[Reading], str | None]:
+        """A read's frames through the identification: (those it lets go, read; why a hold began, if one did:
+        "restarted" is a restart, whose INFO? the caller asks). A hold that begins times itself out."""
         identification = self.identification
         unanswered = identification.unanswered
         go, began = identification.take(frames, t_host, self.decoder.restarts_without_info)
         if began:
             self._later(identification.wait_s, partial(self._hold_expired, identification.holds))
-        if began == "restarted":
-            self._ask_info()
         if identification.unanswered != unanswered:
-            return self._unidentified(go, f"none within {identification.wait_s:.2f} s")
-        return self._read(go)
+            return self._unidentified(go, f"none within {identification.wait_s:.2f} s"), began
+        return self._read(go), began
 
     def _hold_expired(self, hold: int) -> None:
         """``wait_s`` after hold number ``hold`` began: its frames, if no INFO
@@ -288,13 +288,15 @@ class Pipeline(SensorChanges):
             self._reconstruct_deferred()
             self._reconstruct(readings, readings[-1].t_host, {})
 
-    def _ask_if_unreadable(self) -> None:
-        """Ask the board INFO? when a sensor's data frames first did not fit the
-        description in force (another shape, or none known): its INFO may have
-        been lost. Once per sensor and INFO in force (the same answer again
-        re-describes every sensor for nothing), never for one the INFO leaves
-        undescribed on purpose (Interpreter.newly_unreadable)."""
-        if self.interpreter.newly_unreadable():
+    def _ask_if_unknown(self, restarted: bool) -> None:
+        """Ask the board INFO?, with the lock free (nothing waits on the
+        readout under it), at a restart whose INFO was lost, and when a
+        sensor's data frames first did not fit the description in force
+        (another shape, or none known): its INFO may have been lost. Once per
+        sensor and INFO in force (the same answer again re-describes every
+        sensor for nothing), never for one the INFO leaves undescribed on
+        purpose (Interpreter.newly_unreadable)."""
+        if self.interpreter.newly_unreadable() or restarted:
             self._ask_info()
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:

@@ -385,6 +385,21 @@ def test_frames_that_do_not_fit_ask_info_once_per_sensor_and_info():
     assert pipeline.interpreter.rejected == {"info_invalid": 0, "shape_mismatch": 2030, "unknown_shape": 50}
 
 
+def test_info_is_asked_with_the_pipeline_free():
+    """At a restart whose INFO was lost the pipeline asked INFO? holding its lock, so a readout waiting on its
+    port held every tare, calibration and recorder stop with it. Both asks (the restart's, a frame its
+    description cannot read) now come with the lock free."""
+    pipeline = Pipeline(Reconstructor(level="table"), map_clock=False)
+    locked = []
+    pipeline.identify_on_link(INFO_REPLY_S, lambda: locked.append(pipeline._lock.locked()), lambda delay, fn: None)
+    board = Scans("E-1", seed=1)
+    pipeline.feed(board.info() + board.next(10), 0.0)
+    board.seq, board.t_us = 0, 0  # a restart, its INFO lost
+    pipeline.feed(board.next(10), 1.0)
+    pipeline.feed(board.info() + encode_frame(FrameType.GRID, 0, 10, board.t_us, bytes(4 * 24)), 1.02)
+    assert locked == [False, False]
+
+
 def test_a_link_lost_while_holding_releases_its_frames_and_the_next_link_waits():
     """Frames held when the link drops go on (nothing lost); the next link's wait for its INFO."""
     pipeline, _, _, published = live_pipeline()
