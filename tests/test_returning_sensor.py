@@ -226,6 +226,35 @@ def test_a_board_flapping_between_many_identities_keeps_at_most_left_zeros():
     assert [z["identity"][1] for z in reconstructor.replacements.left_zeros()] == ["G"]
 
 
+ROW = {"zero_pF": [3.5, 3.6, None, 3.4], "std_pF": [0.001] * 4, "frames": 100, "saved": T0}
+BAD_LEFT = [({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "saved": "yesterday"}}, "saved"),
+            ({"identity": 5, "calibration": "c", "zero": ROW}, "identity"),
+            ({"calibration": "c"}, "identity"),
+            ({"identity": ["serial", "X"], "calibration": 7, "zero": ROW}, "calibration"),
+            ({"identity": ["serial", ["X"]], "calibration": "c", "zero": ROW}, "identity"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "zero_pF": "3.5"}}, "zero_pF"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "std_pF": [0.001]}}, "std_pF"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "frames": True}}, "frames"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "saved": float("nan")}}, "saved"),
+            ("left", "not an object")]
+
+
+def test_a_recorded_left_zero_that_is_malformed_is_skipped_naming_it(caplog):
+    """A recording's /baselines ``left`` entries were taken unchecked: saved "yesterday" or an identity 5 raised
+    TypeError, one without an identity KeyError, stopping the replay (or the replay:// board) before its first
+    frame; a zero_pF that is no list would have at the sensor's return. Each bad one is now skipped with a
+    warning naming it and what is wrong, the good ones kept."""
+    good = [{"identity": ["board", "EMU-A", 1], "calibration": "builtin-quad", "zero": ROW},
+            {"identity": ["serial", "Q-9"], "calibration": "c", "zero": {**ROW, "saved": T0 + 1}}]
+    reconstructor = Reconstructor()
+    reconstructor.preset_left_zeros([good[0]] + [entry for entry, _ in BAD_LEFT] + [good[1]])
+    assert reconstructor.replacements.left_zeros() == good
+    warnings = [r.getMessage() for r in caplog.records if "left" in r.getMessage()]
+    assert len(warnings) == len(BAD_LEFT)
+    for message, (entry, field) in zip(warnings, BAD_LEFT):
+        assert field in message and repr(entry)[:40] in message, (message, entry)
+
+
 def swap_bytes() -> list[tuple[bytes, float]]:
     """The swap and return of ``swap_and_back(2.0)`` as a board sends it (reads, host times)."""
     a, b = Board("EMU-A", 1), Board("EMU-B", 2)
