@@ -143,6 +143,15 @@ class Pipeline(SensorChanges):
         its reads are not cut as they were recorded, its bytes are the same)."""
         self._recorded = sorted(changes, key=lambda change: change[0])
 
+    def preset_began(self, began: dict) -> None:
+        """What a recording begun mid-stream began with (mcap_reader.read_baselines, one board's): the INFO
+        then in force, its sensors' zeros and those of sensors that had left their address, taken before its
+        first frame (a replay, a replay:// board)."""
+        if began.get("info"):
+            self.interpreter.preset_info(began["info"])
+        self.reconstructor.preset_baselines(began.get("sensors", []))
+        self.reconstructor.preset_left_zeros(began.get("left", []))
+
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
         """One read: decoded, reconstructed and published as one batch, in arrival order."""
         return self._reconstruct(self._decode([(data, t_host)]), t_host, {"grid": 1, "other": 1})

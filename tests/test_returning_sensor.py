@@ -71,11 +71,13 @@ class Board:
                     Reading(quad_info, k, 5000 * k + 100, t, 0, 0, quad, False, False, k == 0)]
         return out
 
+    def info_document(self) -> dict:
+        return {"board": "emu", "serial": self.serial, "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 6},
+                                                                   {"id": 1, "kind": "quad"}]}
+
     def info(self) -> bytes:
         """The board's INFO frame (its power-up's, or its answer to INFO?)."""
-        info = {"board": "emu", "serial": self.serial, "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 6},
-                                                                   {"id": 1, "kind": "quad"}]}
-        return encode_frame(FrameType.INFO, BOARD_SENSOR_ID, 0, 0, orjson.dumps(info))
+        return encode_frame(FrameType.INFO, BOARD_SENSOR_ID, 0, 0, orjson.dumps(self.info_document()))
 
     def reads(self, count: int, start_s: float, grid_n: float = 0.0, fz: float = 0.0,
               first: int = 0) -> list[tuple[bytes, float]]:
@@ -253,6 +255,26 @@ def test_a_recorded_left_zero_that_is_malformed_is_skipped_naming_it(caplog):
     assert len(warnings) == len(BAD_LEFT)
     for message, (entry, field) in zip(warnings, BAD_LEFT):
         assert field in message and repr(entry)[:40] in message, (message, entry)
+
+
+def test_a_pipeline_takes_what_a_recording_began_with_in_one_call():
+    """Pipeline.preset_began (a replay's and a replay:// board's one sequence): the INFO then in force, the
+    sensors' zeros and the zeros of sensors that had left, before the first frame. EMU-A's quad, its recorded
+    zero its C0, reads 2 N at once from a stream without INFO (the fits' 2 N within 3σ, no tare on the load)."""
+    a = Board("EMU-A", 1)
+    left = [{"identity": ["board", "EMU-B", 1], "calibration": "builtin-quad", "zero": ROW}]
+    pipeline, published = Pipeline(Reconstructor(), map_clock=False), []
+    pipeline.listeners.append(published.extend)
+    pipeline.preset_began({"board": "emu", "info": a.info_document(), "left": left,
+                           "sensors": [{"sensor": 1, "baseline_pF": a.quad_c0.tolist(), "std_pF": [NOISE_PF] * 4}]})
+    for data, t_host in a.reads(60, 0.0, 1.0, QUAD_FZ, first=100):
+        pipeline.feed(data, t_host)
+    quad = [f for f in published if f.sensor.id == 1]
+    assert len(quad) == 60 and quad[0].sensor.board_info["serial"] == "EMU-A"
+    assert not any("taring" in f.flags for f in quad)
+    force, sigma, _ = held(published, 1)
+    assert abs(force - QUAD_FZ) < 3 * sigma, (force, sigma)
+    assert pipeline.reconstructor.replacements.left_zeros() == left
 
 
 def swap_bytes() -> list[tuple[bytes, float]]:
