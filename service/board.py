@@ -161,10 +161,7 @@ class Board:
         if "after_reads" in began:
             log.warning("%s: its first reads are lost (a damaged chunk), and with them its INFO and zeros: served "
                         "from read %d, where the recording holds those then in force", self.source, began["after_reads"])
-        if began.get("info"):
-            self.pipeline.interpreter.preset_info(began["info"])
-        self.pipeline.reconstructor.preset_baselines(began.get("sensors", []))
-        self.pipeline.reconstructor.preset_left_zeros(began.get("left", []))
+        self.pipeline.preset_began(began)
         if began and self.spec.name is None:  # begun mid-stream, no INFO in it: the name the board had then
             self.pipeline.interpreter.board_name = began["board"]
 

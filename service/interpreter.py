@@ -64,6 +64,11 @@ class Interpreter:
         self._listed: set[int] = set()  # the sensors the INFO in force describes
         self._ever_listed: set[int] = set()  # the sensors any INFO described
         self.undescribed: dict[int, str] = {}  # sensors the INFO in force names but leaves undescribed: why
+        # Sensors whose data frames the INFO in force (its document) could not read, and those of them not yet
+        # taken by ``newly_unreadable``: asking INFO? again brings the same answer, so each is asked for once.
+        self._unreadable: set[int] = set()
+        self._unreadable_new: list[int] = []
+        self._info_doc: dict | None = None
         self.info_refused: str | None = None  # why the last INFO was invalid as a whole (None: it was taken)
         self.info_size = (0, 0)  # the INFO in force: (payload bytes, sensor entries)
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
@@ -214,6 +219,7 @@ class Interpreter:
                 self.rejected["unknown_shape"] += 1
                 why = self.undescribed.get(frame.sensor, "does not describe it")
                 if not why.startswith(UNKNOWN_KIND):  # a board's other sensor (a thermistor): its frames are not ours
+                    self._unreadable_by(frame.sensor)
                     told = f"the board's INFO {why}" if self.board else "no INFO came"
                     self._drop(frame, t_host, f"{len(frame.payload)}-byte GRID frames, and {told} (without a "
                                "description only a 256-byte GRID frame is read, as an 8x8 grid)")
@@ -223,12 +229,26 @@ class Interpreter:
         expected_kind = "grid" if frame.type == FrameType.GRID else "quad"
         if info.kind != expected_kind or len(frame.payload) != 4 * info.channels:
             self.rejected["shape_mismatch"] += 1
+            self._unreadable_by(frame.sensor)
             told = "the board's INFO describes" if frame.sensor in self._listed else "it was taken as"
             shape = "a quad" if info.kind == "quad" else f"a {info.rows}x{info.cols} grid"
             self._drop(frame, t_host, f"{len(frame.payload)}-byte {FrameType(frame.type).name} frames where {told} "
                        f"{shape} ({4 * info.channels} bytes)")
             return None
         return info
+
+    def _unreadable_by(self, sensor: int) -> None:
+        """A data frame of ``sensor`` the INFO in force could not read (another shape, or none known)."""
+        if sensor not in self._unreadable:
+            self._unreadable.add(sensor)
+            self._unreadable_new.append(sensor)
+
+    def newly_unreadable(self) -> list[int]:
+        """Sensors whose data frames the INFO in force first could not read since the last call (its INFO may
+        have been lost: worth an INFO?), each once per INFO in force; not a sensor the INFO leaves undescribed
+        for a kind this service does not read (a thermistor: UNKNOWN_KIND)."""
+        new, self._unreadable_new = self._unreadable_new, []
+        return new
 
     def _drop(self, frame: Frame, t_host: float, why: str) -> None:
         """Count a data frame rejected, under its sensor, with why (/health names the sensor while it lasts)."""
@@ -271,6 +291,8 @@ class Interpreter:
             log.warning("ignoring INFO frame: %s", exc)
             return
         self.info_refused = None
+        if doc != self._info_doc:  # another INFO in force (not the same again, as a reply to INFO? may be)
+            self._info_doc, self._unreadable, self._unreadable_new = doc, set(), []
         self.info_size = (len(payload), len(doc.get("sensors", [])))
         board = {k: v for k, v in doc.items() if k != "sensors"}
         identity, before = board.get("serial") or board.get("board"), self.board.get("serial") or self.board.get("board")

@@ -133,7 +133,6 @@ class Pipeline(SensorChanges):
         self.identification: Identification | None = None  # a live link's frames waiting for INFO (identify_on_link)
         self._ask_info: Callable[[], object] | None = None
         self._later: Later | None = None
-        self._unreadable = 0  # data frames the description in force could not read, as last seen
 
     def identify_on_link(self, wait_s: float, ask_info: Callable[[], object], later: Later) -> None:
         """A live link's frames wait for its board's INFO, from its first
@@ -160,6 +159,15 @@ class Pipeline(SensorChanges):
         recording served through the live path (replay:// gives the offsets:
         its reads are not cut as they were recorded, its bytes are the same)."""
         self._recorded = sorted(changes, key=lambda change: change[0])
+
+    def preset_began(self, began: dict) -> None:
+        """What a recording begun mid-stream began with (mcap_reader.read_baselines, one board's): the INFO
+        then in force, its sensors' zeros and those of sensors that had left their address, taken before its
+        first frame (a replay, a replay:// board)."""
+        if began.get("info"):
+            self.interpreter.preset_info(began["info"])
+        self.reconstructor.preset_baselines(began.get("sensors", []))
+        self.reconstructor.preset_left_zeros(began.get("left", []))
 
     def feed(self, data: bytes, t_host: float) -> list[ForceFrame]:
         """One read: decoded, reconstructed and published as one batch, in arrival order."""
@@ -267,7 +275,7 @@ class Pipeline(SensorChanges):
         return {"counters": self.decoder.counters.as_dict(), "rejected": dict(self.interpreter.rejected)}
 
     def _decode(self, chunks: list[tuple[bytes, float]]) -> list[Reading]:
-        readings = []
+        readings, restarted = [], False
         for data, t_host in chunks:
             # The byte listeners under the lock with the read's decoding: a recorder stopping (recorder.py)
             # takes the lock, so it never has a read whose counts are not in the decoder's counters yet.
@@ -282,25 +290,25 @@ class Pipeline(SensorChanges):
                 if self.identification is None or not self.identification.wants(self.decoder.restarts_without_info):
                     readings += self.interpreter.interpret_many(frames, t_host, self.clock)
                 else:
-                    readings += self._identify(frames, t_host)
+                    held, began = self._identify(frames, t_host)
+                    readings += held
+                    restarted = restarted or began == "restarted"
         if self._ask_info is not None:
-            self._ask_if_unreadable()
+            self._ask_if_unknown(restarted)
         return readings
 
-    def _identify(self, frames: list[Frame], t_host: float) -> list[Reading]:
-        """A read's frames through the identification: those it lets go, read;
-        a hold that begins times itself out, and at a restart asks the board INFO?."""
+    def _identify(self, frames: list[Frame], t_host: float) -> tuple[list[Reading], str | None]:
+        """A read's frames through the identification: (those it lets go, read; why a hold began, if one did:
+        "restarted" is a restart, whose INFO? the caller asks). A hold that begins times itself out."""
         identification = self.identification
         unanswered = identification.unanswered
         go, began = identification.take(frames, t_host, self.decoder.restarts_without_info)
         if began:
             self._later(identification.wait_s, partial(self._hold_expired, identification.holds))
-        if began == "restarted":
-            self._ask_info()
         if identification.unanswered != unanswered:
             self._link_event("expired")
-            return self._unidentified(go, f"none within {identification.wait_s:.2f} s")
-        return self._read(go)
+            return self._unidentified(go, f"none within {identification.wait_s:.2f} s"), began
+        return self._read(go), began
 
     def _hold_expired(self, hold: int) -> None:
         """``wait_s`` after hold number ``hold`` began: its frames, if no INFO
@@ -333,13 +341,15 @@ class Pipeline(SensorChanges):
             self._reconstruct_deferred()
             self._reconstruct(readings, readings[-1].t_host, {})
 
-    def _ask_if_unreadable(self) -> None:
-        """Ask the board INFO? when data frames did not fit the description in
-        force (another shape, or none known): its INFO may have been lost."""
-        rejected = self.interpreter.rejected
-        unreadable = rejected["shape_mismatch"] + rejected["unknown_shape"]
-        if unreadable != self._unreadable:
-            self._unreadable = unreadable
+    def _ask_if_unknown(self, restarted: bool) -> None:
+        """Ask the board INFO?, with the lock free (nothing waits on the
+        readout under it), at a restart whose INFO was lost, and when a
+        sensor's data frames first did not fit the description in force
+        (another shape, or none known): its INFO may have been lost. Once per
+        sensor and INFO in force (the same answer again re-describes every
+        sensor for nothing), never for one the INFO leaves undescribed on
+        purpose (Interpreter.newly_unreadable)."""
+        if self.interpreter.newly_unreadable() or restarted:
             self._ask_info()
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:

@@ -11,6 +11,9 @@ is ``finished``: it stays open and is not reopened. The pipeline may ask the
 board ``INFO?`` too (``ask_info``: a board restarted without its INFO, or
 sends frames its description cannot read), at most once per
 ``ASK_INFO_EVERY_S``, so that a board that never answers is not flooded.
+Only the thread writes to the source: ``ask_info`` (on the event loop) hands
+it the INFO?, since a port that stops taking bytes blocks a write for as
+long as it lasts (pyserial's has no timeout).
 
 Where the bytes are read is decided once per connection, here
 (``_read_until_gone``), as python-can's ``Notifier.add_bus`` does: given an
@@ -131,8 +134,10 @@ class Readout:
         self.link = LinkState(url)
         self._silence_s = silence_s
         self._asked_at: float | None = None  # INFO? asked for the silence now
-        self._info_asked_at: float | None = None  # INFO? last sent by ask_info
-        self._write_lock = threading.Lock()  # the loop's ask_info and this thread write the same source
+        self._info_asked_at: float | None = None  # INFO? last asked by ask_info
+        self._ask_lock = threading.Lock()  # ask_info's, from any thread: held for no I/O
+        self._info_wanted = False  # ask_info asked an INFO? this thread has not written yet
+        self._wake = threading.Event()  # the thread has something to do now (ask_info, a failure on the loop)
         self._sink = sink
         self._opener = opener
         self._backoff = backoff_s
@@ -170,13 +175,12 @@ class Readout:
                 continue
             self.link.connects += 1
             self.link.connected_at = self._clock()
-            self._asked_at = None
+            self._asked_at, self._info_wanted = None, False  # the commands on connect ask INFO?
             delay = self._backoff[0]
             log.info("connected to %s", self.link.url)
             try:
-                with self._write_lock:
-                    self.link.up = True
-                    self._source.write(ON_CONNECT_COMMANDS)
+                self.link.up = True
+                self._source.write(ON_CONNECT_COMMANDS)
                 self._read_until_gone(self._source)
             except OSError as exc:
                 self.link.last_error = str(exc)
@@ -185,8 +189,7 @@ class Readout:
                 self.link.last_error = f"{type(exc).__name__}: {exc}"
                 log.exception("reading %s failed; reopening", self.link.url)
             finally:
-                with self._write_lock:  # no ask_info writes to it once it is closing
-                    self.link.up = False
+                self.link.up = False
                 self._source.close()
                 self._sink.link_lost()
             self._stop_event.wait(delay)
@@ -206,6 +209,7 @@ class Readout:
                 self._stop_event.wait()
             else:
                 self._check_silence(source)
+            self._write_asked(source)
 
     def _check_silence(self, source: Source) -> None:
         """Ask a silent board ``INFO?``; raise OSError (reopen) if that brings nothing."""
@@ -216,27 +220,28 @@ class Readout:
         if self._asked_at is None or self._asked_at < now - silent:  # not yet asked in this silence
             self._asked_at = now
             log.warning("no bytes from %s for %.1f s: asking INFO?", self.link.url, silent)
-            with self._write_lock:
-                source.write(b"INFO?\n")
+            source.write(b"INFO?\n")
         elif now - self._asked_at >= REOPEN_AFTER_ASKING_S:
             raise OSError(f"no bytes for {silent:.1f} s, not even after INFO?")
 
     def ask_info(self) -> bool:
-        """Ask the board ``INFO?`` (from any thread), unless the link is down
-        or this asked less than ASK_INFO_EVERY_S ago (the INFO? on connect and
-        for a silence are the readout's own); True when sent. A failed write
-        is left to the reading thread, which finds the link gone."""
-        with self._write_lock:
+        """Ask the board ``INFO?`` (from any thread, never waiting on the
+        port: this readout's thread writes it), unless the link is down or
+        this asked less than ASK_INFO_EVERY_S ago (the INFO? on connect and
+        for a silence are the readout's own); True when asked."""
+        with self._ask_lock:
             now = self._clock()
             if not self.link.up or (self._info_asked_at is not None and now - self._info_asked_at < ASK_INFO_EVERY_S):
                 return False
-            self._info_asked_at = now
-            try:
-                self._source.write(b"INFO?\n")
-            except OSError as exc:
-                log.debug("asking %s INFO? failed: %s", self.link.url, exc)
-                return False
-            return True
+            self._info_asked_at, self._info_wanted = now, True
+        self._wake.set()
+        return True
+
+    def _write_asked(self, source: Source) -> None:
+        """On this thread: the INFO? ``ask_info`` asked, if any (a failed write is the link gone, as any)."""
+        if self._info_wanted:
+            self._info_wanted = False
+            source.write(b"INFO?\n")
 
     def _received(self, source: Source) -> float:
         """The stamp of a read just taken: its arrival, or the time the source
@@ -259,6 +264,7 @@ class Readout:
                 self._unwatch()
                 failure.append(exc)
                 gone.set()
+                self._wake.set()
                 return
             if data:
                 self._sink.on_loop(data, self._received(source))
@@ -273,15 +279,18 @@ class Readout:
         except RuntimeError:  # the loop is closed: the service is going away
             self._watched_fd = None
             return
-        while not gone.wait(0.05):
+        while not gone.is_set():
             if self._stop_event.is_set():
                 self._unwatch()
                 return
             try:
+                self._write_asked(source)
                 self._check_silence(source)
             except OSError:
                 self._unwatch()
                 raise
+            self._wake.wait(0.05)
+            self._wake.clear()
         raise failure[0]
 
     def _unwatch(self) -> None:

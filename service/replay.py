@@ -101,10 +101,7 @@ def replay_boards(path: str | Path, export: BinaryIO | None = None, level: str |
                 _hold_as_recorded(pipeline, identify, path)
             if writer is not None:
                 pipeline.listeners.append(writer.write)
-            if began.get("info"):
-                pipeline.interpreter.preset_info(began["info"])
-            pipeline.reconstructor.preset_baselines(began.get("sensors", []))
-            pipeline.reconstructor.preset_left_zeros(began.get("left", []))
+            pipeline.preset_began(began)
         return pipeline
 
     paced = not math.isinf(pacer.speed)

@@ -99,7 +99,8 @@ def broken(field: str) -> dict:
     ("taxels.gain_se[5]=-1e150", "taxels.gain_se[5] = -1e+150 is outside [0, 0.9524], the taxel's gain"),
     ("taxels.gain_se[5]=1e300", "taxels.gain_se[5] = 1e+300 is outside [0, 0.9524], the taxel's gain"),
     ("taxels.gain_se[5]=-0.001", "taxels.gain_se[5] = -0.001 is outside [0, 0.9524], the taxel's gain"),
-    ("taxels.gain_se[5]=0.96", "taxels.gain_se[5] = 0.96 is outside [0, 0.9524], the taxel's gain"),
+    ("taxels.gain_se[5]=0.96", "taxels.gain_se[5] = 0.96 is outside [0, 0.9524], the taxel's gain: a standard "
+                               "error is not negative, nor past the value it is of (that is then undetermined)"),
     ('taxels.gain_se[5]="0.01"', "taxels.gain_se: expected a list of 64 numbers"),
     ('taxels.c0_pF[5]="10"', "taxels.c0_pF: expected a list of 64 numbers"),
     # a residual RMS from 0 to 471 N: 1e300 made σ null beside a number, -1e150 σ 1e150 N
@@ -137,11 +138,13 @@ def quad(**changes) -> dict:
     ({"coupling": True}, "coupling: expected a number, got True"),
     ({"statistics": "x"}, "statistics: expected an object, got 'x'"),
     ({"created": {"x": 1}}, "created: expected an ISO 8601 time as a string, got {'x': 1}"),
-    # standard errors not negative, the slope's at most the slope (c1 0.0343, a 0.0077): 1e300 gave σ 3e301 N
-    ({"normal_fit_se": [0.0001, -0.0001]}, "normal_fit_se: c1's standard error -0.0001 is negative"),
-    ({"normal_fit_se": [0.0001, 1e300]}, "normal_fit_se: c1's standard error 1e+300 is outside [0, 0.0343], c1"),
-    ({"normal_fit_se": [-1, 0.0001]}, "normal_fit_se: c2's standard error -1 is negative"),
-    ({"shear_fit_se": [0.0078, 0.0]}, "shear_fit_se: a's standard error 0.0078 is outside [0, 0.0077], a"),
+    # standard errors not negative, the slope's at most the slope (c1 0.0343, a 0.0077): 1e300 gave σ 3e301 N;
+    # said as a grid taxel's gain_se is (one helper), naming the field, the value and what it is the error of
+    ({"normal_fit_se": [0.0001, -0.0001]}, "normal_fit_se[1] = -0.0001 is outside [0, 0.0343], c1: a standard "
+                                           "error is not negative"),
+    ({"normal_fit_se": [0.0001, 1e300]}, "normal_fit_se[1] = 1e+300 is outside [0, 0.0343], c1: a standard error"),
+    ({"normal_fit_se": [-1, 0.0001]}, "normal_fit_se[0] = -1 is outside [0, inf), c2: a standard error"),
+    ({"shear_fit_se": [0.0078, 0.0]}, "shear_fit_se[0] = 0.0078 is outside [0, 0.0077], a: a standard error"),
     # a residual RMS at most the axis's usable force (0.9·c1/(2|c2|) = 17.15 N, 0.9·a/(2b) = 8.66 N), was 1e3 N
     ({"statistics": {"rms_N": {"x": 0.03, "y": 0.03, "z": 999}}},
      "statistics.rms_N.z: 999 is outside [0, 17.15] N, the axis's usable force"),

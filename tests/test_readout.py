@@ -260,7 +260,8 @@ class Port:
 
 def test_info_is_asked_at_most_once_a_second_and_not_while_the_link_is_down():
     """A board that never answers, sending frames its INFO cannot read: the
-    pipeline asks at every read; the board gets INFO? once a second."""
+    pipeline asks at every read; the board gets INFO? once a second (written
+    by the readout's thread, waited for here)."""
     now = [100.0]
     port = Port()
     readout = Readout("fake://", ThreadSink(lambda data, t_host: None, lambda: None), opener=lambda url: port,
@@ -274,8 +275,42 @@ def test_info_is_asked_at_most_once_a_second_and_not_while_the_link_is_down():
         asks = []
         for _ in range(40):  # 5 s of reads 1/8 s apart
             asks.append(readout.ask_info())
+            assert wait_for(lambda: port.written.count(b"INFO?") == 1 + sum(asks))
             now[0] += 0.125
     finally:
         readout.stop()
     assert port.written.count(b"INFO?") == 1 + 5  # on connect, then once a second
     assert [k for k, sent in enumerate(asks) if sent] == [round(k * ASK_INFO_EVERY_S / 0.125) for k in range(5)]
+
+
+class StuckPort(Port):
+    """A port that stops taking bytes (flow control held, hung firmware: pyserial's write has no timeout) until
+    ``release`` is set."""
+
+    def __init__(self):
+        super().__init__()
+        self.release = threading.Event()
+
+    def write(self, data):
+        self.release.wait()
+        super().write(data)
+
+
+def test_ask_info_never_waits_for_a_port_that_does_not_take_bytes():
+    """The readout's thread stuck writing START/INFO? on connect: ask_info (called on the event loop) waited on
+    its write lock, and had not returned after 2 s, stalling every board and the API. It now returns at once
+    (asked), and the readout's thread writes the INFO? when the port takes bytes again."""
+    port = StuckPort()
+    readout = Readout("fake://", ThreadSink(lambda data, t_host: None, lambda: None), opener=lambda url: port,
+                      silence_s=1e9)
+    readout.start()
+    try:
+        assert wait_for(lambda: readout.link.up)
+        asked = []
+        threading.Thread(target=lambda: asked.append(readout.ask_info()), daemon=True).start()
+        assert wait_for(lambda: asked, 0.1) and asked == [True]
+        port.release.set()
+        assert wait_for(lambda: port.written == b"START\nINFO?\nINFO?\n", 1.0), port.written
+    finally:
+        port.release.set()
+        readout.stop()

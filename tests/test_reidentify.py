@@ -339,6 +339,67 @@ def test_a_frame_its_description_cannot_read_asks_info():
     assert len(asked) == 1  # frames that fit ask nothing
 
 
+def test_a_sensor_the_info_leaves_undescribed_on_purpose_asks_nothing():
+    """A thermistor in the board's INFO (a kind this service does not read: no fault, board_info.UNKNOWN_KIND)
+    sending a reading with every read: each read asked INFO?, 100 of 100 (the readout let one a second
+    through, for ever, each reply re-describing every sensor). Its frames are still counted, and ask nothing."""
+    pipeline, asked, _, published = live_pipeline()
+    board = Scans("E-1", seed=1)
+    board.doc["sensors"].append({"id": 2, "kind": "thermistor"})
+    pipeline.feed(board.info() + board.next(10), 0.0)
+    for k in range(1, 101):
+        therm = encode_frame(FrameType.GRID, 2, k, board.t_us, (2500).to_bytes(4, "little"))
+        pipeline.feed(board.next(10) + therm, 0.02 * k)
+    assert len(asked) == 0 and pipeline.interpreter.rejected["unknown_shape"] == 100
+    assert len(published) == 2 * 1010
+
+
+def test_frames_that_do_not_fit_ask_info_once_per_sensor_and_info():
+    """A grid its INFO describes as 4x6 sending 8x8 frames, and a sensor 3 no INFO describes sending 4x4 ones:
+    every read asked INFO?, and the reply (the same INFO) changed nothing. Now each sensor asks once under the
+    INFO in force: grid 0 once, the same INFO again nothing, sensor 3 once, an INFO that differs (it describes
+    sensor 3) once more for grid 0, which it still does not fit."""
+    pipeline, asked, _, _ = live_pipeline()
+    board = Scans("E-1", rows=4, cols=6, seed=1)
+    info = board.info()
+    board.grid_c0 = GRID_C0  # 8x8 frames under a 4x6's description
+
+    def reads(count: int, start_s: float, sensor_3: bool = False) -> None:
+        for k in range(count):
+            small = encode_frame(FrameType.GRID, 3, board.seq, board.t_us, bytes(4 * 16)) if sensor_3 else b""
+            pipeline.feed(board.next(10) + small, start_s + 0.02 * k)
+
+    pipeline.feed(info + board.next(10), 0.0)
+    assert len(asked) == 1
+    reads(50, 0.02)
+    pipeline.feed(info + board.next(10), 1.02)  # its answer to INFO?, the same
+    reads(50, 1.04)
+    assert len(asked) == 1
+    reads(50, 2.04, sensor_3=True)
+    assert len(asked) == 2
+    board.doc["sensors"].append({"id": 3, "kind": "grid", "rows": 4, "cols": 4})
+    pipeline.feed(board.info() + board.next(10), 3.04)
+    reads(50, 3.06, sensor_3=True)
+    assert len(asked) == 3
+    # Every frame not read is still counted: grid 0's 10 a read over 203 reads, sensor 3's until described
+    assert pipeline.interpreter.rejected == {"info_invalid": 0, "shape_mismatch": 2030, "unknown_shape": 50}
+
+
+def test_info_is_asked_with_the_pipeline_free():
+    """At a restart whose INFO was lost the pipeline asked INFO? holding its lock, so a readout waiting on its
+    port held every tare, calibration and recorder stop with it. Both asks (the restart's, a frame its
+    description cannot read) now come with the lock free."""
+    pipeline = Pipeline(Reconstructor(level="table"), map_clock=False)
+    locked = []
+    pipeline.identify_on_link(INFO_REPLY_S, lambda: locked.append(pipeline._lock.locked()), lambda delay, fn: None)
+    board = Scans("E-1", seed=1)
+    pipeline.feed(board.info() + board.next(10), 0.0)
+    board.seq, board.t_us = 0, 0  # a restart, its INFO lost
+    pipeline.feed(board.next(10), 1.0)
+    pipeline.feed(board.info() + encode_frame(FrameType.GRID, 0, 10, board.t_us, bytes(4 * 24)), 1.02)
+    assert locked == [False, False]
+
+
 def test_a_link_lost_while_holding_releases_its_frames_and_the_next_link_waits():
     """Frames held when the link drops go on (nothing lost); the next link's wait for its INFO."""
     pipeline, _, _, published = live_pipeline()

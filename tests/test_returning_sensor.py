@@ -11,6 +11,7 @@ Readings built here from known capacitances at 200 Hz: a grid taxel's ΔC/C0
 is 2 % per N, the quad's electrodes follow paper 001's fits 34 and 35
 (ΔC/C0 = 0.0343 Fz − 0.0009 Fz², 0 N of shear)."""
 import io
+from dataclasses import replace
 
 import numpy as np
 import orjson
@@ -20,6 +21,7 @@ from service.calibration.book import book_from_options
 from service.pipeline import Pipeline
 from service.protocol import BOARD_SENSOR_ID, FrameType, encode_frame
 from service.readings import Reading, SensorInfo
+from service.readout import INFO_REPLY_S
 from service.reconstruct import Reconstructor
 from service.reconstruct.identity import LEFT_ZEROS
 from service.reconstruct.stored_zero import MAX_AGE_S
@@ -69,13 +71,19 @@ class Board:
                     Reading(quad_info, k, 5000 * k + 100, t, 0, 0, quad, False, False, k == 0)]
         return out
 
+    def info_document(self) -> dict:
+        return {"board": "emu", "serial": self.serial, "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 6},
+                                                                   {"id": 1, "kind": "quad"}]}
+
+    def info(self) -> bytes:
+        """The board's INFO frame (its power-up's, or its answer to INFO?)."""
+        return encode_frame(FrameType.INFO, BOARD_SENSOR_ID, 0, 0, orjson.dumps(self.info_document()))
+
     def reads(self, count: int, start_s: float, grid_n: float = 0.0, fz: float = 0.0,
               first: int = 0) -> list[tuple[bytes, float]]:
         """The board's bytes (its INFO first where ``first`` is 0: its power-up), 10 scans a read, each with the
         host time it is received at, as ``scans``."""
-        info = {"board": "emu", "serial": self.serial, "sensors": [{"id": 0, "kind": "grid", "rows": 4, "cols": 6},
-                                                                   {"id": 1, "kind": "quad"}]}
-        frames = [encode_frame(FrameType.INFO, BOARD_SENSOR_ID, 0, 0, orjson.dumps(info))] if first == 0 else []
+        frames = [self.info()] if first == 0 else []
         for k, (grid, quad) in enumerate(self.capacitances(count, grid_n, fz), first):
             frames.append(encode_frame(FrameType.GRID, 0, k, 5000 * k, np.round(grid * 1e6).astype("<u4").tobytes()) +
                           encode_frame(FrameType.QUAD, 1, k, 5000 * k + 100, np.round(quad * 1e6).astype("<u4").tobytes()))
@@ -135,6 +143,45 @@ def test_a_sensor_back_after_another_board_reads_its_load_flagged_and_zero_after
     assert reconstructor.replaced(1)["count"] == 2
 
 
+def test_an_equal_info_during_the_tare_back_keeps_the_zero_it_left_with():
+    """The same INFO again while EMU-A tares back (its answer to INFO? 50 ms after its power-up INFO) looked its
+    stored zero up again, found the one it left with already handed over, and tared on the load: the quad read
+    0.001 ± 0.004 N (a true 2 N) unflagged, zero_kept None. Now it is judged against the zero it left with as
+    with one INFO: the quad's Fz within 3σ of the fits' 2 N, taxel 7 kept, both flagged loaded_at_tare."""
+    a, b = Board("EMU-A", 1), Board("EMU-B", 2)
+    reconstructor = Reconstructor()
+    reconstructor.process_many(a.scans(infos("EMU-A", False), 150, 0.0))
+    reconstructor.process_many(b.scans(infos("EMU-B", True), 150, 3.0))
+    scans, again = a.scans(infos("EMU-A", True), 200, 4.25, 1.0, QUAD_FZ), infos("EMU-A", True)
+    # From its 41st scan, in the tare window, readings carry the equal INFO (new objects, as the interpreter makes)
+    frames = reconstructor.process_many(scans[:80] + [replace(s, sensor=again[s.sensor.id]) for s in scans[80:]])
+    force, sigma, flags = held(frames, 1)
+    assert abs(force - QUAD_FZ) < 3 * sigma and sigma < 0.5, (force, sigma)
+    assert "loaded_at_tare" in flags and "loaded_at_tare" in held(frames, 0)[2]
+    assert reconstructor.zero_kept(1)["kept"] == [0, 1, 2, 3] and reconstructor.zero_kept(0)["kept"] == [TAXEL]
+    assert reconstructor.zero_kept(1)["not_used"] is None
+
+
+def test_a_board_back_that_answers_info_again_keeps_the_zero_it_left_with_live():
+    """The same on the live path: EMU-A back holding 2 N sends its power-up INFO, then its answer to the
+    readout's INFO? one read (50 ms) later. Its quad read 0.001 ± 0.004 N unflagged; now the fits' 2 N within
+    3σ, flagged loaded_at_tare, all four electrodes keeping the zero it left with."""
+    pipeline, published = Pipeline(Reconstructor(), map_clock=False), []
+    pipeline.listeners.append(published.extend)
+    pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: None)
+    a, b = Board("EMU-A", 1), Board("EMU-B", 2)
+    for board, start_s in ((a, 0.0), (b, 3.0)):
+        for data, t_host in board.reads(300, start_s):
+            pipeline.feed(data, t_host)
+        pipeline.link_lost()
+    start = len(published)
+    for k, (data, t_host) in enumerate(a.reads(300, 5.0, 1.0, QUAD_FZ)):
+        pipeline.feed(data + (a.info() if k == 1 else b""), t_host)
+    force, sigma, flags = held(published[start:], 1)
+    assert abs(force - QUAD_FZ) < 3 * sigma and sigma < 0.5, (force, sigma)
+    assert "loaded_at_tare" in flags and pipeline.reconstructor.zero_kept(1)["kept"] == [0, 1, 2, 3]
+
+
 def test_a_sensor_back_after_max_age_tares_afresh():
     """Back more than MAX_AGE_S after it left: drift at the bound could explain more than a load, so the zero it
     left with is not used (said in zero_kept) and the load is tared away, as a service restart does with an
@@ -179,6 +226,55 @@ def test_a_board_flapping_between_many_identities_keeps_at_most_left_zeros():
     assert len(reconstructor.replacements.left_zeros()) == LEFT_ZEROS
     flap("H", 3 * LEFT_ZEROS + MAX_AGE_S + 61)  # G's zero is 3 min newer than every F's: theirs are of no use
     assert [z["identity"][1] for z in reconstructor.replacements.left_zeros()] == ["G"]
+
+
+ROW = {"zero_pF": [3.5, 3.6, None, 3.4], "std_pF": [0.001] * 4, "frames": 100, "saved": T0}
+BAD_LEFT = [({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "saved": "yesterday"}}, "saved"),
+            ({"identity": 5, "calibration": "c", "zero": ROW}, "identity"),
+            ({"calibration": "c"}, "identity"),
+            ({"identity": ["serial", "X"], "calibration": 7, "zero": ROW}, "calibration"),
+            ({"identity": ["serial", ["X"]], "calibration": "c", "zero": ROW}, "identity"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "zero_pF": "3.5"}}, "zero_pF"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "std_pF": [0.001]}}, "std_pF"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "frames": True}}, "frames"),
+            ({"identity": ["serial", "X"], "calibration": "c", "zero": {**ROW, "saved": float("nan")}}, "saved"),
+            ("left", "not an object")]
+
+
+def test_a_recorded_left_zero_that_is_malformed_is_skipped_naming_it(caplog):
+    """A recording's /baselines ``left`` entries were taken unchecked: saved "yesterday" or an identity 5 raised
+    TypeError, one without an identity KeyError, stopping the replay (or the replay:// board) before its first
+    frame; a zero_pF that is no list would have at the sensor's return. Each bad one is now skipped with a
+    warning naming it and what is wrong, the good ones kept."""
+    good = [{"identity": ["board", "EMU-A", 1], "calibration": "builtin-quad", "zero": ROW},
+            {"identity": ["serial", "Q-9"], "calibration": "c", "zero": {**ROW, "saved": T0 + 1}}]
+    reconstructor = Reconstructor()
+    reconstructor.preset_left_zeros([good[0]] + [entry for entry, _ in BAD_LEFT] + [good[1]])
+    assert reconstructor.replacements.left_zeros() == good
+    warnings = [r.getMessage() for r in caplog.records if "left" in r.getMessage()]
+    assert len(warnings) == len(BAD_LEFT)
+    for message, (entry, field) in zip(warnings, BAD_LEFT):
+        assert field in message and repr(entry)[:40] in message, (message, entry)
+
+
+def test_a_pipeline_takes_what_a_recording_began_with_in_one_call():
+    """Pipeline.preset_began (a replay's and a replay:// board's one sequence): the INFO then in force, the
+    sensors' zeros and the zeros of sensors that had left, before the first frame. EMU-A's quad, its recorded
+    zero its C0, reads 2 N at once from a stream without INFO (the fits' 2 N within 3σ, no tare on the load)."""
+    a = Board("EMU-A", 1)
+    left = [{"identity": ["board", "EMU-B", 1], "calibration": "builtin-quad", "zero": ROW}]
+    pipeline, published = Pipeline(Reconstructor(), map_clock=False), []
+    pipeline.listeners.append(published.extend)
+    pipeline.preset_began({"board": "emu", "info": a.info_document(), "left": left,
+                           "sensors": [{"sensor": 1, "baseline_pF": a.quad_c0.tolist(), "std_pF": [NOISE_PF] * 4}]})
+    for data, t_host in a.reads(60, 0.0, 1.0, QUAD_FZ, first=100):
+        pipeline.feed(data, t_host)
+    quad = [f for f in published if f.sensor.id == 1]
+    assert len(quad) == 60 and quad[0].sensor.board_info["serial"] == "EMU-A"
+    assert not any("taring" in f.flags for f in quad)
+    force, sigma, _ = held(published, 1)
+    assert abs(force - QUAD_FZ) < 3 * sigma, (force, sigma)
+    assert pipeline.reconstructor.replacements.left_zeros() == left
 
 
 def swap_bytes() -> list[tuple[bytes, float]]:

@@ -246,7 +246,7 @@ def _numbers(taxels: dict, name: str, n: int, missing_ok: bool = False) -> np.nd
         return np.full(n, np.nan)
     if isinstance(values, list) and len(values) != n:
         raise ValueError(f"taxels.{name}: {len(values)} values for the {n} taxels")
-    if not isinstance(values, list) or any(isinstance(v, bool | str) for v in values):  # numpy takes "1" as 1.0
+    if not _number_list(values):
         raise ValueError(f"taxels.{name}: expected a list of {n} numbers")
     if not missing_ok and None in values:  # float(None) would pass as NaN
         raise ValueError(f"taxels.{name}[{values.index(None)}] is null: expected a number")
@@ -274,16 +274,29 @@ def _check_within(name: str, values: np.ndarray, low: float, high: float, unit: 
 
 def _gain_relative_se(se: np.ndarray, gain: np.ndarray) -> np.ndarray:
     """σ(κ)/κ (n,) of standard errors ``se`` (n,), NaN where not known (the
-    built-in's then); ValueError naming the first outside [0, its gain]: a
-    standard error is not negative, and one past the gain leaves the gain
-    undetermined (its 1-σ interval reaches no sensitivity at all). Fits give
-    ~0.5 % (tactile calibrate), the built-in 7 %. -1e150 gave σ 1e150 N,
-    1e300 an infinite σ (null: saturated) beside a force, unflagged."""
+    built-in's then); ValueError naming the first outside [0, its gain]
+    (_check_standard_error). Fits give ~0.5 % (tactile calibrate), the
+    built-in 7 %. -1e150 gave σ 1e150 N, 1e300 an infinite σ (null:
+    saturated) beside a force, unflagged."""
     bad = np.flatnonzero((se < 0) | (se > gain))
     if bad.size:
-        raise ValueError(f"taxels.gain_se[{bad[0]}] = {se[bad[0]]:g} is outside [0, {gain[bad[0]]:.4g}], the taxel's "
-                         "gain (past it the gain is undetermined)")
+        _check_standard_error(f"taxels.gain_se[{bad[0]}]", float(se[bad[0]]), "the taxel's gain", float(gain[bad[0]]))
     return np.where(np.isnan(se), BUILTIN_RELATIVE_SE, se / gain)
+
+
+def _check_standard_error(field: str, error: float, of: str, value: float = math.inf) -> None:
+    """ValueError naming ``field`` unless the standard ``error`` of ``of`` lies within [0, ``value``], ``of``'s
+    value (inf: nothing bounds it): a standard error is not negative, and one past the value leaves that
+    value undetermined (its 1-σ interval reaches 0: no sensitivity at all)."""
+    if not 0.0 <= error <= value:
+        bound = f"[0, {value:.4g}]" if math.isfinite(value) else "[0, inf)"
+        raise ValueError(f"{field} = {error:g} is outside {bound}, {of}: a standard error is not negative, nor past "
+                         "the value it is of (that is then undetermined)")
+
+
+def _number_list(values) -> bool:
+    """Whether ``values`` is a list with no true/false or string in it (numpy takes true and "1" as 1.0)."""
+    return isinstance(values, list) and not any(isinstance(v, bool | str) for v in values)
 
 
 def _grid(document: dict, cid: str, info: SensorInfo, mounting: str) -> SensorCalibration:
@@ -388,8 +401,8 @@ def _curves(raw: dict | None, n: int, residual: np.ndarray, force_max: float, ta
 
 
 def _curve_numbers(values) -> np.ndarray:
-    """A curve's list of numbers as floats; TypeError for anything else (numpy takes true and "1" as 1.0)."""
-    if not isinstance(values, list) or any(isinstance(v, bool | str) for v in values):
+    """A curve's list of numbers as floats; TypeError for anything else (_number_list)."""
+    if not _number_list(values):
         raise TypeError(f"expected a list of numbers, got {values!r}")
     return np.asarray(values, float)
 
@@ -441,9 +454,9 @@ def _shear_residual_measured(document: dict) -> bool:
 def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str], slope: str, value: float) -> float:
     """σ/value of the fit's ``slope`` coefficient (of ``value``) from ``name``
     (the standard errors of its two ``coefficients``), the built-in's where
-    absent; ValueError naming a bad one: a standard error is not negative,
-    and the slope's is at most the slope, as a grid taxel's gain_se (past it
-    the slope is undetermined; fits give 0.004–0.08 %: 1e300 gave σ 3e301 N)."""
+    absent; ValueError naming a bad one (_check_standard_error, as a grid
+    taxel's gain_se): not negative, and the slope's at most the slope (fits
+    give 0.004–0.08 %: 1e300 gave σ 3e301 N)."""
     errors = document.get(name)
     if errors is None:
         return BUILTIN_RELATIVE_SE
@@ -451,14 +464,9 @@ def _slope_relative_se(document: dict, name: str, coefficients: tuple[str, str],
             and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in errors)):
         raise ValueError(f"{name}: expected the standard errors [{', '.join(coefficients)}] of {name[:-3]}, "
                          f"got {errors!r}")
-    for coefficient, error in zip(coefficients, errors):
-        if error < 0:
-            raise ValueError(f"{name}: {coefficient}'s standard error {error:g} is negative")
-    error = float(errors[coefficients.index(slope)])
-    if error > value:
-        raise ValueError(f"{name}: {slope}'s standard error {error:g} is outside [0, {value:.4g}], {slope} itself "
-                         "(past it the slope is undetermined)")
-    return error / value
+    for i, (coefficient, error) in enumerate(zip(coefficients, errors)):
+        _check_standard_error(f"{name}[{i}]", error, coefficient, value if coefficient == slope else math.inf)
+    return float(errors[coefficients.index(slope)]) / value
 
 
 def quad_c0(values) -> np.ndarray | None:

@@ -29,14 +29,14 @@ from .baseline import Baseline
 from .calibration_upload import expected_c0, own_level, processor_for, tare_window
 from .fatigue import CycleCounter
 from .grid import GridProcessor
-from .identity import Replacements, named
+from .identity import Replacements, identity, named
 from .loaded_tare import judge, judge_quad
 from .quad import QuadProcessor
 from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration
 from .calibration_choice import CalibrationChoice
 from .cycle_counters import CycleCounters
-from .stored_zero import MAX_AGE_S, StoredZero, StoredZeros
+from .stored_zero import MAX_AGE_S, StoredZero, StoredZeros, row_problem
 
 log = logging.getLogger(__name__)
 
@@ -153,8 +153,11 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
         address; ``restart``: its reading is a board's first after a power-up (_same_sensor)."""
         state = self._sensors.get(info.id)
         if state is not None and state.info is not info and _same_sensor(state.info, info, restart):
+            known_as = (identity(state.info), state.calibration.id)
             self._described_again(state, info)
-            if not state.judged_once:  # the INFO may name it only now: its stored zero is known by its name
+            # The INFO may name it only now (or its calibration): its stored zero is known by that. An INFO that
+            # changes neither (a reply to INFO?) keeps the one found: the zero it left with was handed over then.
+            if not state.judged_once and known_as != (identity(info), state.calibration.id):
                 state.stored_zero = self._stored_zero(info, state.calibration.id)
         if state is None or state.info is not info:
             # A sensor that left for another address (a swap) takes its counter along, and tares there: neither
@@ -241,8 +244,14 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
 
     def preset_left_zeros(self, left: list[dict]) -> None:
         """The zeros of sensors that had left their address when a recording began (Replacements.left_zeros):
-        one back in it is judged against its own, as it was live."""
+        one back in it is judged against its own, as it was live. A recording is any file: an entry that is not
+        {identity, calibration, zero} as kept is said and skipped, not the replay."""
         for kept in left:
+            problem = _left_problem(kept)
+            if problem is not None:
+                log.warning("a zero of a sensor that had left its address, recorded as %.120r, is skipped: %s", kept,
+                            problem)
+                continue
             self.replacements.keep_zero(tuple(kept["identity"]), kept["calibration"], kept["zero"])
 
     @staticmethod
@@ -390,6 +399,20 @@ def _same_sensor(before: SensorInfo, info: SensorInfo, restart: bool) -> bool:
         return True
     return not restart and not named(before) and \
         (before.kind, before.rows, before.cols) == (info.kind, info.rows, info.cols)
+
+
+def _left_problem(kept) -> str | None:
+    """What makes a recorded ``left`` entry no {identity (a list of strings, integers or null), calibration (its
+    id), zero (stored_zero.row_problem)}; None when it is one."""
+    if not isinstance(kept, dict):
+        return "not an object"
+    key = kept.get("identity")
+    if not isinstance(key, list) or not key or \
+            not all(v is None or isinstance(v, (str, int)) and not isinstance(v, bool) for v in key):
+        return f"its identity is not a list of strings, integers or null: {key!r:.60}"
+    if not isinstance(kept.get("calibration"), str):
+        return f"its calibration is not an id: {kept.get('calibration')!r:.60}"
+    return row_problem(kept.get("zero"))
 
 
 def _listed(values: np.ndarray) -> list[float | None]:

@@ -210,6 +210,28 @@ def row(value_pF: np.ndarray, std_pF: np.ndarray, frames: int, now: float | None
             "saved": time.time() if now is None else now}
 
 
+def row_problem(row) -> str | None:
+    """What makes ``row`` no zero as the registry keeps it (``row``: zero_pF and std_pF lists of numbers or None
+    of one length, frames a count, saved a finite time), None when it is one: a recording's may be anything."""
+    if not isinstance(row, dict):
+        return f"its zero is not an object: {row!r:.60}"
+    for name in ("zero_pF", "std_pF"):
+        values = row.get(name)
+        if not isinstance(values, list) or not all(_is_number(v) for v in values if v is not None):
+            return f"its {name} is not a list of numbers: {values!r:.60}"
+    if len(row["std_pF"]) != len(row["zero_pF"]):
+        return f"its std_pF has {len(row['std_pF'])} values, its zero_pF {len(row['zero_pF'])}"
+    if not (_is_number(row.get("frames")) and isinstance(row["frames"], int) and row["frames"] > 0):
+        return f"its frames is not a count: {row.get('frames')!r:.60}"
+    if not (_is_number(row.get("saved")) and np.isfinite(row["saved"])):
+        return f"its saved is not a time: {row.get('saved')!r:.60}"
+    return None
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _listed(values: np.ndarray) -> list[float | None]:
     return [None if v != v else v for v in np.asarray(values, dtype=float).tolist()]
 
