@@ -35,6 +35,11 @@ subscribe in JSON (or ask ``contact(id)``) where it is needed. ``subscribe`` cou
 server dropped for this client and those it skipped for a loop behind in
 ``dropped`` (the skipped also per sensor in ``dropped_by_sensor``) and keeps
 its notices (e.g. a subscription to sensors not announced yet) in ``notices``.
+A binary record whose sensor's shape GET /sensors does not give (a sensor
+not listed yet, a grid whose rows and cols changed and are not listed yet)
+is skipped, never given another shape: counted in ``unshaped`` (and in
+``dropped`` and ``dropped_by_sensor``), told once in ``notices`` until that
+sensor's records fit again; the other sensors' frames go on.
 
 ``latest`` (and ``contact``) give the sensor's last frame however old:
 ``age_s`` (the header's; ``contact``'s at its top level) is the seconds
@@ -62,7 +67,8 @@ from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 DEFAULT_MAX_LAG_S = 0.25  # subscribe: a loop further behind the newest arrived gets each sensor's newest
 LAGGING_QUEUE = 1024  # messages read ahead when trimming by lag: up to ~10 MB of a loop that stalled
 AGE_HEADER = "X-Frame-Age-S"  # as api/routes_sensors.py sends it (the client does not import the API's FastAPI)
-SHAPES_RETRY_S = 1.0  # GET /sensors again for a grid whose records changed size at most this often
+SHAPES_RETRY_S = 1.0  # shapes asked again for records their sensor's known shape does not fit at most this often
+QUAD_FORCES = 3  # Fx, Fy, Fz
 
 
 class TactileError(RuntimeError):
@@ -139,6 +145,35 @@ def _least_recently_served(pending: deque[dict], served: dict[str, int]) -> dict
     return frame
 
 
+def _misfit(info: dict | None, record: dict) -> str | None:
+    """Why a binary ``record`` cannot be a frame of the sensor ``info`` lists
+    (None: it can): listed, of its kind, a grid's forces one per taxel of its
+    rows x cols, a quad's three (a record without forces has none to count)."""
+    kind, n = record["kind"], len(record["force_N"])
+    if info is None:
+        return "not listed by its service"
+    if info.get("kind") != kind:
+        return f"{kind} records of {n} forces where its service lists a {info.get('rows')}x{info.get('cols')} " \
+               f"{info.get('kind')}"
+    if kind == "grid" and n and info["rows"] * info["cols"] != n:
+        return f"records of {n} forces where its service lists a {info['rows']}x{info['cols']} grid"
+    if kind == "quad" and n not in (0, QUAD_FORCES):
+        return f"quad records of {n} forces where a quad has {QUAD_FORCES}"
+    return None
+
+
+def _unshaped_notice(address: str, why: str) -> str:
+    return f"sensor {address}: {why}: its frames are skipped (counted in unshaped) until its shape fits them"
+
+
+def _skipping_said(skipping: dict[str, str], skipped: bool) -> str:
+    """What a stream that gave no frame says of the sensors whose records are
+    skipped, if it ``skipped`` any since its last frame."""
+    if not (skipped and skipping):
+        return ""
+    return f" (records skipped: {'; '.join(f'sensor {a}: {why}' for a, why in skipping.items())})"
+
+
 def _none_if_nan(value) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
@@ -176,10 +211,13 @@ class TactileClient:
         self.token = token
         self.timeout = timeout
         self.dropped = 0
-        self.dropped_by_sensor: dict[str, int] = {}  # "board/id" → frames subscribe skipped for a loop behind
+        self.dropped_by_sensor: dict[str, int] = {}  # "board/id" → frames subscribe skipped: a loop behind, unshaped
         self.notices: list[str] = []
+        self.unshaped = 0  # binary records subscribe skipped: their sensor's shape unknown or not fitting them
+        self._heard: list[str] = []  # the notices the service sent (the others are the client's own)
+        self._skipping: dict[str, str] = {}  # "board/id" → why its records are skipped, until one fits again
         self._sensors: dict[int, dict] = {}
-        self._shapes_asked = -SHAPES_RETRY_S  # when GET /sensors was last asked for a changed shape
+        self._shapes_asked = -SHAPES_RETRY_S  # when the shapes were last asked for records they did not fit
 
     def _request(self, method: str, path: str, body: dict | None = None, replied: dict | None = None):
         """The answer's JSON; ``replied``, if given, gets the answer's headers (names lower-cased)."""
@@ -265,24 +303,59 @@ class TactileClient:
     def tare(self, sensor: int | str | None = None) -> dict:
         return self._request("POST", "/tare" if sensor is None else f"{_sensor_path(sensor)}/tare")
 
-    def _sensor(self, board: str, sensor_id: int) -> dict:
-        if (board, sensor_id) not in self._sensors:
-            self.sensors()  # a sensor announced since we last asked
-        try:
-            return self._sensors[(board, sensor_id)]
-        except KeyError:
-            raise TactileError(f"a frame from sensor {board}/{sensor_id}, which GET /sensors does not list") from None
+    def _known_shape(self, board: str, sensor_id: int) -> dict | None:
+        """The sensor as last listed (kind, rows, cols), None if it was not."""
+        return self._sensors.get((board, sensor_id))
 
-    def _from_binary(self, record: dict, fields: frozenset[str]) -> dict:
-        """A decoded binary record in the JSON frame shape."""
-        info = self._sensor(record["board"], record["sensor_id"])
-        kind = record["kind"]
-        n = len(record["force_N"])  # 0 in a version 3 record without forces or σ: nothing to compare
-        if kind == "grid" and n and info["rows"] * info["cols"] != n and \
-                time.monotonic() - self._shapes_asked >= SHAPES_RETRY_S:
+    def _ask_shapes(self, board: str) -> None:
+        """Ask the sensors' shapes again; TactileError if that fails."""
+        self.sensors()
+
+    def _listed_shape(self, record: dict) -> tuple[dict | None, str | None]:
+        """The listed shape of ``record``'s sensor if it fits the record, else
+        None and why not. A sensor new or changed (a board's INFO may announce
+        another shape mid-stream) has the shapes asked again, at most once a
+        SHAPES_RETRY_S: a record that still does not fit waits for no answer."""
+        board, sensor_id = record["board"], record["sensor_id"]
+        info = self._known_shape(board, sensor_id)
+        why = _misfit(info, record)
+        if why is not None and time.monotonic() - self._shapes_asked >= SHAPES_RETRY_S:
             self._shapes_asked = time.monotonic()
-            self.sensors()  # the board announced another shape since we last asked (at most once a second)
-            info = self._sensor(record["board"], record["sensor_id"])
+            try:
+                self._ask_shapes(board)
+            except TactileError as exc:
+                return None, f"{why}, and asking again failed: {exc}"
+            info = self._known_shape(board, sensor_id)
+            why = _misfit(info, record)
+        return (info, None) if why is None else (None, why)
+
+    def _shaped_frames(self, records: list[dict], fields: frozenset[str]) -> list[dict]:
+        """The frames of decoded binary ``records`` whose sensor's shape is known
+        and fits them; the others are skipped (``_skip_unshaped``)."""
+        frames = []
+        for record in records:
+            address = f"{record['board']}/{record['sensor_id']}"
+            info, why = self._listed_shape(record)
+            if info is None:
+                self._skip_unshaped(address, why)
+            else:
+                self._skipping.pop(address, None)
+                frames.append(self._from_binary(record, info, fields))
+        return frames
+
+    def _skip_unshaped(self, address: str, why: str) -> None:
+        """Count a record of sensor ``address`` skipped for ``why``; tell it in
+        ``notices`` when that sensor's records begin to be skipped."""
+        self.unshaped += 1
+        self._count_skipped({address: 1})
+        if address not in self._skipping:
+            self.notices.append(_unshaped_notice(address, why))
+        self._skipping[address] = why
+
+    def _from_binary(self, record: dict, info: dict, fields: frozenset[str]) -> dict:
+        """A decoded binary record in the JSON frame shape; ``info``: its
+        sensor's listed shape, which fits it (a grid's rows and cols)."""
+        kind = record["kind"]
         frame: dict = {"header": {"board": record["board"], "sensor_id": record["sensor_id"], "sensor_name": f"{kind}{record['sensor_id']}",
                                   "kind": kind, "seq": record["seq"], "board_time_us": record["board_time_us"],
                                   "stamp": record["stamp"], "scan_stamp": _none_if_nan(record["scan_stamp"]),
@@ -345,7 +418,7 @@ class TactileClient:
         # Trimming by lag needs what has arrived read off the socket meanwhile (websockets' reader thread stops at
         # max_queue messages, and the socket's and the service's queues then hold seconds of frames behind them).
         ws = self._connect(url, max_queue=16 if max_lag_s is None else LAGGING_QUEUE)
-        told = len(self.notices)
+        heard = len(self._heard)
         pending: deque[dict] = deque()
 
         def receive(wait: float) -> str | bytes | None:
@@ -354,7 +427,7 @@ class TactileClient:
             except TimeoutError:
                 if wait == 0:
                     return None
-                said = f" (the service said: {'; '.join(self.notices[told:])})" if self.notices[told:] else ""
+                said = f" (the service said: {'; '.join(self._heard[heard:])})" if self._heard[heard:] else ""
                 raise TactileError(f"no message from {url} within {timeout} s{said}") from None
             except ConnectionClosedOK as exc:
                 raise TactileError(f"stream {url} closed by the service ({exc})") from None
@@ -363,6 +436,7 @@ class TactileClient:
 
         behind = False  # the loop fell more than max_lag_s behind and has not caught up since
         served: dict[str, int] = {}  # address → the count of frames handed out when its last one was
+        given_at, unshaped = time.monotonic(), self.unshaped  # messages whose every record is skipped are no frame
         with ws:
             for count in itertools.count():
                 arrived = False
@@ -378,10 +452,14 @@ class TactileClient:
                     if behind:
                         self._count_skipped(_keep_newest(pending))
                 if not pending:
+                    if time.monotonic() - given_at > timeout:
+                        said = _skipping_said(self._skipping, self.unshaped > unshaped)
+                        raise TactileError(f"no frame from {url} within {timeout} s{said}")
                     continue
                 frame = _least_recently_served(pending, served) if behind else pending.popleft()
                 served[_address(frame)] = count
                 yield frame
+                given_at, unshaped = time.monotonic(), self.unshaped
 
     def _count_skipped(self, skipped: dict[str, int]) -> None:
         """Add the frames ``subscribe`` skipped (``"board/id"`` → how many) to
@@ -415,8 +493,7 @@ class TactileClient:
                 records = decode_binary(message)
             except Exception as exc:
                 raise TactileError(f"stream {url}: a binary message that does not decode ({exc})") from None
-            for record in records:
-                yield self._from_binary(record, wanted)
+            yield from self._shaped_frames(records, wanted)
             return
         try:
             doc = orjson.loads(message)
@@ -431,5 +508,6 @@ class TactileClient:
             self.dropped += doc["frames"]
         elif kind == "notice":
             self.notices.append(doc["detail"])
+            self._heard.append(doc["detail"])
         else:
             raise TactileError(doc.get("detail", str(doc)))

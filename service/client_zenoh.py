@@ -17,7 +17,11 @@ sigma, flags; numpy float32 with NaN), plus ``header["board"]``, the board's
 key, and ``header["instance"]``, the service that published it. A grid's
 rows and cols are not in the binary records: the client asks the board's
 ``tactile/<board>/sensors`` queryable once per board and service (and
-again for a sensor it does not know yet). Keys and QoS: docs/scale.md.
+again, at most once a second, for a sensor it does not know yet or whose
+records its known shape does not fit: a board's INFO may announce another
+shape mid-stream), over Zenoh, never over HTTP. Until its shape is known
+and fits, such a sensor's frames are skipped, counted in ``unshaped`` and
+told once in ``notices``; the other sensors' frames go on.
 
 A consumer slower than the stream loses the oldest waiting frames, never
 the service's time or memory: ``dropped`` counts them. Every failure — no
@@ -41,11 +45,12 @@ from collections.abc import Iterable, Iterator
 import orjson
 import zenoh
 
-from .client import TactileClient, TactileError
+from .client import TactileClient, TactileError, _skipping_said, _unshaped_notice
 from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 from .net.following import Following, named
 from .net.zenoh_config import (PREFIX, frame_key, instance_of_alive, instance_of_sample, latest_key, open_session,
                                sensors_key, session_config)
+from .net.zenoh_feed import announced_shapes
 
 INBOX_SAMPLES = 4096  # ~2 s of a grid and a quad at 1 kHz
 
@@ -58,16 +63,39 @@ def _records(payload: bytes) -> int:
     return int.from_bytes(payload[:2], "little")  # a sample's u16 record count
 
 
+def _document(sample: zenoh.Sample) -> dict | None:
+    """A JSON object answered (a sensors document), None if the answer is none."""
+    try:
+        document = orjson.loads(sample.payload.to_bytes())
+    except orjson.JSONDecodeError:
+        return None
+    return document if isinstance(document, dict) else None
+
+
+def _document_instance(sample: zenoh.Sample) -> str:
+    """The service instance a sensors document names ("" if none)."""
+    return str((_document(sample) or {}).get("instance", ""))
+
+
 class _BoardFrames(TactileClient):
     """The WebSocket client's conversion of binary records into the frame
-    shape, with the sensors' shapes asked over Zenoh instead of GET /sensors."""
+    shape for one board of one service, ``instance``: the sensors' shapes
+    asked over Zenoh instead of GET /sensors (the client's base URL is no
+    address of that service), skipped records told to ``owner``."""
 
-    def __init__(self, shapes) -> None:
+    def __init__(self, owner: "ZenohClient", board: str, instance: str) -> None:
         super().__init__()
-        self._shapes = shapes
+        self._owner, self._board, self._instance = owner, board, instance
+        self._skipping = owner._skipping  # one told per sensor, whichever service's converter skipped it
 
-    def _sensor(self, board: str, sensor_id: int) -> dict:
-        return self._shapes(board, sensor_id)
+    def _known_shape(self, _board: str, sensor_id: int) -> dict | None:
+        return self._owner._known_shape(self._board, self._instance, sensor_id)
+
+    def _ask_shapes(self, _board: str) -> None:
+        self._owner.sensors(self._board, self._instance)
+
+    def _skip_unshaped(self, address: str, why: str) -> None:
+        self._owner._skip_unshaped(address, why)
 
 
 class _Inbox:
@@ -113,6 +141,9 @@ class ZenohClient:
         self.timeout = timeout
         self.dropped = 0  # frames lost because the consumer of subscribe fell behind
         self.refused = 0  # frames subscribed to, dropped: another service's than the one followed under that name
+        self.unshaped = 0  # frames subscribed to, skipped: their sensor's shape unknown or not fitting them
+        self.notices: list[str] = []  # a line each time a sensor's frames begin to be skipped, saying why
+        self._skipping: dict[str, str] = {}  # "board/id" → why its frames are skipped, until one fits again
         self.following = Following() if one_service_per_board else None
         self.session = open_session(config)
         self._health: dict[str, tuple[float, dict]] = {}
@@ -201,25 +232,34 @@ class ZenohClient:
 
     def sensors(self, board: str, instance: str | None = None) -> list[dict]:
         """The board's sensors (id, kind, rows, cols), as the service followed
-        under that name (or ``instance``) knows them."""
+        under that name (or ``instance``) knows them; TactileError if it does
+        not answer, or answers no sensors document."""
         instance = self.followed(board) if instance is None else instance
-        sample = self._get(sensors_key(board), instance, lambda r: orjson.loads(r.payload.to_bytes()).get("instance", ""))
-        document = orjson.loads(sample.payload.to_bytes())
+        key = sensors_key(board)
+        sample = self._get(key, instance, _document_instance)
+        document = _document(sample)
+        if document is None or not isinstance(document.get("sensors"), list):
+            raise TactileError(f"zenoh query {key}: the answer is no sensors document: "
+                               f"{sample.payload.to_bytes()[:80]!r}")
+        shapes, _ = announced_shapes(document, board)  # a shape no frame can have is left out: its frames are skipped
         with self._lock:
-            self._shapes[(board, document.get("instance", ""))] = {s["id"]: s for s in document["sensors"]}
+            self._shapes[(board, _document_instance(sample))] = {
+                sid: {"id": sid, "kind": info.kind, "rows": info.rows, "cols": info.cols}
+                for sid, info in shapes.items()}
         return document["sensors"]
 
-    def _shape(self, board: str, instance: str, sensor_id: int) -> dict:
+    def _known_shape(self, board: str, instance: str, sensor_id: int) -> dict | None:
+        """The sensor as ``instance``'s service last listed it, None if it did not."""
         with self._lock:
-            shape = self._shapes.get((board, instance), {}).get(sensor_id)
-        if shape is None:
-            self.sensors(board, instance)  # the board, its service, or this sensor, is new to us
-            with self._lock:
-                shape = self._shapes[(board, instance)].get(sensor_id)
-        if shape is None:
-            raise TactileError(f"a frame from board {board}'s sensor {sensor_id}, which its service {instance} "
-                               "does not list")
-        return shape
+            return self._shapes.get((board, instance), {}).get(sensor_id)
+
+    def _skip_unshaped(self, address: str, why: str) -> None:
+        """Count a frame of sensor ``address`` ("board/id") skipped for ``why``;
+        tell it in ``notices`` when that sensor's frames begin to be skipped."""
+        self.unshaped += 1
+        if address not in self._skipping:
+            self.notices.append(_unshaped_notice(address, why))
+        self._skipping[address] = why
 
     def _frames(self, board: str, instance: str, payload: bytes, key: str) -> list[dict]:
         try:
@@ -233,9 +273,8 @@ class ZenohClient:
                     for old in [k for k in self._converters if k[0] == board]:
                         del self._converters[old]
                         self._shapes.pop(old, None)
-            converter = self._converters[(board, instance)] = _BoardFrames(
-                lambda _, sid: self._shape(board, instance, sid))
-        frames = [converter._from_binary(record, DEFAULT_FIELDS) for record in records]
+            converter = self._converters[(board, instance)] = _BoardFrames(self, board, instance)
+        frames = converter._shaped_frames(records, DEFAULT_FIELDS)
         for frame in frames:
             frame["header"]["instance"] = instance
         return frames
@@ -244,7 +283,12 @@ class ZenohClient:
         """The sensor's latest frame, asked from the service followed under that name."""
         key = latest_key(board, sensor)
         sample = self._get(key, self.followed(board), instance_of_sample)
-        return self._frames(_board_of(sample.key_expr), instance_of_sample(sample), sample.payload.to_bytes(), key)[-1]
+        unshaped = self.unshaped
+        frames = self._frames(_board_of(sample.key_expr), instance_of_sample(sample), sample.payload.to_bytes(), key)
+        if not frames:
+            said = _skipping_said(self._skipping, self.unshaped > unshaped)
+            raise TactileError(f"zenoh query {key}: the frame answered was skipped{said}")
+        return frames[-1]
 
     def subscribe(self, board: str = "*", sensors: Iterable[int] | None = None, timeout: float | None = None,
                   queue_samples: int = INBOX_SAMPLES) -> Iterator[dict]:
@@ -253,7 +297,10 @@ class ZenohClient:
         ``timeout`` s (default: the client's). At most ``queue_samples``
         samples wait for the consumer: one that falls behind loses the
         oldest, counted in ``dropped``. Frames of a board name from another
-        service than the one followed are dropped, counted in ``refused``."""
+        service than the one followed are dropped, counted in ``refused``;
+        frames whose sensor's shape is unknown or does not fit them are
+        skipped, counted in ``unshaped`` (samples of those alone are no
+        frame within ``timeout`` either)."""
         timeout = self.timeout if timeout is None else timeout
         keys = [frame_key(board, "*")] if sensors is None else [frame_key(board, sid) for sid in sensors]
         inbox, dropped_before = _Inbox(queue_samples), self.dropped
@@ -267,14 +314,19 @@ class ZenohClient:
                     self.refused += _records(sample.payload.to_bytes())
 
         subscribers = [self.session.declare_subscriber(key, take) for key in keys]
+        given_at, unshaped = time.monotonic(), self.unshaped  # samples whose every record is skipped are no frame
         try:
             while True:
-                received = inbox.get(timeout)
+                wait = given_at + timeout - time.monotonic()
+                received = inbox.get(wait) if wait > 0 else None
                 self.dropped = dropped_before + inbox.dropped
                 if received is None:
-                    raise TactileError(f"no frame on {', '.join(keys)} within {timeout} s")
+                    said = _skipping_said(self._skipping, self.unshaped > unshaped)
+                    raise TactileError(f"no frame on {', '.join(keys)} within {timeout} s{said}")
                 key, payload, instance = received
-                yield from self._frames(_board_of(key), instance, payload, key)
+                for frame in self._frames(_board_of(key), instance, payload, key):
+                    yield frame
+                    given_at, unshaped = time.monotonic(), self.unshaped
         finally:
             for subscriber in subscribers:
                 subscriber.undeclare()

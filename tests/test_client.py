@@ -209,8 +209,10 @@ def test_a_binary_stream_follows_a_grid_that_changed_shape():
     assert [len(r["capacitance_pF"]) for r in records] == [16, 4, 64, 4]
     np.testing.assert_array_equal(records[2]["capacitance_pF"], np.float32(10.0 + np.arange(64)))
 
-    listings = iter([[{"board": small.board, "id": 0, "rows": 4, "cols": 4}, {"board": quad.board, "id": 1, "rows": 2, "cols": 2}],
-                     [{"board": small.board, "id": 0, "rows": 8, "cols": 8}, {"board": quad.board, "id": 1, "rows": 2, "cols": 2}]])
+    listings = iter([[{"board": small.board, "id": 0, "kind": "grid", "rows": 4, "cols": 4},
+                      {"board": quad.board, "id": 1, "kind": "quad", "rows": 2, "cols": 2}],
+                     [{"board": small.board, "id": 0, "kind": "grid", "rows": 8, "cols": 8},
+                      {"board": quad.board, "id": 1, "kind": "quad", "rows": 2, "cols": 2}]])
     client = TactileClient("http://127.0.0.1:9")
     client._request = lambda method, path, body=None: {"sensors": next(listings)}
     client.sensors()
@@ -218,6 +220,120 @@ def test_a_binary_stream_follows_a_grid_that_changed_shape():
     assert [(f.get("rows"), f.get("cols"), len(f["raw"]["capacitance_pF"])) for f in got] == \
         [(4, 4, 16), (None, None, 4), (8, 8, 64), (None, None, 4)]
     assert got[2]["header"]["board"] == "b" and len(got[2]["force_N"]) == 64
+
+
+def test_a_binary_record_whose_shape_is_unknown_is_skipped_and_counted_and_the_other_sensors_go_on():
+    """GET /sensors may lag a board's new shape, fail, or not list a sensor
+    yet: such a record is skipped (counted in ``dropped``, per sensor, and
+    ``unshaped``; told once in ``notices``), never given another shape, and
+    the stream's other sensors go on; /sensors is asked again at most once
+    a second. Before, a 64-force record came as a 4x4 grid (rows*cols 16)
+    and a record of a sensor not listed ended the subscription."""
+    import struct
+
+    from service.client import SHAPES_RETRY_S
+    from service.fanout.encoding import to_binary
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    small, large = SensorInfo(0, "grid", 4, 4, board="b"), SensorInfo(0, "grid", 8, 8, board="b")
+    quad, stranger = SensorInfo(1, "quad", 2, 2, board="b"), SensorInfo(5, "quad", 2, 2, board="b")
+
+    def message(*frames):
+        """A binary stream message of (sensor, seq) frames, forces seq + i/100 N."""
+        fields = frozenset({"force", "flags"})
+        encoded = []
+        for info, seq in frames:
+            n = info.channels if info.kind == "grid" else 3
+            frame = ForceFrame(info, seq, 1000 * seq, 1.0, seq + np.arange(n) / 100, np.zeros(info.channels), [],
+                               "full", np.zeros(n, np.uint8) if info.kind == "grid" else None, "c")
+            encoded.append(to_binary(frame, fields))
+        return struct.pack("<H", len(frames)) + b"".join(encoded), fields
+
+    def listing(*infos):
+        return {"sensors": [{"board": i.board, "id": i.id, "kind": i.kind, "rows": i.rows, "cols": i.cols}
+                            for i in infos]}
+
+    answer = [listing(small, quad)]
+    asked = []
+
+    def request(method, path, body=None):
+        asked.append(path)
+        if isinstance(answer[0], Exception):
+            raise answer[0]
+        return answer[0]
+
+    def given(*frames):
+        encoded, fields = message(*frames)
+        return [(f["header"]["sensor_id"], f["header"]["seq"], f.get("rows"), f.get("cols"), len(f["force_N"]))
+                for f in client._frames_in(encoded, "ws://test", fields)]
+
+    client = TactileClient("http://127.0.0.1:9")
+    client._request = request
+    client.sensors()  # as subscribe(binary=True) does
+    # /sensors still lists the 4x4 grid and not sensor 5: asked once again for both, both skipped.
+    assert given((large, 2), (quad, 2), (stranger, 2)) == [(1, 2, None, None, 3)]
+    assert len(asked) == 2 and client.unshaped == 2 and client.dropped == 2
+    assert client.dropped_by_sensor == {"b/0": 1, "b/5": 1}
+    assert len(client.notices) == 2 and "b/0" in client.notices[0] and "64 forces" in client.notices[0] \
+        and "4x4" in client.notices[0] and "b/5" in client.notices[1] and "not listed" in client.notices[1]
+    # Within the second: not asked again, skipped again, told once.
+    assert given((large, 3), (quad, 3)) == [(1, 3, None, None, 3)]
+    assert len(asked) == 2 and client.unshaped == 3 and len(client.notices) == 2
+    # A second on, /sensors fails: skipped, counted, the stream goes on.
+    answer[0] = TactileError("GET http://127.0.0.1:9/sensors: no answer within 5.0 s")
+    client._shapes_asked -= SHAPES_RETRY_S
+    assert given((large, 4), (quad, 4)) == [(1, 4, None, None, 3)]
+    assert len(asked) == 3 and client.unshaped == 4 and client.dropped_by_sensor == {"b/0": 3, "b/5": 1}
+    # Then it lists the 8x8 grid: its records come in that shape, with the forces sent.
+    answer[0] = listing(large, quad)
+    client._shapes_asked -= SHAPES_RETRY_S
+    assert given((large, 5), (quad, 5)) == [(0, 5, 8, 8, 64), (1, 5, None, None, 3)]
+    frame = next(client._frames_in(message((large, 6))[0], "ws://test", frozenset({"force"})))
+    np.testing.assert_array_equal(frame["force_N"], np.float32(6 + np.arange(64) / 100))
+    assert len(asked) == 4 and client.unshaped == 4 and client.dropped == 4
+
+
+def test_a_stream_whose_every_record_is_skipped_is_silent_and_raises_after_its_timeout():
+    """Messages every 10 ms, each a record of a sensor /sensors never lists:
+    a controller must not wait forever on a stream that gives it nothing."""
+    import struct
+
+    from service.fanout.encoding import to_binary
+    from service.readings import SensorInfo
+    from service.reconstruct import ForceFrame
+
+    info = SensorInfo(5, "quad", 2, 2, board="b")
+    frame = ForceFrame(info, 1, 1000, 1.0, np.ones(3), np.zeros(4), [], "full", None, "c")
+    message = struct.pack("<H", 1) + to_binary(frame, frozenset({"force"}))
+
+    class Socket:
+        """A WebSocket on which ``message`` arrives every 10 ms."""
+        arrives = time.monotonic()
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *_):
+            pass
+
+        def recv(self, timeout):
+            wait = self.arrives - time.monotonic()
+            if wait > timeout:
+                time.sleep(timeout)
+                raise TimeoutError
+            time.sleep(max(wait, 0))
+            self.arrives += 0.01
+            return message
+
+    client = TactileClient("http://127.0.0.1:9")
+    client._request = lambda method, path, body=None: {"sensors": []}
+    client._connect = lambda url, max_queue=16: Socket()
+    started = time.monotonic()
+    with pytest.raises(TactileError, match=r"no frame from ws://.* within 0.3 s \(records skipped: sensor b/5: not "
+                                           r"listed by its service\)"):
+        next(client.subscribe(binary=True, timeout=0.3))
+    assert 0.3 < time.monotonic() - started < 1.0 and client.unshaped > 20
 
 
 def test_history_reads_beyond_the_admitted_rate_wait_their_turn_within_the_timeout(served):

@@ -243,16 +243,18 @@ def test_binary_frames_carry_each_taxels_flags_to_clients_and_the_gateway(frames
     chosen = flagged[:: max(1, len(flagged) // 40)] + quads
     records = decode_binary(struct.pack("<H", len(chosen)) + b"".join(to_binary(f) for f in chosen))
     client = TactileClient("http://localhost:1")
-    client._sensors = {(f.sensor.board, f.sensor.id): {"rows": f.sensor.rows, "cols": f.sensor.cols} for f in chosen}
+    client._sensors = {(f.sensor.board, f.sensor.id): {"kind": f.sensor.kind, "rows": f.sensor.rows,
+                                                       "cols": f.sensor.cols} for f in chosen}
     for frame, record in zip(chosen, records):
         assert record["flags"] == [name for name in encoding.FRAME_FLAG_BITS if name in frame.flags]
         as_json = encoding.to_json_dict(frame)
         if frame.sensor.kind == "grid":
             assert record["taxel_flags"] == as_json["taxel_flags"] == frame.taxel_flag_lists()
-            assert client._from_binary(record, DEFAULT_FIELDS)["taxel_flags"] == as_json["taxel_flags"]
+            assert client._shaped_frames([record], DEFAULT_FIELDS)[0]["taxel_flags"] == as_json["taxel_flags"]
             assert _frame(frame.sensor, record).taxel_flag_lists() == frame.taxel_flag_lists()
         else:
-            assert "taxel_flags" not in record and "taxel_flags" not in client._from_binary(record, DEFAULT_FIELDS)
+            assert "taxel_flags" not in record
+            assert "taxel_flags" not in client._shaped_frames([record], DEFAULT_FIELDS)[0]
     without = decode_binary(struct.pack("<H", 1) + to_binary(flagged[0], frozenset({"force"})))[0]
     assert "taxel_flags" not in without and without["force_N"].shape == (64,)
     for fields in ({"flags"}, {"raw", "flags"}, {"sigma", "flags"}):  # every record still cut where it ends
