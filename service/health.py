@@ -203,6 +203,20 @@ def _board_lines(pipeline, now: float) -> list[str]:
     return lines
 
 
+def _identify_lines(pipeline) -> list[str]:
+    """A board read without having said what it is (Interpreter.unidentified), a line while it lasts."""
+    why = pipeline.interpreter.unidentified
+    if why is None or pipeline.identification is None:
+        return []
+    after = "its link opened" if why == "opened" else "it restarted"
+    board = pipeline.interpreter.board
+    serial = f" (serial {shown_text(str(board['serial']))})" if board.get("serial") else ""
+    read = (f"as the board that was there before{serial}, on its sensors' zeros" if board
+            else "from their sizes alone (no INFO came), on the zeros its sensors took")
+    return [f"the board did not answer INFO? within {pipeline.identification.wait_s:.2f} s after {after}: its frames "
+            f"are read {read}, flagged unidentified, until its INFO comes"]
+
+
 def _percent(share: float) -> str:
     """``share`` (0..1) in per cent to 2 digits: 1.5, 19, 100."""
     return f"{100 * share:.0f}" if share >= 0.1 else f"{100 * share:.2g}"
@@ -302,7 +316,7 @@ def board_health(board, now: float, book=None) -> dict:
     reconstruction = _reconstruction(pipeline)
     dropping = _dropping(pipeline.interpreter, now)
     problems = (_problems(link_state, sensors, reconstruction["errors"], dropping) + _board_lines(pipeline, now)
-                + _info_problems(pipeline.interpreter, sensors, dropping))
+                + _identify_lines(pipeline) + _info_problems(pipeline.interpreter, sensors, dropping))
     return {
         "source": board.source,
         "info": pipeline.interpreter.board,

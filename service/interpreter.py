@@ -74,6 +74,10 @@ class Interpreter:
         self._swapped_to: str | None = None  # the board that replaced the first on this link (its serial or model)
         self._fits: dict[int, tuple] = {}  # sensor → (its info, the frame type and size that fitted it): interpret_many
         self._clock = clock
+        # Why the board's frames are read without its INFO, set by the pipeline when frames held for it went on
+        # without one: "opened" (its link opened) or "restarted" (its power-up INFO lost); None from its next
+        # valid INFO. Every reading made meanwhile is flagged ``unidentified``.
+        self.unidentified: str | None = None
 
     @property
     def name(self) -> str:
@@ -118,7 +122,7 @@ class Interpreter:
             opened = bool((raw == OPEN_SENTINEL).any())
             shorted = bool((raw == SHORT_SENTINEL).any())
         return Reading(info, frame.seq, frame.t_us, t_host, frame.flags, frame.gap, capacitance, opened, shorted,
-                       frame.board_restart)
+                       frame.board_restart, unidentified=self.unidentified is not None)
 
     def interpret_many(self, frames: list[Frame], t_host: float, clock=None) -> list[Reading]:
         """``interpret`` of each frame, in order, None left out: the same
@@ -133,6 +137,7 @@ class Interpreter:
         groups: dict[int, list[int]] = {}  # payload bytes → indices into accepted
         sensors, fits, since = self.sensors, self._fits, self.sent_since_restart
         restart = False
+        unidentified = math.inf if self.unidentified else 0  # accepted frames read before the board's INFO came
         for frame in frames:
             ftype, sensor, _, _, _, payload, _, board_restart = frame
             size = len(payload)
@@ -143,6 +148,8 @@ class Interpreter:
             else:
                 info = self._sensor_for(frame, t_host)
                 if info is None:
+                    if self.unidentified is None:  # none came, or the board's INFO: the frames after it are its
+                        unidentified = min(unidentified, len(accepted))
                     continue
                 fits[sensor] = (info, ftype, size)
             group = groups.get(size)
@@ -179,7 +186,8 @@ class Interpreter:
                 shorted = (raw == SHORT_SENTINEL).any(axis=1).tolist()
             for i, row, o, s in zip(indices, capacitance, opened, shorted):
                 info, (_, _, flags, seq, t_us, _, gap, board_restart) = accepted[i]
-                out[i] = Reading(info, seq, t_us, t_host, flags, gap, row, o, s, board_restart, scans[i], suspect)
+                out[i] = Reading(info, seq, t_us, t_host, flags, gap, row, o, s, board_restart, scans[i], suspect,
+                                 i < unidentified)
         return out
 
     def _log_board_error(self, text: str) -> None:
@@ -291,6 +299,7 @@ class Interpreter:
             log.warning("ignoring INFO frame: %s", exc)
             return
         self.info_refused = None
+        self.unidentified = None
         if doc != self._info_doc:  # another INFO in force (not the same again, as a reply to INFO? may be)
             self._info_doc, self._unreadable, self._unreadable_new = doc, set(), []
         self.info_size = (len(payload), len(doc.get("sensors", [])))

@@ -133,6 +133,7 @@ class Pipeline(SensorChanges):
         self.identification: Identification | None = None  # a live link's frames waiting for INFO (identify_on_link)
         self._ask_info: Callable[[], object] | None = None
         self._later: Later | None = None
+        self._hold_began = "opened"  # why the last hold began (Identification.take): "opened" (the first), "restarted"
 
     def identify_on_link(self, wait_s: float, ask_info: Callable[[], object], later: Later) -> None:
         """A live link's frames wait for its board's INFO, from its first
@@ -304,6 +305,7 @@ class Pipeline(SensorChanges):
         unanswered = identification.unanswered
         go, began = identification.take(frames, t_host, self.decoder.restarts_without_info)
         if began:
+            self._hold_began = began
             self._later(identification.wait_s, partial(self._hold_expired, identification.holds))
         if identification.unanswered != unanswered:
             self._link_event("expired")
@@ -322,11 +324,14 @@ class Pipeline(SensorChanges):
         self._flush(readings)
 
     def _unidentified(self, held: Held, why: str) -> list[Reading]:
-        """Frames released without the board's INFO, read (and said, when there are any)."""
+        """Frames released without the board's INFO, read (and said, when
+        there are any): they and those after them are flagged
+        ``unidentified`` until its INFO comes (Interpreter.unidentified)."""
         count = sum(len(frames) for frames, _ in held)
         if count:
             log.warning("board %s: %d frames held for its INFO after its link opened or it restarted (%s) are read "
-                        "under the description in force", self.interpreter.name, count, why)
+                        "under the description in force, flagged unidentified", self.interpreter.name, count, why)
+            self.interpreter.unidentified = self._hold_began
         return self._read(held)
 
     def _read(self, held: Held) -> list[Reading]:

@@ -70,10 +70,13 @@ class Reading:
     board_restart: bool = False
     t_host_scan: float = math.nan  # the scan's time on the host clock (clock_map.py); NaN: not mapped
     clock_suspect: bool = False  # t_host_scan may be off by the read's lateness (ClockMap.suspect)
+    # Read before the board said what it is since its link opened or it restarted (Interpreter.unidentified):
+    # the description and zeros in force may be another board's.
+    unidentified: bool = False
 
     def frame_flags(self) -> list[str]:
         if not (self.board_flags or self.gap or self.board_restart or self.open_channel or self.shorted_channel
-                or self.clock_suspect):
+                or self.clock_suspect or self.unidentified):
             return []  # the usual frame: once per frame at 1 kHz, so the common case is one test
         flags = []
         if self.board_flags & FLAG_SATURATED:
@@ -90,4 +93,6 @@ class Reading:
             flags.append("shorted_channel")
         if self.clock_suspect:
             flags.append("clock_suspect")
+        if self.unidentified:
+            flags.append("unidentified")
         return flags

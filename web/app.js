@@ -21,7 +21,7 @@ const FLAG_HOLD_MS = 1500;        // a flag raised for one frame stays long enou
 const TAXEL_MARKS = [["saturated", "S"], ["out_of_range", "R"], ["crosstalk_corrected", "x"], ["stale", "?"]];
 const FLAG_SEVERITY = {
   open_channel: "error", shorted_channel: "error", electrode_fault: "error", board_restart: "error",
-  taring: "info", crosstalk_corrected: "info",
+  unidentified: "error", taring: "info", crosstalk_corrected: "info",
 };
 const token = new URLSearchParams(location.search).get("token");
 const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};

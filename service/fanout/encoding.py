@@ -62,7 +62,7 @@ DEFAULT_FIELDS = frozenset({"force", "sigma", "contact", "flags"})
 FRAME_FLAG_BITS = (
     "taring", "saturated", "overrun", "seq_gap", "open_channel", "shorted_channel", "out_of_range",
     "crosstalk_corrected", "drift_suspect", "stale", "normal_out_of_range", "shear_out_of_range", "electrode_fault",
-    "board_restart", "reconstruction_error", "loaded_at_tare", "clock_suspect",
+    "board_restart", "reconstruction_error", "loaded_at_tare", "clock_suspect", "unidentified",
 )
 _FLAG_BIT = {name: 1 << i for i, name in enumerate(FRAME_FLAG_BITS)}
 _RECORD = struct.Struct("<BBBBHIddIHB")

@@ -1,0 +1,109 @@
+"""Frames a board sends without having said what it is are flagged so.
+
+After a link (re)opens or the board restarts with its power-up INFO lost,
+frames wait for its INFO (identify.py); a board that does not answer in
+time had its frames read under the description and zeros in force — another
+board's, when the link now reaches another — with no flag (the tester's
+two boards swapped, neither answering: every quad read Fz +1.33 N, σ 0.093,
+on no load, for good). Now each frame read before the board's INFO carries
+``unidentified``, JSON and binary, and /health names the board until it
+answers."""
+import time
+
+import numpy as np
+
+import struct
+
+from service.fanout.encoding import decode_binary, to_binary
+from service.live_service import TactileService
+from service.readout import INFO_REPLY_S
+from tests.test_reidentify import QUAD_C0, Scans, live_pipeline
+
+B_QUAD_C0 = QUAD_C0 * 1.06  # board B's quad, 6 % above A's: read on A's zero, Fz is far from its 0 N
+
+
+def quad_frames(frames):
+    return [f for f in frames if f.sensor.id == 1]
+
+
+def test_frames_of_another_board_that_never_answers_are_flagged_until_its_info():
+    """A's 200 scans tare its quad; the link drops and reopens on B (no INFO):
+    its 10 held scans go on at the bound, and the 10 after, all flagged
+    unidentified; B's INFO, late, ends it: its next 10 scans are not."""
+    pipeline, _, timers, published = live_pipeline()
+    a = Scans("A-1", seed=1)
+    pipeline.feed(a.info() + a.next(200), 0.0)
+    assert [f for f in published if "unidentified" in f.flags] == []  # A answered: nothing flagged
+    pipeline.link_lost()
+    b = Scans("B-2", quad_c0=B_QUAD_C0, seq=12000, t_us=60_000_000, reply_s=None, seed=2)
+    before = len(published)
+    pipeline.feed(b.next(10), 1.0)
+    assert len(published) == before  # held for B's INFO
+    timers[-1][1]()  # the wait passed: no INFO
+    pipeline.feed(b.next(10), 1.3)
+    unidentified = published[before:]
+    assert [f.seq for f in quad_frames(unidentified)] == list(range(12000, 12020))
+    assert all("unidentified" in f.flags for f in unidentified) and len(unidentified) == 40
+    fz = np.array([f.forces_N[2] for f in quad_frames(unidentified)])
+    assert np.all(np.abs(fz) > 3 * np.array([f.sigma_N[2] for f in quad_frames(unidentified)]))  # why: read on A's zero
+    answered = len(published)
+    pipeline.feed(b.info() + b.next(10), 1.4)
+    assert len(published) - answered == 20 and not any("unidentified" in f.flags for f in published[answered:])
+
+
+def test_a_restart_without_info_left_unanswered_is_flagged_and_the_binary_record_says_so():
+    """A restart whose power-up INFO was lost, INFO? unanswered: its frames
+    are flagged (bit 17 in a binary record) until the board's INFO comes,
+    however late; the run before the restart is not."""
+    pipeline, asked, timers, published = live_pipeline()
+    board = Scans("E-1", seed=1)
+    pipeline.feed(board.info() + board.next(150), 0.0)
+    board.seq, board.t_us = 0, 0  # a restart, INFO lost
+    pipeline.feed(board.next(10), 1.0)
+    assert len(asked) == 1
+    timers[-1][1]()
+    assert [f.seq for f in quad_frames(published[300:])] == list(range(10))
+    assert all("unidentified" in f.flags for f in published[300:])
+    assert not any("unidentified" in f.flags for f in published[:300])
+    record = to_binary(published[-1])
+    assert struct.unpack_from("<I", record, 26)[0] & 1 << 17  # the u32 frame-flag bits, after 26 bytes of head
+    assert "unidentified" in decode_binary(struct.pack("<H", 1) + record)[0]["flags"]
+    pipeline.feed(board.next(5) + board.info() + board.next(5), 1.1)  # the reply, 0.1 s late, after 5 scans
+    late = published[320:]
+    assert [("unidentified" in f.flags) for f in quad_frames(late)] == [True] * 5 + [False] * 5
+
+
+def test_health_names_a_board_read_without_its_info_until_it_answers():
+    service = TactileService("sim://")
+    timers = []
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    a = Scans("A-1", seed=1)
+    now = time.time()
+    service.pipeline.feed(a.info() + a.next(200), now - 1.0)
+    assert [p for p in service.health()["problems"] if "INFO" in p] == []
+    service.pipeline.link_lost()
+    b = Scans("B-2", quad_c0=B_QUAD_C0, seq=12000, t_us=60_000_000, reply_s=None, seed=2)
+    service.pipeline.feed(b.next(10), now - 0.5)
+    timers[-1]()
+    service.pipeline.feed(b.next(100), now)
+    assert [p for p in service.health()["problems"] if "did not answer" in p] == [
+        "the board did not answer INFO? within 0.25 s after its link opened: its frames are read as the board that "
+        "was there before (serial A-1), on its sensors' zeros, flagged unidentified, until its INFO comes"]
+    service.pipeline.feed(b.info() + b.next(10), now)
+    assert [p for p in service.health()["problems"] if "did not answer" in p] == []
+
+
+def test_health_names_a_board_that_never_said_what_it_is():
+    """No INFO since the first connect: its frames are read by their sizes alone, flagged."""
+    service = TactileService("sim://")
+    timers = []
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    board = Scans("A-1", reply_s=None, seed=1)
+    service.pipeline.feed(board.next(10), time.time() - 0.5)
+    timers[-1]()
+    frames = service.pipeline.feed(board.next(10), time.time())
+    assert len(frames) == 20 and all("unidentified" in f.flags for f in frames)
+    assert [p for p in service.health()["problems"] if "did not answer" in p] == [
+        "the board did not answer INFO? within 0.25 s after its link opened: its frames are read from their sizes "
+        "alone (no INFO came), on the zeros its sensors took, flagged unidentified, until its INFO comes"]
+
