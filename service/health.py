@@ -203,10 +203,17 @@ def _board_lines(pipeline, now: float) -> list[str]:
     return lines
 
 
-def _identify_lines(pipeline) -> list[str]:
+def _identify_lines(pipeline, now: float) -> list[str]:
+    """What the waits for the board's INFO found (identify.py; a replay's, as its live link's did), a line each."""
+    if pipeline.identification is None:
+        return []
+    return _unidentified_line(pipeline) + _info_wait_line(pipeline, now)
+
+
+def _unidentified_line(pipeline) -> list[str]:
     """A board read without having said what it is (Interpreter.unidentified), a line while it lasts."""
     why = pipeline.interpreter.unidentified
-    if why is None or pipeline.identification is None:
+    if why is None:
         return []
     after = "its link opened" if why == "opened" else "it restarted"
     board = pipeline.interpreter.board
@@ -215,6 +222,26 @@ def _identify_lines(pipeline) -> list[str]:
             else "from their sizes alone (no INFO came), on the zeros its sensors took")
     return [f"the board did not answer INFO? within {pipeline.identification.wait_s:.2f} s after {after}: its frames "
             f"are read {read}, flagged unidentified, until its INFO comes"]
+
+
+def _info_wait_line(pipeline, now: float) -> list[str]:
+    """The board's restarts with their power-up INFO lost and its waits for INFO that ended without it, one
+    line while any was in the last PROBLEM_WINDOW_S: each is a fault (a board sends INFO at power-up and
+    answers INFO?), and each cost its frames a wait."""
+    waits, wait_s = pipeline.info_waits, pipeline.identification.wait_s
+    restarts, unanswered = waits.restarts.recent(now), waits.unanswered.recent(now)
+    did = ([f"restarted {_times(restarts)} with its power-up INFO lost"] if restarts else []) + (
+        [f"left {unanswered} INFO? unanswered within {wait_s:.2f} s"] if unanswered else [])
+    if not did:
+        return []
+    went = ("its frames went on without it, flagged unidentified" if unanswered
+            else f"its frames waited up to {wait_s:.2f} s for its INFO each time")
+    cause = "; a board that restarts by itself: its power supply, a watchdog, its firmware?" if restarts else ""
+    return [f"the board {' and '.join(did)} in the last {waits.window_s:g} s: {went}{cause}"]
+
+
+def _times(count: int) -> str:
+    return "once" if count == 1 else f"{count} times"
 
 
 def _percent(share: float) -> str:
@@ -316,7 +343,7 @@ def board_health(board, now: float, book=None) -> dict:
     reconstruction = _reconstruction(pipeline)
     dropping = _dropping(pipeline.interpreter, now)
     problems = (_problems(link_state, sensors, reconstruction["errors"], dropping) + _board_lines(pipeline, now)
-                + _identify_lines(pipeline) + _info_problems(pipeline.interpreter, sensors, dropping))
+                + _identify_lines(pipeline, now) + _info_problems(pipeline.interpreter, sensors, dropping))
     return {
         "source": board.source,
         "info": pipeline.interpreter.board,

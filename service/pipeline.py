@@ -31,7 +31,7 @@ from .interpreter import Interpreter
 from .protocol import Frame
 from .pipeline_changes import CalibrationListener, SensorChanges, TareListener
 from .readings import Reading, SensorInfo
-from .recent import RecentCorruption
+from .recent import RecentCorruption, RecentIdentification
 from .reconstruct import ForceFrame, Reconstructor
 from .reconstruct.sensor_calibration import SensorCalibration
 
@@ -102,6 +102,7 @@ class Pipeline(SensorChanges):
         self.keep_history = keep_history
         self.decoder = BulkDecoder()
         self.corruption = RecentCorruption()  # the decoder's CRC errors over the last seconds (/health)
+        self.info_waits = RecentIdentification()  # restarts without INFO, waits for it unanswered, lately (/health)
         self.interpreter = Interpreter(clock, board_name=board_name, name_board=name_board or name_from_info)
         self.reconstructor = reconstructor or Reconstructor()
         if calibrations is not None:
@@ -294,6 +295,8 @@ class Pipeline(SensorChanges):
                     held, began = self._identify(frames, t_host)
                     readings += held
                     restarted = restarted or began == "restarted"
+                if self.identification is not None:
+                    self.info_waits.note(t_host, self.identification.unanswered)
         if self._ask_info is not None:
             self._ask_if_unknown(restarted)
         return readings
@@ -307,6 +310,8 @@ class Pipeline(SensorChanges):
         if began:
             self._hold_began = began
             self._later(identification.wait_s, partial(self._hold_expired, identification.holds))
+        if began == "restarted":
+            self.info_waits.restarts.add(t_host)
         if identification.unanswered != unanswered:
             self._link_event("expired")
             return self._unidentified(go, f"none within {identification.wait_s:.2f} s"), began

@@ -1,6 +1,7 @@
 """Counts over the last seconds: what /health names while it goes on and
 forgets once it stops (a sensor's dropped frames, the board's ERROR frames,
-corrupt frames), where the counters since start only grow."""
+corrupt frames, the waits for the board's INFO), where the counters since
+start only grow."""
 from __future__ import annotations
 
 import math
@@ -66,3 +67,23 @@ class RecentCorruption:
             if new:
                 self.by_sensor.setdefault(sid, RecentCount(self.window_s)).add(t, new)
                 self._claimed[sid] = sensor.crc_errors
+
+
+class RecentIdentification:
+    """A live link's waits for the board's INFO (identify.py) over the last
+    ``window_s``: those begun at a restart whose power-up INFO was lost
+    (``restarts``: one per restart of the board, where the decoder counts one
+    per sensor), and those that ended without it (``unanswered``; ``note``
+    takes the identification's count after each read with its receive time:
+    a wait that its timer ended counts at the next read)."""
+
+    def __init__(self, window_s: int = PROBLEM_WINDOW_S) -> None:
+        self.window_s = window_s
+        self.restarts = RecentCount(window_s)
+        self.unanswered = RecentCount(window_s)
+        self._unanswered = 0
+
+    def note(self, t: float, unanswered: int) -> None:
+        if unanswered != self._unanswered:
+            self.unanswered.add(t, unanswered - self._unanswered)
+            self._unanswered = unanswered

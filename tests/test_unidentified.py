@@ -107,3 +107,67 @@ def test_health_names_a_board_that_never_said_what_it_is():
         "the board did not answer INFO? within 0.25 s after its link opened: its frames are read from their sizes "
         "alone (no INFO came), on the zeros its sensors took, flagged unidentified, until its INFO comes"]
 
+
+def restart_loop(service, timers, restarts: int, start: float) -> float:
+    """``restarts`` restarts of the board 1 s apart from ``start``, each with
+    its power-up INFO lost and its INFO? unanswered (each wait's timer run);
+    returns the time of the last read."""
+    board = Scans("E-1", seed=1)
+    service.pipeline.feed(board.info() + board.next(150), start)
+    t = start
+    for _ in range(restarts):
+        board.seq, board.t_us = 0, 0
+        t += 1.0
+        service.pipeline.feed(board.next(10), t)
+        timers[-1]()
+        service.pipeline.feed(board.next(10), t + 0.3)
+    return t + 0.3
+
+
+def test_health_names_a_board_in_a_restart_loop_that_never_answers_until_the_window_passes():
+    """6 restarts in 6 s, 6 INFO? unanswered: /health said ok. Now a line
+    with both counts over the last 10 s, gone 10 s after the last."""
+    service = TactileService("sim://")
+    timers = []
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    now = time.time()
+    restart_loop(service, timers, 6, now - 6.5)
+    assert [p for p in service.health()["problems"] if p.startswith("the board restarted")] == [
+        "the board restarted 6 times with its power-up INFO lost and left 6 INFO? unanswered within 0.25 s in the "
+        "last 10 s: its frames went on without it, flagged unidentified; a board that restarts by itself: its power "
+        "supply, a watchdog, its firmware?"]
+    service = TactileService("sim://")
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    restart_loop(service, timers, 6, now - 18.5)
+    board = Scans("E-1", seq=5000, t_us=100_000_000, seed=3)
+    service.pipeline.feed(board.info() + board.next(10), now)
+    assert [p for p in service.health()["problems"] if "INFO" in p] == []
+    assert service.pipeline.identification.unanswered == 6  # the counts since start stay
+    assert service.pipeline.decoder.restarts_without_info == 12  # each sensor's: the line counts the board's
+
+
+def test_health_names_restarts_answered_in_time_and_a_late_answer():
+    """A restart whose INFO? is answered within the wait: named, its frames
+    not flagged. An INFO 0.4 s late: the wait's frames were flagged, said so."""
+    service = TactileService("sim://")
+    timers = []
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    board = Scans("E-1", seed=1)
+    now = time.time()
+    service.pipeline.feed(board.info() + board.next(150), now - 1.0)
+    board.seq, board.t_us = 0, 0
+    service.pipeline.feed(board.next(10), now - 0.9)
+    frames = service.pipeline.feed(board.next(10) + board.info() + board.next(10), now - 0.8)
+    assert len(frames) == 60 and not any("unidentified" in f.flags for f in frames)
+    assert [p for p in service.health()["problems"] if "INFO" in p] == [
+        "the board restarted once with its power-up INFO lost in the last 10 s: its frames waited up to 0.25 s for "
+        "its INFO each time; a board that restarts by itself: its power supply, a watchdog, its firmware?"]
+    service = TactileService("sim://")
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    board = Scans("E-1", seed=1)
+    service.pipeline.feed(board.next(10), now - 0.5)
+    timers[-1]()
+    service.pipeline.feed(board.next(10) + board.info() + board.next(10), now - 0.1)
+    assert [p for p in service.health()["problems"] if "INFO" in p] == [
+        "the board left 1 INFO? unanswered within 0.25 s in the last 10 s: its frames went on without it, flagged "
+        "unidentified"]
