@@ -15,6 +15,7 @@ import re
 import time
 from dataclasses import dataclass
 from datetime import datetime
+from functools import partial
 
 from .calibration.registry import sensor_identity
 from .handover import LoopHandover
@@ -178,7 +179,8 @@ class Board:
         self.handover = LoopHandover(self.pipeline.feed_reads, self.pipeline.link_lost, loop)
         self.readout = Readout(self.source, self.handover, silence_s=self.silence_s)
         if not self.source.startswith("replay://"):  # a link a board may be swapped on, not a recording's bytes
-            self.pipeline.identify_on_link(INFO_REPLY_S, self.readout.ask_info, loop.call_later)
+            self.pipeline.identify_on_link(INFO_REPLY_S, self.readout.ask_info, loop.call_later,
+                                           partial(self.readout.ask_info, restart=True))
         self.readout.start(loop)
 
     def stop(self) -> None:

@@ -133,19 +133,23 @@ class Pipeline(SensorChanges):
         self._recorded: list[tuple[int, int, bool | dict]] = []  # (byte offset, sensor, change), in order
         self.identification: Identification | None = None  # a live link's frames waiting for INFO (identify_on_link)
         self._ask_info: Callable[[], object] | None = None
+        self._ask_restart: Callable[[], object] | None = None  # a restart's INFO? (identify_on_link), else _ask_info's
         self._later: Later | None = None
         self._hold_began = "opened"  # why the last hold began (Identification.take): "opened" (the first), "restarted"
 
-    def identify_on_link(self, wait_s: float, ask_info: Callable[[], object], later: Later) -> None:
+    def identify_on_link(self, wait_s: float, ask_info: Callable[[], object], later: Later,
+                         ask_restart: Callable[[], object] | None = None) -> None:
         """A live link's frames wait for its board's INFO, from its first
         connect, after each ``link_lost`` and after a restart whose INFO was
         lost, at most ``wait_s`` (identify.py). ``ask_info`` asks the board
         INFO? (the readout's, at most one a second; it asked on connect): at
         such a restart, and when a data frame does not fit the description in
-        force (a restart not found whose INFO was lost). ``later(delay, fn)``:
+        force (a restart not found whose INFO was lost); ``ask_restart``, when
+        given, at a restart instead (the readout's asks each restart, the
+        limit being for repeats). ``later(delay, fn)``:
         ``fn`` on the feeding thread after ``delay`` s (the loop's call_later)."""
         self.identification = Identification(wait_s)
-        self._ask_info, self._later = ask_info, later
+        self._ask_info, self._later, self._ask_restart = ask_info, later, ask_restart
 
     def identify_as_recorded(self, state: dict) -> None:
         """A recording's frames held as they were live, from ``state`` (the
@@ -359,7 +363,10 @@ class Pipeline(SensorChanges):
         sensor and INFO in force (the same answer again re-describes every
         sensor for nothing), never for one the INFO leaves undescribed on
         purpose (Interpreter.newly_unreadable)."""
-        if self.interpreter.newly_unreadable() or restarted:
+        unreadable = self.interpreter.newly_unreadable()
+        if restarted:
+            (self._ask_restart or self._ask_info)()
+        elif unreadable:
             self._ask_info()
 
     def _reconstruct(self, readings: list[Reading], t_host: float, reads: dict[str, int]) -> list[ForceFrame]:

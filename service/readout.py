@@ -10,10 +10,11 @@ second later. A finite source (a recording) that has delivered everything
 is ``finished``: it stays open and is not reopened. The pipeline may ask the
 board ``INFO?`` too (``ask_info``: a board restarted without its INFO, or
 sends frames its description cannot read), at most once per
-``ASK_INFO_EVERY_S``, so that a board that never answers is not flooded.
-Only the thread writes to the source: ``ask_info`` (on the event loop) hands
-it the INFO?, since a port that stops taking bytes blocks a write for as
-long as it lasts (pyserial's has no timeout).
+``ASK_INFO_EVERY_S``, so that a board that never answers is not flooded;
+each restart is asked, unless an INFO? asked less than INFO_REPLY_S before
+may still be answered. Only the thread writes to the source: ``ask_info``
+(on the event loop) hands it the INFO?, since a port that stops taking
+bytes blocks a write for as long as it lasts (pyserial's has no timeout).
 
 Where the bytes are read is decided once per connection, here
 (``_read_until_gone``), as python-can's ``Notifier.add_bus`` does: given an
@@ -224,14 +225,19 @@ class Readout:
         elif now - self._asked_at >= REOPEN_AFTER_ASKING_S:
             raise OSError(f"no bytes for {silent:.1f} s, not even after INFO?")
 
-    def ask_info(self) -> bool:
+    def ask_info(self, restart: bool = False) -> bool:
         """Ask the board ``INFO?`` (from any thread, never waiting on the
         port: this readout's thread writes it), unless the link is down or
         this asked less than ASK_INFO_EVERY_S ago (the INFO? on connect and
-        for a silence are the readout's own); True when asked."""
+        for a silence are the readout's own); True when asked. ``restart``:
+        a restart whose power-up INFO was lost (the pipeline asks once per
+        restart), held back only by an INFO? asked less than INFO_REPLY_S
+        ago, whose answer may still come: the limit is for repeats, and a
+        board restarting 0.9 s apart had every other restart not asked."""
         with self._ask_lock:
             now = self._clock()
-            if not self.link.up or (self._info_asked_at is not None and now - self._info_asked_at < ASK_INFO_EVERY_S):
+            every = INFO_REPLY_S if restart else ASK_INFO_EVERY_S
+            if not self.link.up or (self._info_asked_at is not None and now - self._info_asked_at < every):
                 return False
             self._info_asked_at, self._info_wanted = now, True
         self._wake.set()

@@ -3,6 +3,7 @@ surviving the device going away."""
 import asyncio
 import threading
 import time
+from functools import partial
 
 import pytest
 
@@ -10,7 +11,7 @@ from firmware_sim import frontends
 from firmware_sim.board import Board, BoardConfig
 from service.pipeline import Pipeline
 from service.handover import ThreadSink
-from service.readout import ASK_INFO_EVERY_S, Readout
+from service.readout import ASK_INFO_EVERY_S, INFO_REPLY_S, Readout
 
 
 def wait_for(predicate, timeout=5.0):
@@ -314,3 +315,40 @@ def test_ask_info_never_waits_for_a_port_that_does_not_take_bytes():
     finally:
         port.release.set()
         readout.stop()
+
+
+def test_every_restart_without_info_is_asked_unless_an_info_is_still_awaited():
+    """A board restarting 0.9 s apart, its INFO lost each time: the second
+    restart was not asked (the once-a-second limit), its frames went on
+    unidentified. Now each restart's wait asks; only an INFO? sent less than
+    INFO_REPLY_S before (its answer may still come) holds it back, and the
+    limit still holds back repeats asked for unreadable frames."""
+    from tests.test_reidentify import Scans
+
+    now = [100.0]
+    port = Port()
+    readout = Readout("fake://", ThreadSink(lambda data, t_host: None, lambda: None), opener=lambda url: port,
+                      clock=lambda: now[0], silence_s=1e9)
+    readout.start()
+    try:
+        assert wait_for(lambda: readout.link.up)
+        pipeline = Pipeline(map_clock=False)
+        pipeline.identify_on_link(INFO_REPLY_S, readout.ask_info, lambda delay, fn: None,
+                                  partial(readout.ask_info, restart=True))  # as board.py does
+        board = Scans("E-1", seed=1)
+        pipeline.feed(board.info() + board.next(20), now[0])
+        for k, step in enumerate((1.0, 0.9, 0.9)):  # restarts at 101.0, 101.9, 102.8
+            now[0] += step
+            board.seq, board.t_us = 0, 0
+            pipeline.feed(board.next(10), now[0])
+            wait_for(lambda: port.written.count(b"INFO?") == 2 + k, 0.5)  # the readout's thread writes it
+            pipeline.feed(board.info() + board.next(5), now[0] + 0.01)  # answered: the next restart waits again
+        asked = port.written.count(b"INFO?")
+        now[0] += 0.1  # 0.1 s after the last restart's INFO?: an unreadable frame's ask waits for the limit
+        assert not readout.ask_info()
+        now[0] += 0.2
+        assert readout.ask_info(restart=True) and not readout.ask_info(restart=True)  # a repeat within INFO_REPLY_S
+        assert wait_for(lambda: port.written.count(b"INFO?") == 1 + 4, 0.5)
+    finally:
+        readout.stop()
+    assert asked == 1 + 3  # on connect, then at each restart

@@ -7,17 +7,18 @@ board's, when the link now reaches another — with no flag (the tester's
 two boards swapped, neither answering: every quad read Fz +1.33 N, σ 0.093,
 on no load, for good). Now each frame read before the board's INFO carries
 ``unidentified``, JSON and binary, and /health names the board until it
-answers."""
+answers. A board's restarts without INFO and its unanswered INFO? were
+named nowhere, and a restart 0.9 s after the last INFO? was not asked."""
+import asyncio
+import struct
 import time
 
 import numpy as np
 
-import struct
-
 from service.fanout.encoding import decode_binary, to_binary
 from service.live_service import TactileService
 from service.readout import INFO_REPLY_S
-from tests.test_reidentify import QUAD_C0, Scans, live_pipeline
+from tests.test_reidentify import QUAD_C0, Scans, TcpBoard, count, live_pipeline, serve
 
 B_QUAD_C0 = QUAD_C0 * 1.06  # board B's quad, 6 % above A's: read on A's zero, Fz is far from its 0 N
 
@@ -76,7 +77,7 @@ def test_a_restart_without_info_left_unanswered_is_flagged_and_the_binary_record
 def test_health_names_a_board_read_without_its_info_until_it_answers():
     service = TactileService("sim://")
     timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
     a = Scans("A-1", seed=1)
     now = time.time()
     service.pipeline.feed(a.info() + a.next(200), now - 1.0)
@@ -97,7 +98,7 @@ def test_health_names_a_board_that_never_said_what_it_is():
     """No INFO since the first connect: its frames are read by their sizes alone, flagged."""
     service = TactileService("sim://")
     timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
     board = Scans("A-1", reply_s=None, seed=1)
     service.pipeline.feed(board.next(10), time.time() - 0.5)
     timers[-1]()
@@ -129,7 +130,7 @@ def test_health_names_a_board_in_a_restart_loop_that_never_answers_until_the_win
     with both counts over the last 10 s, gone 10 s after the last."""
     service = TactileService("sim://")
     timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
     now = time.time()
     restart_loop(service, timers, 6, now - 6.5)
     assert [p for p in service.health()["problems"] if p.startswith("the board restarted")] == [
@@ -137,7 +138,7 @@ def test_health_names_a_board_in_a_restart_loop_that_never_answers_until_the_win
         "last 10 s: its frames went on without it, flagged unidentified; a board that restarts by itself: its power "
         "supply, a watchdog, its firmware?"]
     service = TactileService("sim://")
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
     restart_loop(service, timers, 6, now - 18.5)
     board = Scans("E-1", seq=5000, t_us=100_000_000, seed=3)
     service.pipeline.feed(board.info() + board.next(10), now)
@@ -151,7 +152,7 @@ def test_health_names_restarts_answered_in_time_and_a_late_answer():
     not flagged. An INFO 0.4 s late: the wait's frames were flagged, said so."""
     service = TactileService("sim://")
     timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
     board = Scans("E-1", seed=1)
     now = time.time()
     service.pipeline.feed(board.info() + board.next(150), now - 1.0)
@@ -163,7 +164,7 @@ def test_health_names_restarts_answered_in_time_and_a_late_answer():
         "the board restarted once with its power-up INFO lost in the last 10 s: its frames waited up to 0.25 s for "
         "its INFO each time; a board that restarts by itself: its power supply, a watchdog, its firmware?"]
     service = TactileService("sim://")
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda: None, lambda delay, fn: timers.append(fn))
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
     board = Scans("E-1", seed=1)
     service.pipeline.feed(board.next(10), now - 0.5)
     timers[-1]()
@@ -171,3 +172,24 @@ def test_health_names_restarts_answered_in_time_and_a_late_answer():
     assert [p for p in service.health()["problems"] if "INFO" in p] == [
         "the board left 1 INFO? unanswered within 0.25 s in the last 10 s: its frames went on without it, flagged "
         "unidentified"]
+
+
+def test_a_live_board_restarting_0_9_s_apart_is_asked_info_at_each_restart():
+    """Over TCP, as ``tactile serve`` reads it: two restarts 0.9 s apart, each
+    power-up INFO lost. The second was not asked (INFO? once a second), its
+    frames went on unidentified; now each is asked, and answered."""
+    device = TcpBoard(Scans("E-1", seed=1))
+    marks = []
+
+    async def scenario(published, until):
+        await until(lambda: count(published, 0)() >= 300)
+        marks.append(len(device.asked))
+        device.restart(Scans("E-1", seed=2))
+        await until(lambda: len(device.asked) > marks[0])
+        await asyncio.sleep(0.9 - (time.monotonic() - device.asked[-1]))
+        device.restart(Scans("E-1", seed=3))
+        await asyncio.sleep(0.5)
+
+    published = serve(device, scenario)
+    assert len(device.asked) - marks[0] == 2 and device.asked[-1] - device.asked[-2] < 1.0
+    assert not any("unidentified" in f.flags for f, _ in published)
