@@ -172,6 +172,12 @@ def _problems(link: dict, sensors: dict, errors: dict, dropping: dict[str, str] 
 CORRUPT_SHARE = 0.01
 CORRUPT_MIN_FRAMES = 5  # and at least this many: one bad frame among a slow board's few (10 at 1 Hz) is no pattern
 CORRUPT_SENSORS_NAMED = 3
+# Bytes skipped (no part of a good frame) above this share of the window's bytes are a fault: a sound link skips
+# only the frame a (re)open cuts and the bytes of corrupt frames (the CRC line's, which this one may repeat); a
+# tenth is a link carrying something besides the protocol (a wrong baud rate reads as nearly all garbage, another
+# device's output, noise), and every such byte costs the decoder a search.
+DISCARDED_SHARE = 0.1
+DISCARDED_MIN_BYTES = 4096  # and at least this many: ~4 of the largest frames (1 040 bytes), cut at reopens
 
 
 def _dropping(interpreter, now: float) -> dict[str, str]:
@@ -185,7 +191,8 @@ def _dropping(interpreter, now: float) -> dict[str, str]:
 
 
 def _board_lines(pipeline, now: float) -> list[str]:
-    """The board's ERROR frames and the link's corrupt frames over the last PROBLEM_WINDOW_S, a line each."""
+    """The board's ERROR frames, the link's corrupt data frames and its skipped bytes over the last
+    PROBLEM_WINDOW_S, a line each."""
     lines = []
     errors = pipeline.interpreter.recent_errors
     if count := errors.recent(now):
@@ -197,10 +204,21 @@ def _board_lines(pipeline, now: float) -> list[str]:
     if corrupt >= CORRUPT_MIN_FRAMES and corrupt > CORRUPT_SHARE * total:
         claimed = sorted(((n, sid) for sid, c in corruption.by_sensor.items() if (n := c.recent(now))), reverse=True)
         named = ", ".join(f"sensor {sid} ({n})" for n, sid in claimed[:CORRUPT_SENSORS_NAMED])
-        lines.append(f"{corrupt} of {total} frames ({_percent(corrupt / total)} %) in the last {corruption.window_s:g} s "
-                     f"failed their CRC check and were dropped{f', by their headers from {named}' if named else ''}: "
-                     "a loose cable or connector, electrical noise, or a wrong baud rate?")
-    return lines
+        lines.append(f"{corrupt} of {total} data frames ({_percent(corrupt / total)} %) in the last "
+                     f"{corruption.window_s:g} s failed their CRC check and were dropped"
+                     f"{f', by their headers from {named}' if named else ''}: a loose cable or connector, electrical "
+                     "noise, or a wrong baud rate?")
+    return lines + _skipped_line(corruption, now)
+
+
+def _skipped_line(corruption, now: float) -> list[str]:
+    """The link's bytes that were no part of a good frame, a line when they are a large share of the window's."""
+    skipped, received = corruption.discarded.recent(now), corruption.bytes_in.recent(now)
+    if skipped < DISCARDED_MIN_BYTES or skipped <= DISCARDED_SHARE * received:
+        return []
+    return [f"{skipped} of {received} bytes ({_percent(skipped / received)} %) received in the last "
+            f"{corruption.window_s:g} s were no part of a good frame and were skipped: a wrong baud rate, another "
+            "device's output on this port, or electrical noise?"]
 
 
 def _identify_lines(pipeline, now: float) -> list[str]:

@@ -45,6 +45,7 @@ class StreamCounters:
     truncated: int = 0
     bytes_discarded: int = 0
     board_id_data: int = 0  # data frames claiming sensor 255, the board's own id
+    control_frames: int = 0  # INFO and ERROR frames (in ``frames``): the board's own, no sensor's data
     sensors: dict[int, SensorCounters] = field(default_factory=dict)
 
     def sensor(self, sensor_id: int) -> SensorCounters:
@@ -62,6 +63,7 @@ class StreamCounters:
             "truncated": self.truncated,
             "bytes_discarded": self.bytes_discarded,
             "board_id_data": self.board_id_data,
+            "control_frames": self.control_frames,
             "sensors": {
                 str(sid): {
                     "frames": c.frames,

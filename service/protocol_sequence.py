@@ -143,9 +143,11 @@ class Sequencing:
             state.seq, state.t_us, state.infos = seq, t_us, self._infos
             state.seen[seq] = fingerprint
             sensor_counters.frames += 1
-        elif frame_type == FrameType.INFO:
-            self._infos += 1
-            self._info_t_us = t_us
+        else:
+            self.counters.control_frames += 1
+            if frame_type == FrameType.INFO:
+                self._infos += 1
+                self._info_t_us = t_us
         self.counters.frames += 1
         return Frame(frame_type, sensor, flags, seq, t_us, body[HEADER_SIZE - 2 :], gap, restart)
 

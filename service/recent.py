@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
+from .protocol import BOARD_SENSOR_ID
+
 # Long enough that a problem recurring every few seconds stays named, short enough that one that stopped goes soon.
 PROBLEM_WINDOW_S = 10
 
@@ -41,32 +43,47 @@ class RecentCount:
 
 
 class RecentCorruption:
-    """A decoder's frames and CRC errors over the last ``window_s``, the
-    errors also by the sensor id their (unverified) headers claim: ``note``
-    takes the decoder's counters after each read with its receive time."""
+    """A decoder's data frames (GRID, QUAD: not the board's INFO and ERROR
+    frames, which a board may send by the thousand) and their CRC errors
+    (those whose unverified header claims a sensor, not the board's own id),
+    the errors also by that sensor id, and the bytes received and skipped
+    (no part of a good frame), over the last ``window_s``: ``note`` takes
+    the decoder's counters after each read with its receive time."""
 
     def __init__(self, window_s: int = PROBLEM_WINDOW_S) -> None:
         self.window_s = window_s
         self.frames = RecentCount(window_s)
         self.corrupt = RecentCount(window_s)
+        self.bytes_in = RecentCount(window_s)
+        self.discarded = RecentCount(window_s)
         self.by_sensor: dict[int, RecentCount] = {}
-        self._frames = self._corrupt = 0
+        self._frames = self._corrupt = self._bytes_in = self._discarded = 0
         self._claimed: dict[int, int] = {}  # CRC errors so far by claimed sensor id
 
     def note(self, t: float, counters) -> None:
         """``counters``: protocol_decoder.StreamCounters, as after a read received at ``t``."""
-        if counters.frames != self._frames:
-            self.frames.add(t, counters.frames - self._frames)
-            self._frames = counters.frames
+        data = counters.frames - counters.control_frames
+        if data != self._frames:
+            self.frames.add(t, data - self._frames)
+            self._frames = data
+        if counters.bytes_in != self._bytes_in:
+            self.bytes_in.add(t, counters.bytes_in - self._bytes_in)
+            self._bytes_in = counters.bytes_in
+        if counters.bytes_discarded != self._discarded:
+            self.discarded.add(t, counters.bytes_discarded - self._discarded)
+            self._discarded = counters.bytes_discarded
         if counters.crc_errors == self._corrupt:  # the usual read: one compare
             return
-        self.corrupt.add(t, counters.crc_errors - self._corrupt)
         self._corrupt = counters.crc_errors
+        corrupt = 0
         for sid, sensor in counters.sensors.items():
             new = sensor.crc_errors - self._claimed.get(sid, 0)
-            if new:
+            if new and sid != BOARD_SENSOR_ID:
                 self.by_sensor.setdefault(sid, RecentCount(self.window_s)).add(t, new)
                 self._claimed[sid] = sensor.crc_errors
+                corrupt += new
+        if corrupt:
+            self.corrupt.add(t, corrupt)
 
 
 class RecentIdentification:

@@ -1,9 +1,12 @@
 """What /health has counted, it names: a sensor whose frames are dropped
 (and why), ERROR frames from the board, corrupt frames above 1 % of the
-link's: one line each, over the last 10 s, gone once the problem stops.
-They were counters only (900 frames of a sensor rejected showed as "sensor 2
-stale", as if nothing came; 30 ERROR frames and 19 % of a quad's frames
-failing their CRC, as nothing)."""
+link's data frames, a link whose bytes are mostly no frame: one line each,
+over the last 10 s, gone once the problem stops. They were counters only
+(900 frames of a sensor rejected showed as "sensor 2 stale", as if nothing
+came; 30 ERROR frames and 19 % of a quad's frames failing their CRC, as
+nothing; 1.20 MB of garbage in 1.29 MB, as nothing). ERROR frames are no
+data frames: 20 % of the data frames corrupt among 7 times as many ERROR
+frames read "2 %"."""
 import time
 
 import numpy as np
@@ -110,8 +113,8 @@ def test_a_burst_of_corrupt_frames_is_one_line_naming_the_sensor_a_rare_one_none
     report = service.health()
     assert report["stream"]["crc_errors"] == 200
     assert [p for p in report["problems"] if "CRC" in p] == [
-        "200 of 2000 frames (10 %) in the last 10 s failed their CRC check and were dropped, by their headers from "
-        "sensor 1 (200): a loose cable or connector, electrical noise, or a wrong baud rate?"]
+        "200 of 2000 data frames (10 %) in the last 10 s failed their CRC check and were dropped, by their headers "
+        "from sensor 1 (200): a loose cable or connector, electrical noise, or a wrong baud rate?"]
     service = TactileService("sim://")
     data, spoiled = corrupt(quads(0, 1000, sensors=(0, 1)), 500, sensor=1)  # 2 of 2000: 0.1 %
     service.pipeline.feed(data, time.time())
@@ -127,3 +130,53 @@ def test_corrupt_frames_are_forgotten_10_s_after_the_burst():
     service.pipeline.feed(quads(1000, 200, sensors=(0, 1)), now)
     report = service.health()
     assert report["stream"]["crc_errors"] == 200 and not [p for p in report["problems"] if "CRC" in p]
+
+
+def test_the_crc_share_is_of_the_data_frames_not_the_board_s_error_frames():
+    """The tester's board: ERROR frames 7x its data frames, 20 % of these
+    corrupt, read "310 of 15211 frames (2 %)". ERROR and INFO frames are no
+    data frames: 200 of 1000 (20 %) here, among 7000 ERROR frames."""
+    service = TactileService("sim://")
+    error = encode_frame(FrameType.ERROR, 255, 0, 0, b"mux settle timeout")
+    scans = b"".join(quads(s, 1, sensors=(0, 1)) + error * 14 for s in range(500))
+    data, spoiled = corrupt(scans, 2, sensor=1)
+    assert spoiled == 250
+    service.pipeline.feed(INFO + data, time.time())
+    report = service.health()
+    assert report["stream"]["frames"] == 1 + 750 + 7000 and report["stream"]["crc_errors"] == 250
+    assert [p for p in report["problems"] if "CRC" in p] == [
+        "250 of 1000 data frames (25 %) in the last 10 s failed their CRC check and were dropped, by their headers "
+        "from sensor 1 (250): a loose cable or connector, electrical noise, or a wrong baud rate?"]
+
+
+GARBAGE = bytes(b for b in range(256) if b != 0xA5)  # no sync byte: every one skipped, none taken for a frame
+
+
+def test_a_link_that_is_mostly_garbage_is_named_with_its_share_until_it_stops():
+    """300 bytes of garbage after each 32-byte scan (the tester's: 1.20 MB
+    of 1.29 MB skipped in 4 s, status ok): one line with the bytes skipped
+    and received, every frame still read; gone 10 s after."""
+    service = TactileService("sim://")
+    data = INFO + b"".join(quads(s, 1) + GARBAGE + GARBAGE[:45] for s in range(200))
+    service.pipeline.feed(data, time.time())
+    report = service.health()
+    assert report["boards"]["b"]["sensors"]["0"]["frames"] == 200 and report["stream"]["bytes_discarded"] == 60000
+    assert [p for p in report["problems"] if "bytes" in p] == [
+        f"60000 of {len(data)} bytes ({100 * 60000 / len(data):.0f} %) received in the last 10 s were no part of a "
+        "good frame and were skipped: a wrong baud rate, another device's output on this port, or electrical noise?"]
+    service = TactileService("sim://")
+    now = time.time()
+    service.pipeline.feed(data, now - 12.0)
+    service.pipeline.feed(quads(200, 100), now)
+    assert [p for p in service.health()["problems"] if "bytes" in p] == []
+
+
+def test_a_link_that_skips_a_partial_frame_or_a_few_bytes_is_not_named():
+    """A frame cut at the start, a boot banner: no pattern (at least 4096 bytes and 10 % of the window's)."""
+    service = TactileService("sim://")
+    service.pipeline.feed(quads(0, 10)[5:] + b"boot v1.1.0\r\n" * 20 + quads(10, 10), time.time())
+    assert service.pipeline.decoder.counters.bytes_discarded == 27 + 13 * 20
+    assert [p for p in service.health()["problems"] if "bytes" in p] == []
+    service = TactileService("sim://")
+    service.pipeline.feed(quads(0, 1000) + GARBAGE * 14, time.time())  # 3570 bytes: 10.04 % of 35570, < 4096
+    assert [p for p in service.health()["problems"] if "bytes" in p] == []
