@@ -9,7 +9,6 @@ import asyncio
 import math
 import time
 
-import numpy as np
 import orjson
 import pytest
 from mcap.reader import make_reader
