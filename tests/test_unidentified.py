@@ -27,6 +27,15 @@ def quad_frames(frames):
     return [f for f in frames if f.sensor.id == 1]
 
 
+def waiting_service(timers: list | None = None) -> tuple[TactileService, list]:
+    """A simulated service whose frames wait for INFO as a live link's do,
+    its waits' timers kept in ``timers`` for the test to fire."""
+    timers = [] if timers is None else timers
+    service = TactileService("sim://")
+    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    return service, timers
+
+
 def test_frames_of_another_board_that_never_answers_are_flagged_until_its_info():
     """A's 200 scans tare its quad; the link drops and reopens on B (no INFO):
     its 10 held scans go on at the bound, and the 10 after, all flagged
@@ -75,9 +84,7 @@ def test_a_restart_without_info_left_unanswered_is_flagged_and_the_binary_record
 
 
 def test_health_names_a_board_read_without_its_info_until_it_answers():
-    service = TactileService("sim://")
-    timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    service, timers = waiting_service()
     a = Scans("A-1", seed=1)
     now = time.time()
     service.pipeline.feed(a.info() + a.next(200), now - 1.0)
@@ -96,9 +103,7 @@ def test_health_names_a_board_read_without_its_info_until_it_answers():
 
 def test_health_names_a_board_that_never_said_what_it_is():
     """No INFO since the first connect: its frames are read by their sizes alone, flagged."""
-    service = TactileService("sim://")
-    timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    service, timers = waiting_service()
     board = Scans("A-1", reply_s=None, seed=1)
     service.pipeline.feed(board.next(10), time.time() - 0.5)
     timers[-1]()
@@ -128,17 +133,14 @@ def restart_loop(service, timers, restarts: int, start: float) -> float:
 def test_health_names_a_board_in_a_restart_loop_that_never_answers_until_the_window_passes():
     """6 restarts in 6 s, 6 INFO? unanswered: /health said ok. Now a line
     with both counts over the last 10 s, gone 10 s after the last."""
-    service = TactileService("sim://")
-    timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    service, timers = waiting_service()
     now = time.time()
     restart_loop(service, timers, 6, now - 6.5)
     assert [p for p in service.health()["problems"] if p.startswith("the board restarted")] == [
         "the board restarted 6 times with its power-up INFO lost and left 6 INFO? unanswered within 0.25 s in the "
         "last 10 s: its frames went on without it, flagged unidentified; a board that restarts by itself: its power "
         "supply, a watchdog, its firmware?"]
-    service = TactileService("sim://")
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    service, timers = waiting_service(timers)
     restart_loop(service, timers, 6, now - 18.5)
     board = Scans("E-1", seq=5000, t_us=100_000_000, seed=3)
     service.pipeline.feed(board.info() + board.next(10), now)
@@ -150,9 +152,7 @@ def test_health_names_a_board_in_a_restart_loop_that_never_answers_until_the_win
 def test_health_names_restarts_answered_in_time_and_a_late_answer():
     """A restart whose INFO? is answered within the wait: named, its frames
     not flagged. An INFO 0.4 s late: the wait's frames were flagged, said so."""
-    service = TactileService("sim://")
-    timers = []
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    service, timers = waiting_service()
     board = Scans("E-1", seed=1)
     now = time.time()
     service.pipeline.feed(board.info() + board.next(150), now - 1.0)
@@ -163,8 +163,7 @@ def test_health_names_restarts_answered_in_time_and_a_late_answer():
     assert [p for p in service.health()["problems"] if "INFO" in p] == [
         "the board restarted once with its power-up INFO lost in the last 10 s: its frames waited up to 0.25 s for "
         "its INFO each time; a board that restarts by itself: its power supply, a watchdog, its firmware?"]
-    service = TactileService("sim://")
-    service.pipeline.identify_on_link(INFO_REPLY_S, lambda restart=False: None, lambda delay, fn: timers.append(fn))
+    service, timers = waiting_service(timers)
     board = Scans("E-1", seed=1)
     service.pipeline.feed(board.next(10), now - 0.5)
     timers[-1]()
