@@ -24,9 +24,13 @@ and fits, such a sensor's frames are skipped, counted in ``unshaped`` and
 told once in ``notices``; the other sensors' frames go on.
 
 A consumer slower than the stream loses the oldest waiting frames, never
-the service's time or memory: ``dropped`` counts them. Every failure — no
-frame within ``timeout``, no answer to a query, a sample that does not
-decode — is a ``TactileError`` saying what.
+the service's time or memory: ``dropped`` counts them. A subscribed sample
+that does not decode (bytes that are no records, a record cut short, another
+version's) is dropped, counted in ``undecodable`` and per board in
+``undecodable_by_board``, and told once per board in ``notices``; the other
+samples' frames go on. Every failure — no frame within ``timeout``, no
+answer to a query, a queried frame that does not decode — is a
+``TactileError`` saying what.
 
 Two services may publish one board name (docs/scale.md "One name, two
 services"). The client follows one per name, as a gateway serves one
@@ -61,6 +65,20 @@ def _board_of(key: zenoh.KeyExpr | str) -> str:
 
 def _records(payload: bytes) -> int:
     return int.from_bytes(payload[:2], "little")  # a sample's u16 record count
+
+
+def _decoded(payload: bytes, key: str) -> list[dict]:
+    """The binary records of a frame sample on ``key``; TactileError naming why if it does not decode."""
+    try:
+        return decode_binary(payload)
+    except (ValueError, IndexError, UnicodeDecodeError, struct.error) as exc:
+        raise TactileError(f"a zenoh sample on {key} does not decode ({exc})") from None
+
+
+def _undecodable_said(undecodable: int, last: str) -> str:
+    """What a stream that gave no frame says of the ``undecodable`` samples
+    dropped since its last frame, ``last`` the latest one's notice-like line."""
+    return f" ({undecodable} samples did not decode; the last: {last})" if undecodable else ""
 
 
 def _document(sample: zenoh.Sample) -> dict | None:
@@ -142,7 +160,11 @@ class ZenohClient:
         self.dropped = 0  # frames lost because the consumer of subscribe fell behind
         self.refused = 0  # frames subscribed to, dropped: another service's than the one followed under that name
         self.unshaped = 0  # frames subscribed to, skipped: their sensor's shape unknown or not fitting them
-        self.notices: list[str] = []  # a line each time a sensor's frames begin to be skipped, saying why
+        self.undecodable = 0  # samples subscribed to, dropped: they do not decode
+        self.undecodable_by_board: dict[str, int] = {}  # board (its key's) → its samples in ``undecodable``
+        self.notices: list[str] = []  # a line when a sensor's frames begin to be skipped or a board's sample
+        # first does not decode, saying why
+        self._undecodable_last = ""  # "board B: why" of the latest sample that did not decode
         self._skipping: dict[str, str] = {}  # "board/id" → why its frames are skipped, until one fits again
         self.following = Following() if one_service_per_board else None
         self.session = open_session(config)
@@ -261,11 +283,17 @@ class ZenohClient:
             self.notices.append(_unshaped_notice(address, why))
         self._skipping[address] = why
 
-    def _frames(self, board: str, instance: str, payload: bytes, key: str) -> list[dict]:
-        try:
-            records = decode_binary(payload)
-        except (ValueError, IndexError, UnicodeDecodeError, struct.error) as exc:
-            raise TactileError(f"zenoh sample on {key} does not decode ({exc})") from None
+    def _drop_undecodable(self, board: str, why: str) -> None:
+        """Count a subscribed sample of ``board`` that does not decode (``why``);
+        tell it in ``notices`` at the board's first such sample."""
+        self.undecodable += 1
+        self.undecodable_by_board[board] = self.undecodable_by_board.get(board, 0) + 1
+        self._undecodable_last = f"board {board}: {why}"
+        if self.undecodable_by_board[board] == 1:
+            self.notices.append(f"{self._undecodable_last}: such samples are dropped (counted in undecodable)")
+
+    def _frames(self, board: str, instance: str, records: list[dict]) -> list[dict]:
+        """The frames of a sample's decoded binary ``records``, from ``instance``'s ``board``."""
         converter = self._converters.get((board, instance))
         if converter is None:
             if self.following is not None:  # a restarted or handed-over service's: its predecessor's are of no use
@@ -284,7 +312,8 @@ class ZenohClient:
         key = latest_key(board, sensor)
         sample = self._get(key, self.followed(board), instance_of_sample)
         unshaped = self.unshaped
-        frames = self._frames(_board_of(sample.key_expr), instance_of_sample(sample), sample.payload.to_bytes(), key)
+        frames = self._frames(_board_of(sample.key_expr), instance_of_sample(sample),
+                              _decoded(sample.payload.to_bytes(), key))
         if not frames:
             said = _skipping_said(self._skipping, self.unshaped > unshaped)
             raise TactileError(f"zenoh query {key}: the frame answered was skipped{said}")
@@ -300,7 +329,9 @@ class ZenohClient:
         service than the one followed are dropped, counted in ``refused``;
         frames whose sensor's shape is unknown or does not fit them are
         skipped, counted in ``unshaped`` (samples of those alone are no
-        frame within ``timeout`` either)."""
+        frame within ``timeout`` either); samples that do not decode are
+        dropped, counted in ``undecodable`` and ``undecodable_by_board``, and
+        told once per board in ``notices``."""
         timeout = self.timeout if timeout is None else timeout
         keys = [frame_key(board, "*")] if sensors is None else [frame_key(board, sid) for sid in sensors]
         inbox, dropped_before = _Inbox(queue_samples), self.dropped
@@ -314,19 +345,26 @@ class ZenohClient:
                     self.refused += _records(sample.payload.to_bytes())
 
         subscribers = [self.session.declare_subscriber(key, take) for key in keys]
-        given_at, unshaped = time.monotonic(), self.unshaped  # samples whose every record is skipped are no frame
+        # samples whose every record is skipped, or that do not decode, are no frame
+        given_at, unshaped, undecodable = time.monotonic(), self.unshaped, self.undecodable
         try:
             while True:
                 wait = given_at + timeout - time.monotonic()
                 received = inbox.get(wait) if wait > 0 else None
                 self.dropped = dropped_before + inbox.dropped
                 if received is None:
-                    said = _skipping_said(self._skipping, self.unshaped > unshaped)
+                    said = _skipping_said(self._skipping, self.unshaped > unshaped) + \
+                        _undecodable_said(self.undecodable - undecodable, self._undecodable_last)
                     raise TactileError(f"no frame on {', '.join(keys)} within {timeout} s{said}")
                 key, payload, instance = received
-                for frame in self._frames(_board_of(key), instance, payload, key):
+                try:
+                    records = _decoded(payload, key)
+                except TactileError as exc:  # one bad sample never ends the stream of every board followed
+                    self._drop_undecodable(_board_of(key), str(exc))
+                    continue
+                for frame in self._frames(_board_of(key), instance, records):
                     yield frame
-                    given_at, unshaped = time.monotonic(), self.unshaped
+                    given_at, unshaped, undecodable = time.monotonic(), self.unshaped, self.undecodable
         finally:
             for subscriber in subscribers:
                 subscriber.undeclare()
