@@ -261,7 +261,6 @@ class Board:
             else:
                 self.pipeline.not_applied[info.id] = {"id": wanted, "reason": str(exc), "kept": in_use}
             return
-        self.pipeline.reconstructor.calibration_problems.pop(info.id, None)
         self.calibrations.forget_activation_times()
         log.info("sensor %s: calibration %s in place of %s, activated in the registry", info.address, wanted, in_use)
 

@@ -103,7 +103,7 @@ def replay_settings(args, path: str) -> dict:
     recorded = read_settings(path) if Path(path).suffix == ".mcap" and Path(path).is_file() else {}
     for name in ("level", "mounting"):
         given = getattr(args, name)
-        made = sorted({board[name] for board in recorded.values()})
+        made = sorted({board[name] for board in recorded.values() if name in board})  # one unknown is left out
         if given not in (None, "auto") and made and made != [given]:  # auto says what it chose, after
             print(f"tactile replay: {path} was recorded at {name} {' and '.join(made)}; replaying at {given}, so its "
                   "forces differ from the recorded ones", file=sys.stderr)
@@ -201,7 +201,8 @@ def cmd_replay(args) -> int:
         # level and mounting unless told.
         args.board_specs = [
             BoardSpec(url if b is None else f"{url}&board={urllib.parse.quote(b)}", b,
-                      *(getattr(args, name) or recorded.get(b, DEFAULTS)[name] for name in ("level", "mounting")))
+                      *(getattr(args, name) or recorded.get(b, {}).get(name, DEFAULTS[name])
+                        for name in ("level", "mounting")))
             for b in boards]
         args.level, args.mounting = args.level or DEFAULTS["level"], args.mounting or DEFAULTS["mounting"]
         args.recording = path

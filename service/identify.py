@@ -80,11 +80,13 @@ class Identification:
         a restart without INFO was found (one int compared per read otherwise)."""
         return self._expecting is not None or self._until is not None or restarts_without_info != self._restarts_seen
 
-    def take(self, frames: list[Frame], t_host: float, restarts_without_info: int) -> tuple[Held, str | None]:
-        """(the frames to read now, with their receive times, in order; why a
-        hold began with this read: "opened", "restarted", or None). A restart
-        whose INFO was lost holds from its first frame on: those before it
-        are the run before, read now."""
+    def take(self, frames: list[Frame], t_host: float, restarts_without_info: int) -> tuple[Held, Held, str | None]:
+        """(the frames no hold kept, to read now; those of a hold that ended
+        with this read, by its INFO (first) or its wait, to read after them:
+        each with its receive time, in order; why a hold began with this
+        read: "opened", "restarted", or None). A restart whose INFO was lost
+        holds from its first frame on: those before it are the run before,
+        read now."""
         now: Held = []
         if restarts_without_info != self._restarts_seen:
             self._restarts_seen = restarts_without_info
@@ -99,14 +101,14 @@ class Identification:
             self._until = t_host + self.wait_s
             self.holds += 1
         if self._until is None:
-            return now + [(frames, t_host)], None
+            return now + [(frames, t_host)], [], None
         self._held.append((frames, t_host))
         if any(frame.type == FrameType.INFO for frame in frames):
-            return now + self._release(info_first=True), began
+            return now, self._release(info_first=True), began
         if self.timed and t_host >= self._until:
             self.unanswered += 1
-            return now + self._release(info_first=False), began
-        return now, began
+            return now, self._release(info_first=False), began
+        return now, [], began
 
     def expire(self, hold: int) -> Held:
         """The frames of hold number ``hold``, if it is still on, to be read

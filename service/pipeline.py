@@ -310,7 +310,7 @@ class Pipeline(SensorChanges):
         "restarted" is a restart, whose INFO? the caller asks). A hold that begins times itself out."""
         identification = self.identification
         unanswered = identification.unanswered
-        go, began = identification.take(frames, t_host, self.decoder.restarts_without_info)
+        now, released, began = identification.take(frames, t_host, self.decoder.restarts_without_info)
         if began:
             self._hold_began = began
             self._later(identification.wait_s, partial(self._hold_expired, identification.holds))
@@ -318,8 +318,8 @@ class Pipeline(SensorChanges):
             self.info_waits.restarts.add(t_host)
         if identification.unanswered != unanswered:
             self._link_event("expired")
-            return self._unidentified(go, f"none within {identification.wait_s:.2f} s"), began
-        return self._read(go), began
+            return self._read(now) + self._unidentified(released, f"none within {identification.wait_s:.2f} s"), began
+        return self._read(now) + self._answered(released), began
 
     def _hold_expired(self, hold: int) -> None:
         """``wait_s`` after hold number ``hold`` began: its frames, if no INFO
@@ -342,6 +342,20 @@ class Pipeline(SensorChanges):
                         "under the description in force, flagged unidentified", self.interpreter.name, count, why)
             self.interpreter.unidentified = self._hold_began
         return self._read(held)
+
+    def _answered(self, released: Held) -> list[Reading]:
+        """Frames a hold's INFO released, its INFO first (Identification.take),
+        read: flagged ``unidentified`` unless one of those INFO is taken — one
+        refused as invalid says no more of the board than no INFO would."""
+        if not released:
+            return []
+        self.interpreter.unidentified = self._hold_began
+        readings = self._read(released[:1])  # the INFO: a valid one clears the flag (Interpreter._on_info)
+        if self.interpreter.unidentified is not None:
+            log.warning("board %s: the INFO its %d held frames waited for was refused (%s): they are read under the "
+                        "description in force, flagged unidentified", self.interpreter.name,
+                        sum(len(frames) for frames, _ in released[1:]), self.interpreter.info_refused)
+        return readings + self._read(released[1:])
 
     def _read(self, held: Held) -> list[Reading]:
         """Readings of frames grouped by read, each group with its receive time, in order."""

@@ -87,7 +87,7 @@ def _board(path: Path, index: int, entry: dict, level: str, mounting: str) -> Bo
     if level not in LEVELS:
         raise ValueError(f"{where}: level {level!r} is not one of {', '.join(LEVELS)}")
     mounting = entry.get("mounting", mounting)
-    if mounting not in MOUNTINGS:
+    if not isinstance(mounting, str) or mounting not in MOUNTINGS:  # a list or table is no key of MOUNTINGS
         raise ValueError(f"{where}: mounting {mounting!r} is not one of {', '.join(MOUNTINGS)}")
     calibration = entry.get("calibration", [])
     if isinstance(calibration, str):

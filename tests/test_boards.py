@@ -12,7 +12,7 @@ from firmware_sim.misbehaving import MisbehavingBoard
 from firmware_sim.sensors import SimGrid, SimQuad
 from service.api.app import create_app
 from service.board import BoardSpec
-from service.cli import build_parser
+from service.cli import build_parser, main
 from service.cli_serve import board_specs
 from service.fanout.encoding import decode_binary
 from service.live_service import TactileService
@@ -112,6 +112,19 @@ def test_several_sources_on_the_command_line_and_in_a_robot_file(tmp_path):
     with pytest.raises(ValueError, match=r"--source 1bad=sim://: board name '1bad' must start with a letter"):
         board_specs(parse(["serve", "--source", "1bad=sim://"]))
     assert [s.name for s in board_specs(parse(["serve", "--source", "sim://?scene=press&seed=3"]))] == [None]
+
+
+@pytest.mark.parametrize("value", ['["flat"]', '{ kind = "flat" }'])
+def test_a_robot_file_whose_mounting_is_no_string_is_named_and_exits_2(tmp_path, capsys, value):
+    """``mounting = ["flat"]`` raised TypeError (unhashable list, looked up
+    among the mountings) through ``tactile serve``: a traceback. Now the
+    CLI's error naming the board and the field, exit 2, before any port is bound."""
+    robot = tmp_path / "robot.toml"
+    robot.write_text(f'[[board]]\nname = "palm"\nsource = "sim://"\nmounting = {value}\n')
+    with pytest.raises(ValueError, match=r"board 1 \('palm'\): mounting .* is not one of flat, curved"):
+        load_robot(robot, "full", "flat")
+    assert main(["serve", "--config", str(robot)]) == 2
+    assert capsys.readouterr().err.startswith(f"tactile serve: error: {robot}: board 1 ('palm'): mounting ")
 
 
 def test_a_bare_source_is_named_from_its_info():

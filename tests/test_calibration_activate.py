@@ -14,11 +14,13 @@ import orjson
 import pytest
 from fastapi.testclient import TestClient
 
+from firmware_sim.board import BoardConfig, capture
 from firmware_sim.scenes import SCENES
 from firmware_sim.sensors import SimGrid
 from service.api.app import create_app
 from service.calibration import registry as reg
 from service.calibration.book import CalibrationBook, book_from_options
+from service.health import health_report
 from service.live_service import ACTIVE_POLL_S, TactileService
 from service.replay import replay
 
@@ -208,3 +210,25 @@ def test_only_sensors_on_the_registry_follow_it(tmp_path):
     with reg.Registry(path) as registry:
         assert CalibrationBook(path, [registry.get(a)]).registry_active(board, [info]) == {}
     assert CalibrationBook(path, replaying=True).registry_active(board, [info]) == {}
+
+
+def test_an_upload_to_a_sensor_whose_own_calibration_could_not_be_used_ends_the_line(tmp_path):
+    """The registry's active calibration is a 4x4 grid's, the sensor 8x8: the
+    built-in is used, /health says why. A PUT of 64 sensitivities answered
+    200 and its frames used it, yet the line stayed (the registry switch
+    cleared it, the upload did not); now it goes, as the switch's does."""
+    path = tmp_path / "registry.sqlite3"
+    activate(path, stored(path, 1.0, "4x4", (4, 4)))
+    service = TactileService(SOURCE, calibrations=CalibrationBook(path), recordings_dir=tmp_path)
+    data, _ = capture(BoardConfig(sensors=[SimGrid(0)], scene="idle"), 0.3)
+    service.pipeline.feed(data[:len(data) // 2], 1000.0)
+    line = "sensor 0 uses the built-in calibration: its own could not be used (ValueError: rows, cols: calibration "
+    assert [p for p in health_report(service)["problems"] if p.startswith(line)] != []
+    client = TestClient(create_app(service), base_url="http://localhost")  # no lifespan: the frames are fed here
+    answer = client.put("/sensors/0/calibration", json={"sensitivity_pct_per_N": [1.25] * 64})
+    assert answer.status_code == 200
+    service.pipeline.feed(data[len(data) // 2:], 1000.3)
+    assert service.pipeline.latest[0].calibration == answer.json()["id"]
+    health = health_report(service)
+    assert [p for p in health["problems"] if "built-in calibration" in p] == []
+    assert health["sensors"]["0"]["calibration"]["problem"] is None

@@ -17,6 +17,7 @@ import numpy as np
 
 from service.fanout.encoding import decode_binary, to_binary
 from service.live_service import TactileService
+from service.protocol import FrameType, encode_frame
 from service.readout import INFO_REPLY_S
 from tests.test_reidentify import QUAD_C0, Scans, TcpBoard, count, live_pipeline, serve
 
@@ -192,3 +193,27 @@ def test_a_live_board_restarting_0_9_s_apart_is_asked_info_at_each_restart():
     published = serve(device, scenario)
     assert len(device.asked) - marks[0] == 2 and device.asked[-1] - device.asked[-2] < 1.0
     assert not any("unidentified" in f.flags for f, _ in published)
+
+
+def test_frames_released_by_an_info_refused_as_invalid_are_flagged_until_a_valid_info():
+    """B's INFO comes in time but is refused whole (payload not JSON): the
+    board has not said what it is, yet the 10 scans held for it and the 10
+    after went on unflagged, read on A's zero (|Fz| > 3σ). Now all 40 frames
+    carry ``unidentified``; B's valid INFO ends it for its next 10 scans."""
+    pipeline, _, timers, published = live_pipeline()
+    a = Scans("A-1", seed=1)
+    pipeline.feed(a.info() + a.next(200), 0.0)
+    pipeline.link_lost()
+    b = Scans("B-2", quad_c0=B_QUAD_C0, seq=12000, t_us=60_000_000, reply_s=None, seed=2)
+    before = len(published)
+    pipeline.feed(b.next(10), 1.0)
+    assert len(published) == before  # held for B's INFO
+    pipeline.feed(encode_frame(FrameType.INFO, 255, 0, b.t_us, b"{not json") + b.next(5), 1.1)
+    pipeline.feed(b.next(5), 1.2)
+    assert pipeline.interpreter.rejected["info_invalid"] == 1
+    refused = published[before:]
+    assert [f.seq for f in quad_frames(refused)] == list(range(12000, 12020)) and len(refused) == 40
+    assert [f.seq for f in quad_frames(refused) if "unidentified" not in f.flags] == []
+    answered = len(published)
+    pipeline.feed(b.info() + b.next(10), 1.3)
+    assert len(published) - answered == 20 and not any("unidentified" in f.flags for f in published[answered:])

@@ -61,12 +61,14 @@ class CalibrationChoice:
         return calibration, processor_for(info, self.level, self.mounting, calibration), document
 
     def apply_calibration(self, info: SensorInfo, prepared: tuple) -> dict:
-        """The quick half: swap the calibration and the sensor's processor in."""
+        """The quick half: swap the calibration and the sensor's processor in;
+        why its own could not be used, if it could not, goes with the built-in."""
         calibration, processor, document = prepared
         self._chosen[identity(info)] = calibration
         state = self._sensors.get(info.id)
         if state is not None and identity(state.info) == identity(info):  # not one still reconstructed as another
             self._swap(state, calibration, processor)
+            self.calibration_problems.pop(info.id, None)
         return document
 
     def _described_again(self, state: SensorState, info: SensorInfo) -> None:

@@ -19,6 +19,9 @@ from mcap.records import Chunk, Message, MessageIndex
 from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 from mcap.writer import MCAP0_MAGIC
 
+from ..physics.mountings import MOUNTINGS
+from ..reconstruct.levels import LEVELS
+
 log = logging.getLogger(__name__)
 
 # A chunk's records, inflated, at most this: ours hold 64 KiB (mcap_writer.CHUNK_BYTES) or one message
@@ -152,6 +155,9 @@ def read_changes(path: str | Path) -> dict[str | None, list[tuple[int, int | Non
                 (int(s["after_reads"]), int(s["sensor"]), bool(doc["judge"])) for s in doc["sensors"])
         elif topic.endswith("/link"):
             changes.setdefault(raw_board(topic, "link"), []).append((int(doc["after_reads"]), None, str(doc["event"])))
+        elif not isinstance(doc["document"], dict):  # a list would be taken for a tare's judge (Pipeline.redo)
+            log.warning("%s: the /calibration_set of sensor %s before read %s: its document %.80r is no object: "
+                        "skipped", path, doc["sensor"], doc["after_reads"], doc["document"])
         else:
             changes.setdefault(raw_board(topic, "calibration_set"), []).append(
                 (int(doc["after_reads"]), int(doc["sensor"]), doc["document"]))
@@ -164,6 +170,8 @@ def read_calibrations_set(path: str | Path) -> set[tuple[int | str, str]]:
     found = set()
     for _, message in _topics_of(path, lambda topic: raw_board(topic, "calibration_set") is not False):
         doc = orjson.loads(message.data)
+        if not isinstance(doc["document"], dict):  # skipped by read_changes, said there
+            continue
         found.add((f"{doc['board']}/{int(doc['sensor'])}" if doc.get("board") else int(doc["sensor"]),
                    doc["document"]["id"]))
     return found
@@ -179,8 +187,22 @@ def read_settings(path: str | Path) -> dict[str | None, dict]:
     for topic, message in _topics_of(path, lambda topic: raw_board(topic, "settings") is not False):
         doc = orjson.loads(message.data)
         wait = {"identify": doc["identify"]} if "identify" in doc else {}
-        settings.setdefault(raw_board(topic, "settings"), {"level": doc["level"], "mounting": doc["mounting"], **wait})
+        settings.setdefault(raw_board(topic, "settings"), _known_settings(path, doc) | wait)
     return settings
+
+
+def _known_settings(path: str | Path, doc: dict) -> dict:
+    """{"level", "mounting"} of a /settings document, each one that is none
+    the service knows said and left out (the replay's own or default is used)."""
+    known = {}
+    for name, values in (("level", LEVELS), ("mounting", MOUNTINGS)):
+        value = doc[name]
+        if isinstance(value, str) and value in values:  # a list is no key of MOUNTINGS: TypeError
+            known[name] = value
+        else:
+            log.warning("%s: the recorded /settings' %s %.80r is not one of %s: skipped, replayed at the one given "
+                        "or the default", path, name, value, ", ".join(values))
+    return known
 
 
 def read_baselines(path: str | Path) -> dict[str | None, dict]:
