@@ -123,6 +123,37 @@ def test_a_quad_started_unloaded_is_not_called_loaded_within_a_few_kelvin(tmp_pa
     assert np.all(np.abs(mean - [0.0, 0.0, 2.0]) <= sigma) and not flags
 
 
+@pytest.mark.parametrize("level", ["full", "table"])
+def test_a_quad_3_percent_warmer_than_its_calibration_is_loaded_and_its_sigma_covers_the_zero_it_kept(tmp_path, level):
+    """3 % warmer than at its calibration, past the 2.4 % margin: loaded at the tare, C0 kept as the zero, so
+    at rest it reads fit 34's Fz at ΔC/C0 = 0.03 (0.896 N). That zero is only as good as the ±2 % common-mode
+    allowance the judgement gave it (loaded_tare.COMMON_MAX_DRIFT): σ_Fz holds 0.02 through the slope
+    (0.583 N at rest), so the phantom stands within 3σ (it had σ 0.062 N: 14σ), flagged."""
+    pipeline = pipeline_on(registry_with(tmp_path), level)
+    rest, = run(pipeline, [(600, (0.0, 0.0, 0.0), 0.03)])
+    assert pipeline.reconstructor.loaded_at_tare(1) == [0, 1, 2, 3]
+    phantom = (C1 - np.sqrt(C1 * C1 + 4.0 * C2 * 0.03)) / (-2.0 * C2)
+    mean, sigma, flags = held(rest)
+    assert phantom == pytest.approx(0.896, abs=1e-3) and mean[2] == pytest.approx(phantom, abs=0.01)
+    assert flags == {"loaded_at_tare"}
+    fz, sigma_z = (np.array([f.forces_N[2] for f in rest[-200:]]), np.array([f.sigma_N[2] for f in rest[-200:]]))
+    assert np.all(np.abs(fz) <= 3.0 * sigma_z), (fz.max(), sigma_z.min())
+    assert np.all(sigma_z >= 0.02 / C1)  # at least the allowance through fit 34's slope at 0 N (0.583 N)
+    np.testing.assert_allclose(sigma[:2], 0.02135, rtol=0.01)  # a common shift moves no shear: X, Y σ as before
+
+
+@pytest.mark.parametrize("level, before", [("full", [0.03832, 0.03832, 0.14010]),
+                                           ("table", [0.03833, 0.03832, 0.14009])])
+def test_a_normally_tared_quads_sigma_is_unchanged(tmp_path, level, before):
+    """1 % warmer, within the margin: tared on its own means, its mean σ under a 2 N press what it was before a
+    kept zero had a σ (``before``, measured on the code then), within 1 %."""
+    pipeline = pipeline_on(registry_with(tmp_path), level)
+    _, pressed = run(pipeline, [(300, (0.0, 0.0, 0.0), 0.01), (600, (0.0, 0.0, 2.0), 0.01)])
+    assert pipeline.reconstructor.loaded_at_tare(1) == []
+    _, sigma, _ = held(pressed)
+    np.testing.assert_allclose(sigma, before, rtol=0.01)
+
+
 def test_the_threshold_is_an_fz_of_0713_N_and_the_quad_is_judged_as_a_whole():
     """4 × hypot(0.05 fF, 0.1 % of C0) + 2 % of C0 = 2.400 % of C0: fit 34 reaches ΔC/C0 0.024 at 0.7130 N
     (−0.0009 F² + 0.0343 F), so 0.70 N at the tare passes as unloaded and 0.73 N is a load. One electrode
@@ -215,7 +246,8 @@ def test_a_stored_zero_comes_first_and_one_too_old_leaves_the_quad_to_its_c0(tmp
 
 
 def test_a_recording_begun_after_a_loaded_tare_replays_it(tmp_path):
-    """The zero a recording begins with (baselines: C0, loaded [0..3]) is the replay's: equal frames, flagged."""
+    """The zero a recording begins with (baselines: C0, loaded [0..3], its σ) is the replay's: equal frames and
+    σ, flagged."""
     from service.record.recorder import Recorder
     from service.replay import replay
 
@@ -233,6 +265,7 @@ def test_a_recording_begun_after_a_loaded_tare_replays_it(tmp_path):
     live = [f for phase in live for f in phase]
     assert [d["seq"] for d in again] == [f.seq for f in live]
     np.testing.assert_array_equal([d["fxyz_N"] for d in again], [f.forces_N for f in live])
+    np.testing.assert_array_equal([d["sigma_N"] for d in again], [f.sigma_N for f in live])  # the kept zero's σ too
     assert all(d["flags"] == ["loaded_at_tare"] for d in again)
 
 

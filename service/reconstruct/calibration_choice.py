@@ -100,6 +100,7 @@ class CalibrationChoice:
         runs = state.processor.stale_runs
         if runs is not None:  # a converter stuck before the new calibration is still stuck
             processor.restore_stale_runs(*runs)
+        processor.kept_zero = state.processor.kept_zero  # a zero kept at a loaded tare stays, and its σ with it
         state.processor, state.calibration = processor, calibration
         state.baseline.own_level = own_level(state.info, self.mounting, calibration)  # its C0 pattern from now on
         state.baseline.rewindow(tare_window(state.info, self.mounting, calibration))  # a tare expects its C0 now

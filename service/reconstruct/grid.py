@@ -47,7 +47,7 @@ from .crosstalk import Crosstalk, CrosstalkEstimator
 from .drift import MIN_REFERENCE_TAXELS, DriftTracker
 from .grid_state import GridState
 from .levels import GRID_LEVELS
-from .sigma import empirical_forces, level0_sigma, table_sigma
+from .sigma import empirical_forces, level0_sigma, table_sigma, zero_sigma_for
 from .taxel_flags import OUT_OF_RANGE, SATURATED, STALE, ReadingFlags
 
 
@@ -88,6 +88,8 @@ class GridProcessor(ReadingFlags, GridState):
     _zero_missing_for: tuple | None = None
     _fill_for: tuple | None = None
     _neighbours: np.ndarray | None = None  # (n, n) eight-neighbourhood, for the table level's crosstalk margin
+    # (the zero (n,) pF kept at a loaded tare, its σ (n,) ΔC/C0: loaded_tare.kept_zero_sigma), sigma.zero_sigma_for
+    kept_zero: tuple | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.level not in GRID_LEVELS:
@@ -155,7 +157,7 @@ class GridProcessor(ReadingFlags, GridState):
                 relative = np.where(over, self.top_relative, relative)
             forces = relative / self.calibration.sensitivity_per_N
             noise = self.noise(baseline, baseline_std)
-            sigma = level0_sigma(self, forces, noise, relative)
+            sigma = level0_sigma(self, forces, noise, relative, zero_sigma_for(self.kept_zero, baseline))
             held = over if clipped is None else over | (clipped & (forces == forces))
             if np.count_nonzero(held):
                 np.bitwise_or(flags, SATURATED, out=flags, where=held)
@@ -183,7 +185,8 @@ class GridProcessor(ReadingFlags, GridState):
         if stale is not None:
             forces[stale] = np.nan
         sigma = table_sigma(self.response, relative, forces, noise, self.response.gain, self.gain_relative_se,
-                            self.model_sigma_N, self.calibrated_to_N, saturated)
+                            self.model_sigma_N, self.calibrated_to_N, saturated,
+                            zero=zero_sigma_for(self.kept_zero, baseline))
         return GridResult(forces, flags, sigma)
 
     def _crosstalk_explains(self, relative: np.ndarray, noise: np.ndarray) -> np.ndarray:

@@ -87,7 +87,7 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
         rows.append(slice(row, row + end - start))
         row += end - start
         params.append(p._row_parameters(job.baseline, job.baseline_std))
-    capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma, calibrated_to) = \
+    capacitance, t_s, (baseline, noise, reference, band, gain, relative_se, model_sigma, calibrated_to, zero) = \
         _stacked_rows(pieces, counts, params)
     clipped = _clipped(pieces, capacitance.shape)
     flags, stale = _reading_flags(pieces, rows, capacitance, clipped)
@@ -112,7 +112,7 @@ def _full_rows(spans: list[tuple[GridJob, int, int]]) -> list[GridResult]:
     if clipped is not None:  # a lower bound: held as read, no σ
         saturated |= clipped & (forces == forces)
     sigma = _sigma(pieces, rows, compensated, forces, (noise, gain, relative_se, model_sigma, calibrated_to), saturated,
-                   shared, unseen)
+                   shared, unseen, zero)
     np.bitwise_or(flags, SATURATED, out=flags, where=saturated)
     np.bitwise_or(flags, OUT_OF_RANGE, out=flags, where=out_of_range)
     return [GridResult(forces[r], flags[r], sigma[r]) for r in rows]
@@ -226,10 +226,12 @@ def _inverted(pieces: list[Piece], rows: list[slice], params: list[tuple], compe
 
 
 def _sigma(pieces: list[Piece], rows: list[slice], compensated: np.ndarray, forces: np.ndarray,
-           per_row: tuple, saturated: np.ndarray, shared: bool, unseen: np.ndarray) -> np.ndarray:
+           per_row: tuple, saturated: np.ndarray, shared: bool, unseen: np.ndarray, zero: np.ndarray) -> np.ndarray:
     """σ of every force (sigma.py), with the drift each row's tracker cannot
-    have seen (R,) ΔC/C0; sensors on the same table in one call."""
+    have seen (R,) ΔC/C0 and the σ of a zero kept at a loaded tare (n,) or
+    (R, n) ΔC/C0; sensors on the same table in one call."""
     if shared:
-        return table_sigma(pieces[0][0].response, compensated, forces, *per_row, saturated, unseen)
+        return table_sigma(pieces[0][0].response, compensated, forces, *per_row, saturated, unseen, zero)
     return np.concatenate([table_sigma(p.response, compensated[r], forces[r], *(a[r] if a.ndim == 2 else a for a in per_row),
-                                       saturated[r], unseen[r]) for (p, _, _), r in zip(pieces, rows)])
+                                       saturated[r], unseen[r], zero[r] if zero.ndim == 2 else zero)
+                           for (p, _, _), r in zip(pieces, rows)])

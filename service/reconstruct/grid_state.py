@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .sigma import zero_sigma_for
+
 ADOPT_AFTER_EVENTS = 10  # isolated loads needed before a detected coefficient replaces the prior (within the first press)
 SIGNIFICANT_SIGMAS = 3.0  # a leakage residual is added only when it stands this far above its own error
 ADOPT_PERIOD_FRAMES = 64  # estimates are adopted only at multiples of this frame count
@@ -69,7 +71,8 @@ class GridState:
 
     def _row_parameters(self, baseline: np.ndarray, baseline_std: np.ndarray) -> tuple:
         """(baseline, noise, un-leaked reference, drift band, gain, gain's
-        relative error, model σ, largest force calibrated), each (n,):
+        relative error, model σ, largest force calibrated, the σ of a zero
+        kept at a loaded tare in ΔC/C0: sigma.zero_sigma_for, 0 where tared), each (n,):
         what the full level needs per row; the same tuple until a tare or a
         new leakage fraction, so stacks of it can be kept."""
         cached = self._parameters_for
@@ -77,9 +80,14 @@ class GridState:
             noise = self.noise(baseline, baseline_std)
             self.drift.noise = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 0.0  # what a load departs from (drift.py)
             values = (baseline, noise, self._reference(baseline), self.drift.band * noise, self.response.gain,
-                      self.gain_relative_se, self.model_sigma_N, self.calibrated_to_N)
+                      self.gain_relative_se, self.model_sigma_N, self.calibrated_to_N, self._zero_sigma(baseline))
             cached = self._parameters_for = (baseline, baseline_std, self.crosstalk.electrical, values)
         return cached[3]
+
+    def _zero_sigma(self, baseline: np.ndarray) -> np.ndarray:
+        """The σ (n,) ΔC/C0 of each taxel's zero, kept at a loaded tare (sigma.zero_sigma_for); 0 where tared."""
+        sigma = zero_sigma_for(self.kept_zero, baseline)
+        return np.zeros(baseline.shape) if sigma is None else sigma
 
     def _stacked(self, parameters: list[tuple]) -> tuple:
         """Several sensors' ``_row_parameters`` stacked field by field, (S, n)

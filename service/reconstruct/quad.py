@@ -61,6 +61,8 @@ class QuadProcessor:
     runs: tuple | None = field(default=None, repr=False, compare=False)
     # (the zero it is tracked on, its DriftTracker): the common-mode drift (quad_drift.py), the full level's.
     drift: tuple | None = field(default=None, repr=False, compare=False)
+    # (the zero (4,) pF kept at a loaded tare, its σ (4,) ΔC/C0: loaded_tare.kept_zero_sigma): quad_batch.zero_sigmas
+    kept_zero: tuple | None = field(default=None, repr=False, compare=False)
     # Processors with equal keys give the same result on the same input, so
     # their sensors' frames can go through one call.
     batch_key: tuple = field(init=False, repr=False, compare=False)
@@ -118,7 +120,8 @@ class QuadProcessor:
               sensitivity: np.ndarray | float = 1.0, drift: np.ndarray | None = None) -> np.ndarray:
         """1-σ (N, 3) of forces (N, 3) (sigma.py's terms): each axis's
         combination noise through the curve's slope at that force (Z's with
-        ``drift`` (N,), the drift estimate's own σ in ΔC/C0: quad_drift.py;
+        ``drift`` (N,) in ΔC/C0, the drift estimate's own σ (quad_drift.py)
+        and a zero kept at a loaded tare's (quad_batch.zero_sigmas);
         X's and Y's with the electrodes' gain mismatch, ``mismatch``), the
         force times its slope's relative error, what the calibration's fit
         left unexplained (``model_sigma_N``), a shear force times what a
@@ -134,6 +137,8 @@ class QuadProcessor:
             noise = np.sqrt(noise * noise + self.mismatch(forces))
         if self.level == "level0":
             reading = noise / _LEVEL0_SLOPES
+            if drift is not None:
+                reading[:, 2] = np.hypot(reading[:, 2], drift / _LEVEL0_SLOPES[2])
         else:
             model = self.model
             c2, c1, _ = model.normal_fit

@@ -27,6 +27,7 @@ from . import quad_drift
 from .level0 import clipped
 from .fatigue import update_many
 from .force_frame import ForceFrame
+from .sigma import zero_sigma_for
 from .stuck import STUCK_FRAMES, run_lengths
 
 MAX_FATIGUE_ROUNDS = 4
@@ -147,6 +148,25 @@ def with_suspect(quad_flags: list[list[str]], forces: np.ndarray, found: quad_dr
     return quad_flags
 
 
+def zero_sigmas(states: list) -> np.ndarray | None:
+    """The σ (S,) in ΔC/C0 of each quad's Z from a zero kept at a loaded tare
+    (sigma.zero_sigma_for: a common shift of its four electrodes moves Z by
+    as much, X and Y not at all), 0 where tared; None where none is kept."""
+    sigmas = [zero_sigma_for(state.processor.kept_zero, state.baseline.value) for state in states]
+    if all(sigma is None for sigma in sigmas):
+        return None
+    return np.array([0.0 if sigma is None else float(np.nanmean(sigma)) for sigma in sigmas])
+
+
+def zero_drift(found: quad_drift.Steps | None, zero: np.ndarray | None) -> np.ndarray | None:
+    """The σ (N,) ΔC/C0 of each row's Z zero for QuadProcessor.sigma: the
+    drift estimate's (``found``) and a kept zero's (``zero`` (N,)) in quadrature; None: neither."""
+    drift = None if found is None else found.sigma
+    if zero is None:
+        return drift
+    return zero if drift is None else np.hypot(drift, zero)
+
+
 def _frames(level: str, states: list, readings: list[Reading], forces: np.ndarray, sigma: np.ndarray,
             quad_flags: list[list[str]], counts: list[int] | None = None) -> list[ForceFrame]:
     """The ForceFrames of ``readings``, ``counts[k]`` of them (default one) of ``states[k]``."""
@@ -175,19 +195,21 @@ class QuadBatches:
         baseline = self._baselines([state.baseline.value for state in states])
         noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state in states])
         sensitivity = np.array([fatigue_factor(state) for state in states])
+        zero = zero_sigmas(states)
         processor = states[0].processor
         capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), states, counts)
         stale, kept = stale_runs(states, capacitance, counts)
         several = len(readings) != len(members)
         if several:
             baseline, noise, sensitivity = (np.repeat(a, counts, axis=0) for a in (baseline, noise, sensitivity))
+            zero = None if zero is None else np.repeat(zero, counts)
         baseline, found = drifted(self.level, states, counts, readings, capacitance, baseline, noise, stale)
         if several:
             forces, quad_flags, sensitivity = _with_fatigue(processor, states, counts, capacitance, baseline, noise,
                                                             sensitivity, stale)
         else:
             forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-        sigma = processor.sigma(forces, noise, sensitivity, None if found is None else found.sigma)
+        sigma = processor.sigma(forces, noise, sensitivity, zero_drift(found, zero))
         quad_flags = with_suspect(quad_flags, forces, found)
         keep_runs(kept)
         if found is not None:
@@ -215,6 +237,7 @@ class _Batch:
         self.baseline = np.array([state.baseline.value for state in states])
         self.noise = np.array([state.processor.noise(state.baseline.value, state.baseline.std) for state in states])
         self.sensitivity = np.array([fatigue_factor(state) for state in states])
+        self.zero = zero_sigmas(states)
         self.cycles = [state.cycles for state in states]
         self.ones = [1] * len(states)
         # Runs stacked when every quad's converter shows noise (the usual board); else counted per sensor.
@@ -293,20 +316,21 @@ class QuadPlan:
     @staticmethod
     def _computed(batch: _Batch, readings: list[Reading], scans: int) -> tuple:
         """(forces, quad flags, σ, runs and drift to keep) of a batch's readings, changing nothing."""
-        baseline, noise, sensitivity = batch.baseline, batch.noise, batch.sensitivity
+        baseline, noise, sensitivity, zero = batch.baseline, batch.noise, batch.sensitivity, batch.zero
         processor = batch.processor
         counts = [scans] * len(batch.states)
         capacitance = without_clipped(readings, np.array([r.capacitance_pF for r in readings]), batch.states, counts)
         stale, kept = batch.stale(capacitance, scans)
         if scans > 1:
             baseline, noise, sensitivity = (np.repeat(a, scans, axis=0) for a in (baseline, noise, sensitivity))
+            zero = None if zero is None else np.repeat(zero, scans)
         baseline, found = drifted(batch.level, batch.states, counts, readings, capacitance, baseline, noise, stale)
         if scans > 1:
             forces, quad_flags, sensitivity = _with_fatigue(processor, batch.states, counts, capacitance, baseline,
                                                             noise, sensitivity, stale)
         else:
             forces, quad_flags = processor.process(capacitance, baseline, noise, sensitivity, stale)
-        sigma = processor.sigma(forces, noise, sensitivity, None if found is None else found.sigma)
+        sigma = processor.sigma(forces, noise, sensitivity, zero_drift(found, zero))
         return forces, with_suspect(quad_flags, forces, found), sigma, (kept, found)
 
     def _apply(self, batch: _Batch, readings: list[Reading], result: tuple, scans: int) -> list[ForceFrame]:

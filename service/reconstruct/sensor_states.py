@@ -18,6 +18,7 @@ back there after another was is judged against the zero it left with.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -30,10 +31,11 @@ from .calibration_upload import expected_c0, own_level, processor_for, tare_wind
 from .fatigue import CycleCounter
 from .grid import GridProcessor
 from .identity import Replacements, identity, named
-from .loaded_tare import judge, judge_quad
+from .loaded_tare import judge, judge_quad, kept_zero_sigma
 from .quad import QuadProcessor
 from .quad_drift import resume, where
 from .sensor_calibration import SensorCalibration
+from .sigma import zero_sigma_for
 from .calibration_choice import CalibrationChoice
 from .cycle_counters import CycleCounters
 from .stored_zero import MAX_AGE_S, StoredZero, StoredZeros, row_problem
@@ -188,11 +190,25 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
                 state.judge_tare = zero.get("judge") is not False
                 if zero.get("loaded"):
                     state.loaded = np.isin(np.arange(info.channels), zero["loaded"])
+                    self._resume_zero_sigma(state, zero.get("zero_sigma"))
                 self._resume_counts(state, zero)
                 if zero.get("drift") is not None and isinstance(state.processor, QuadProcessor):
                     resume(state.processor, state.baseline, zero["drift"])
             self._sensors[info.id] = state
         return state
+
+    @staticmethod
+    def _resume_zero_sigma(state: SensorState, sigma) -> None:
+        """The σ (ΔC/C0 per channel) of the zero a recording began with, kept at a loaded tare, as it was live;
+        one that is no list of as many non-negative numbers as channels (absent in older recordings) is skipped."""
+        if sigma is None:
+            return
+        if not (isinstance(sigma, list) and len(sigma) == state.info.channels and
+                all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v < math.inf for v in sigma)):
+            log.warning("sensor %d: its recorded zero_sigma %.60r is not %d numbers ≥ 0; its zero's σ is left out",
+                        state.info.id, sigma, state.info.channels)
+            return
+        state.processor.kept_zero = (state.baseline.value, np.array(sigma, dtype=float))
 
     def _resume_taring(self, state: SensorState, zero: dict) -> None:
         """A recording begun while the sensor tared: its window goes on from
@@ -234,6 +250,9 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             zero = {"sensor": sid, "baseline_pF": _listed(state.baseline.value), "std_pF": _listed(state.baseline.std),
                     "loaded": [] if state.loaded is None else np.flatnonzero(state.loaded).tolist(),
                     "judge": state.judge_tare, **self._counts(state)}
+            kept = zero_sigma_for(state.processor.kept_zero, state.baseline.value)
+            if kept is not None:
+                zero["zero_sigma"] = _listed(kept)
             if state.tared_t_host == state.tared_t_host:
                 zero["tared_t_host"] = state.tared_t_host
             drift = where(state.processor, state.baseline.value) if isinstance(state.processor, QuadProcessor) else None
@@ -349,8 +368,9 @@ class SensorStates(StoredZeros, CalibrationChoice, CycleCounters):
             log.warning("sensor %d: %s %s read below the calibration's C0 at the tare: its C0 is not this "
                         "sensor's as it is now, so none is judged loaded", state.info.id, channels, state.below_c0)
         if loaded.any():
-            baseline.substitute(loaded, c0)
-            state.loaded = loaded
+            calibration = state.calibration
+            reference = calibration.tare_c0_pF if calibration.quad_c0_pF is None else calibration.quad_c0_pF
+            self._keep_zero(state, loaded, c0, kept_zero_sigma(loaded, reference, c0))
             log.warning("sensor %d: %s %s were loaded at tare; their zero is the calibration's C0",
                         state.info.id, channels, np.flatnonzero(loaded).tolist())
 

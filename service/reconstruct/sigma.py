@@ -11,6 +11,9 @@ variance is the sum of three independent parts:
   (drift.py: the bound times the time since its estimate last stood at the
   unloaded level, or less what a frame's quiet median shows, at least how
   far it is held behind the level it follows; ~0 while it sees the level);
+  and where the zero was kept at a loaded tare rather than tared, that
+  zero's own σ (loaded_tare.kept_zero_sigma: the drift the judgement
+  allowed it since it was measured);
 * the gain's error: F·σ_κ/κ (the calibration's standard error; for the
   built-in table 1 the spread of sensors that are not the paper's,
   sensor_calibration.py);
@@ -39,18 +42,28 @@ from .sensor_calibration import BUILTIN_RELATIVE_SE
 TARE_FACTOR = math.sqrt(1.0 + 1.0 / DEFAULT_TARE_FRAMES)
 
 
+def zero_sigma_for(kept_zero: tuple | None, baseline_pF: np.ndarray) -> np.ndarray | None:
+    """The σ (n,) ΔC/C0 a processor's ``kept_zero`` (the zero (n,) pF it is
+    for, loaded_tare.kept_zero_sigma) gives the zero ``baseline_pF`` (n,): None
+    for another zero (a later tare's) or none kept."""
+    return kept_zero[1] if kept_zero is not None and kept_zero[0] is baseline_pF else None
+
+
 def table_sigma(response, relative: np.ndarray, forces: np.ndarray, noise: np.ndarray, gain: np.ndarray,
                 relative_se: np.ndarray, model_sigma: np.ndarray, calibrated_to: np.ndarray,
-                saturated: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
+                saturated: np.ndarray, unseen: np.ndarray | None = None, zero: np.ndarray | None = None) -> np.ndarray:
     """σ (N, n) of forces (N, n) inverted from ``relative`` (N, n) with the
     response's curve; noise, gain, relative_se, model_sigma, calibrated_to
     (the largest force calibrated, inf: none known) (n,) or (N, n);
     ``unseen`` (N,) the drift (ΔC/C0) each frame's tracker cannot have seen,
-    None: none tracked."""
+    None: none tracked; ``zero`` (n,) or (N, n) the σ (ΔC/C0) of a zero kept
+    at a loaded tare (``zero_sigma_for``), None: every zero tared."""
     slope = response.inverse_slope(relative, gain)
     spread = TARE_FACTOR * noise
     if unseen is not None and unseen.any():  # 0 on every frame where the tracker stands at the level
         spread = np.sqrt(spread * spread + (unseen * unseen)[:, None])
+    if zero is not None and np.count_nonzero(zero):  # a reading against a zero kept, not tared, is as uncertain
+        spread = np.sqrt(spread * spread + zero * zero)
     reading = spread * slope
     beyond = np.maximum(forces - calibrated_to, 0.0) * BUILTIN_RELATIVE_SE
     sigma = np.sqrt(reading * reading + (forces * relative_se) ** 2 + model_sigma * model_sigma + beyond * beyond)
@@ -59,13 +72,16 @@ def table_sigma(response, relative: np.ndarray, forces: np.ndarray, noise: np.nd
     return sigma
 
 
-def level0_sigma(processor, forces: np.ndarray, noise: np.ndarray, relative: np.ndarray) -> np.ndarray:
-    """σ (N, n) of level0's linear forces (N, n) from ΔC/C0 ``relative`` (N, n).
+def level0_sigma(processor, forces: np.ndarray, noise: np.ndarray, relative: np.ndarray,
+                 zero: np.ndarray | None = None) -> np.ndarray:
+    """σ (N, n) of level0's linear forces (N, n) from ΔC/C0 ``relative`` (N, n),
+    ``zero`` (n,) a kept zero's σ as ``table_sigma``'s.
     A line misses the gap's nonlinearity (C ∝ 1/gap: a force closing the
     gap by x reads r = x/(1 − x)): what a line reads beyond F·(1 − r/(1 + r))
     is in σ (a true 41 N read 65.6 ± 4.6 N; the press scene's 0.2 N RMS
     loaded error had ±0.01 N)."""
-    reading = TARE_FACTOR * noise / processor.calibration.sensitivity_per_N
+    spread = TARE_FACTOR * noise if zero is None else np.hypot(TARE_FACTOR * noise, zero)
+    reading = spread / processor.calibration.sensitivity_per_N
     r = np.abs(relative)
     line = forces * (r / (1.0 + r))
     return np.sqrt(reading * reading + (forces * processor.gain_relative_se) ** 2 + line * line)

@@ -54,7 +54,7 @@ from ..readings import SensorInfo
 from .drift import MIN_REFERENCE_TAXELS
 from .grid import GridProcessor
 from .identity import Replacements, named
-from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, judge, mean_noise, whole_quad
+from .loaded_tare import COMMON_MAX_DRIFT, LOADED_SIGMAS, judge, kept_zero_sigma, mean_noise, whole_quad
 
 DRIFT_PER_S = 0.01 / 60.0  # the tracked drift bound: 1 % ΔC/C0 per minute (docs/reconstruction.md)
 MAX_AGE_S = COMMON_MAX_DRIFT / DRIFT_PER_S  # 120 s
@@ -95,7 +95,9 @@ def judged(stored: StoredZero, mean_pF: np.ndarray, std_pF: np.ndarray, frames: 
     zero: {age_s, kept (n,) bool (channels above it: their zero is
     ``zero_pF``'s), zero_pF (n,): the stored zero moved by the common level
     of a grid's free taxels (at most what drift at the bound explains),
-    not_used: why not (then nothing is kept)}."""
+    zero_sigma (n,): each kept channel's zero's σ in ΔC/C0, the drift at
+    the bound since it was saved (loaded_tare.kept_zero_sigma), not_used:
+    why not (then nothing is kept)}."""
     age = now - stored.saved
     report = {"age_s": round(age, 1), "kept": np.zeros(mean_pF.shape, dtype=bool), "zero_pF": stored.zero_pF,
               "not_used": stored.unusable(now)}
@@ -110,7 +112,7 @@ def judged(stored: StoredZero, mean_pF: np.ndarray, std_pF: np.ndarray, frames: 
         return {**report, "not_used": f"{len(channels)} channels read below it ({', '.join(map(str, channels[:8]))}"
                                       f"{', …' if len(channels) > 8 else ''}): another sensor's zero, or one cooler "
                                       "than drift since explains"}
-    return {**report, "kept": kept, "zero_pF": zero}
+    return {**report, "kept": kept, "zero_pF": zero, "zero_sigma": kept_zero_sigma(kept, stored.zero_pF, zero, drift)}
 
 
 class StoredZeros:
@@ -145,20 +147,28 @@ class StoredZeros:
         baseline = state.baseline
         now = t_host if stored.left else time.time()
         report = judged(stored, baseline.value, baseline.std, baseline.frames, now)
-        kept = report.pop("kept")
+        kept, sigma = report.pop("kept"), report.pop("zero_sigma", None)
         if state.info.kind == "quad":
             kept = whole_quad(kept, np.isfinite(baseline.value) & np.isfinite(report["zero_pF"]))
+            sigma = np.where(kept, np.max(sigma, initial=0.0), 0.0) if sigma is not None else None
         state.zero_kept = {**{k: v for k, v in report.items() if k != "zero_pF"}, "kept": np.flatnonzero(kept).tolist()}
         if report["not_used"]:
             log.warning("sensor %d: its stored zero is not used (%s)", state.info.id, report["not_used"])
             return False
         if kept.any():
-            baseline.substitute(kept, report["zero_pF"])
-            state.loaded = kept
+            self._keep_zero(state, kept, report["zero_pF"], sigma)
             log.warning("sensor %d: channels %s were loaded at the tare, against the zero %s %.1f s before; "
                         "they keep it", state.info.id, state.zero_kept["kept"],
                         "it left its address with" if stored.left else "stored", report["age_s"])
         return True
+
+    @staticmethod
+    def _keep_zero(state, kept: np.ndarray, zero_pF: np.ndarray, sigma: np.ndarray) -> None:
+        """The ``kept`` (n,) bool channels take ``zero_pF`` (n,) as their zero, flagged ``loaded_at_tare``,
+        and its σ (n,) ΔC/C0 (loaded_tare.kept_zero_sigma) goes into their forces' σ until the next tare."""
+        state.baseline.substitute(kept, zero_pF)
+        state.loaded = kept
+        state.processor.kept_zero = (state.baseline.value, sigma)
 
     def zeros_to_keep(self) -> dict[int, tuple[SensorInfo, str, dict]]:
         """{sensor: (info, calibration id, the zero in force as the registry keeps it)} of each named sensor

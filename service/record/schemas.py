@@ -63,6 +63,9 @@ BASELINES = {
             "std_pF": {"type": "array", "items": {"type": ["number", "null"]}},
             "loaded": {"type": "array", "items": {"type": "integer"},
                        "description": "taxels whose zero is the calibration's C0 (loaded at the tare)"},
+            "zero_sigma": {"type": "array", "items": {"type": "number"},
+                           "description": "per channel, the σ (ΔC/C0) of the zero kept at a loaded tare "
+                                          "(reconstruct/loaded_tare.py kept_zero_sigma), 0 where tared"},
             "judge": {"type": "boolean", "description": "the zero is judged against a calibration set later (false: a "
                                                       "forced tare's, the load present is the zero; absent: true)"},
             "taring": {"type": ["object", "null"], "description": "a tare window in progress (no baseline_pF then): "
