@@ -131,3 +131,6 @@ class MostRecent(dict):
         super().__setitem__(key, value)
         while len(self) > self.limit:
             del self[next(iter(self))]
+
+    def __reduce__(self):
+        return type(self), (self.limit,), None, None, iter(list(self.items()))  # copy, pickle: the limit first

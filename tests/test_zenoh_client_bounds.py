@@ -4,6 +4,8 @@ undecoded and counted as one that does not decode, and a flood of made-up
 board names leaves the client's per-board state at its bound while a real
 board's frames go on. Before, the client decoded samples of any size and
 kept state for every name it was sent."""
+import copy
+import pickle
 import threading
 import time
 
@@ -64,6 +66,8 @@ def test_most_recent_forgets_the_least_recently_set_or_read_beyond_its_limit():
     assert kept.get("b") is None and kept.get("c") == "C"  # c read: now the most recent
     kept["e"] = "E"  # a goes
     assert list(kept.items()) == [("d", "D"), ("c", "C"), ("e", "E")]
+    for copied in (copy.copy(kept), copy.deepcopy(kept), pickle.loads(pickle.dumps(kept))):
+        assert list(copied.items()) == [("d", "D"), ("c", "C"), ("e", "E")] and copied.limit == 3
 
 
 def test_a_sample_over_the_bound_is_dropped_undecoded_counted_and_told_once_and_the_good_frames_go_on(
