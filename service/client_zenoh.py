@@ -28,9 +28,17 @@ the service's time or memory: ``dropped`` counts them. A subscribed sample
 that does not decode (bytes that are no records, a record cut short, another
 version's) is dropped, counted in ``undecodable`` and per board in
 ``undecodable_by_board``, and told once per board in ``notices``; the other
-samples' frames go on. Every failure — no frame within ``timeout``, no
-answer to a query, a queried frame that does not decode — is a
-``TactileError`` saying what.
+samples' frames go on. So is a sample larger than the gateway's bound
+(``MAX_SAMPLE_BYTES``, 1 MiB: 32 frames of a 256-channel grid are ~70 KiB),
+before it is queued or decoded: nothing from a peer (unauthenticated) is
+parsed at any size (an answer to a query that large is an error, a health
+document that large is ignored). What is kept per board or sensor (counts,
+converters, shapes, why a sensor is skipped) is kept for the ``KEPT_BOARDS``
+boards (``KEPT_SENSORS`` sensors) used last, and ``notices`` holds the last
+``KEPT_NOTICES`` lines: a peer publishing under any number of made-up names
+leaves memory flat, and the boards in use keep theirs. Every failure — no
+frame within ``timeout``, no answer to a query, a queried frame that does
+not decode — is a ``TactileError`` saying what.
 
 Two services may publish one board name (docs/scale.md "One name, two
 services"). The client follows one per name, as a gateway serves one
@@ -54,9 +62,13 @@ from .fanout.encoding import DEFAULT_FIELDS, decode_binary
 from .net.following import Following, named
 from .net.zenoh_config import (PREFIX, frame_key, instance_of_alive, instance_of_sample, latest_key, open_session,
                                sensors_key, session_config)
-from .net.zenoh_feed import announced_shapes
+from .net.zenoh_feed import MAX_SAMPLE_BYTES, announced_shapes
+from .recent import MostRecent
 
 INBOX_SAMPLES = 4096  # ~2 s of a grid and a quad at 1 kHz
+KEPT_BOARDS = 64  # boards whose state is kept, the most recently used (a gateway serves 64: gateway.MAX_BOARDS)
+KEPT_SENSORS = 4 * KEPT_BOARDS  # sensors told as skipped (a board has a few)
+KEPT_NOTICES = 64  # the last notices; older ones are dropped
 
 
 def _board_of(key: zenoh.KeyExpr | str) -> str:
@@ -67,8 +79,19 @@ def _records(payload: bytes) -> int:
     return int.from_bytes(payload[:2], "little")  # a sample's u16 record count
 
 
+def _oversized(key: str, size: int) -> str | None:
+    """Why a sample of ``size`` bytes on ``key`` is not parsed, None if it may be."""
+    if size <= MAX_SAMPLE_BYTES:
+        return None
+    return f"a zenoh sample on {key} of {size} bytes is over the {MAX_SAMPLE_BYTES}-byte bound, not decoded"
+
+
 def _decoded(payload: bytes, key: str) -> list[dict]:
-    """The binary records of a frame sample on ``key``; TactileError naming why if it does not decode."""
+    """The binary records of a frame sample on ``key``; TactileError naming why
+    if it does not decode or is over the bound (then it is not decoded)."""
+    too_large = _oversized(key, len(payload))
+    if too_large is not None:
+        raise TactileError(too_large)
     try:
         return decode_binary(payload)
     except (ValueError, IndexError, UnicodeDecodeError, struct.error) as exc:
@@ -82,7 +105,10 @@ def _undecodable_said(undecodable: int, last: str) -> str:
 
 
 def _document(sample: zenoh.Sample) -> dict | None:
-    """A JSON object answered (a sensors document), None if the answer is none."""
+    """A JSON object answered (a sensors document), None if the answer is none
+    (or over the bound: not parsed)."""
+    if len(sample.payload) > MAX_SAMPLE_BYTES:
+        return None
     try:
         document = orjson.loads(sample.payload.to_bytes())
     except orjson.JSONDecodeError:
@@ -161,16 +187,18 @@ class ZenohClient:
         self.refused = 0  # frames subscribed to, dropped: another service's than the one followed under that name
         self.unshaped = 0  # frames subscribed to, skipped: their sensor's shape unknown or not fitting them
         self.undecodable = 0  # samples subscribed to, dropped: they do not decode
-        self.undecodable_by_board: dict[str, int] = {}  # board (its key's) → its samples in ``undecodable``
+        # board (its key's) → its samples in ``undecodable``, the KEPT_BOARDS boards with one lately
+        self.undecodable_by_board: dict[str, int] = MostRecent(KEPT_BOARDS)
         self.notices: list[str] = []  # a line when a sensor's frames begin to be skipped or a board's sample
-        # first does not decode, saying why
+        # first does not decode, saying why; the last KEPT_NOTICES
         self._undecodable_last = ""  # "board B: why" of the latest sample that did not decode
-        self._skipping: dict[str, str] = {}  # "board/id" → why its frames are skipped, until one fits again
+        # "board/id" → why its frames are skipped, until one fits again
+        self._skipping: dict[str, str] = MostRecent(KEPT_SENSORS)
         self.following = Following() if one_service_per_board else None
         self.session = open_session(config)
         self._health: dict[str, tuple[float, dict]] = {}
-        self._shapes: dict[tuple[str, str], dict[int, dict]] = {}  # by (board, instance)
-        self._converters: dict[tuple[str, str], _BoardFrames] = {}
+        self._shapes: dict[tuple[str, str], dict[int, dict]] = MostRecent(KEPT_BOARDS)  # by (board, instance)
+        self._converters: dict[tuple[str, str], _BoardFrames] = MostRecent(KEPT_BOARDS)
         self._lock = threading.Lock()
         self._alive_subscriber = self.session.liveliness().declare_subscriber(
             f"{PREFIX}/*/alive/**", self._on_alive, history=True)  # the tokens there already, then each change
@@ -208,7 +236,7 @@ class ZenohClient:
         saying the name is gone (a bare board's provisional one, at its first
         INFO: zenoh_publisher.py), which drops it."""
         board = _board_of(sample.key_expr)
-        if not self._admit(board, instance_of_sample(sample)):
+        if not self._admit(board, instance_of_sample(sample)) or len(sample.payload) > MAX_SAMPLE_BYTES:
             return
         try:
             document = orjson.loads(sample.payload.to_bytes())
@@ -261,8 +289,8 @@ class ZenohClient:
         sample = self._get(key, instance, _document_instance)
         document = _document(sample)
         if document is None or not isinstance(document.get("sensors"), list):
-            raise TactileError(f"zenoh query {key}: the answer is no sensors document: "
-                               f"{sample.payload.to_bytes()[:80]!r}")
+            raise TactileError(f"zenoh query {key}: the answer is no sensors document (at most {MAX_SAMPLE_BYTES} "
+                               f"bytes): {len(sample.payload)} bytes, {sample.payload.to_bytes()[:80]!r}")
         shapes, _ = announced_shapes(document, board)  # a shape no frame can have is left out: its frames are skipped
         with self._lock:
             self._shapes[(board, _document_instance(sample))] = {
@@ -280,28 +308,35 @@ class ZenohClient:
         tell it in ``notices`` when that sensor's frames begin to be skipped."""
         self.unshaped += 1
         if address not in self._skipping:
-            self.notices.append(_unshaped_notice(address, why))
+            self._notice(_unshaped_notice(address, why))
         self._skipping[address] = why
+
+    def _notice(self, line: str) -> None:
+        """Tell ``line`` in ``notices``, the oldest dropped beyond KEPT_NOTICES."""
+        self.notices.append(line)
+        del self.notices[:-KEPT_NOTICES]
 
     def _drop_undecodable(self, board: str, why: str) -> None:
         """Count a subscribed sample of ``board`` that does not decode (``why``);
-        tell it in ``notices`` at the board's first such sample."""
-        self.undecodable += 1
-        self.undecodable_by_board[board] = self.undecodable_by_board.get(board, 0) + 1
-        self._undecodable_last = f"board {board}: {why}"
-        if self.undecodable_by_board[board] == 1:
-            self.notices.append(f"{self._undecodable_last}: such samples are dropped (counted in undecodable)")
+        tell it in ``notices`` at the board's first such sample (among those
+        kept). From the consumer's thread or Zenoh's (a sample over the bound)."""
+        with self._lock:
+            self.undecodable += 1
+            count = self.undecodable_by_board[board] = self.undecodable_by_board.get(board, 0) + 1
+            self._undecodable_last = f"board {board}: {why}"
+            if count == 1:
+                self._notice(f"{self._undecodable_last}: such samples are dropped (counted in undecodable)")
 
     def _frames(self, board: str, instance: str, records: list[dict]) -> list[dict]:
         """The frames of a sample's decoded binary ``records``, from ``instance``'s ``board``."""
-        converter = self._converters.get((board, instance))
-        if converter is None:
-            if self.following is not None:  # a restarted or handed-over service's: its predecessor's are of no use
-                with self._lock:
+        with self._lock:  # a read moves it in _converters' order too
+            converter = self._converters.get((board, instance))
+            if converter is None:
+                if self.following is not None:  # a restarted or handed-over service's: its predecessor's are of no use
                     for old in [k for k in self._converters if k[0] == board]:
                         del self._converters[old]
                         self._shapes.pop(old, None)
-            converter = self._converters[(board, instance)] = _BoardFrames(self, board, instance)
+                converter = self._converters[(board, instance)] = _BoardFrames(self, board, instance)
         frames = converter._shaped_frames(records, DEFAULT_FIELDS)
         for frame in frames:
             frame["header"]["instance"] = instance
@@ -337,12 +372,15 @@ class ZenohClient:
         inbox, dropped_before = _Inbox(queue_samples), self.dropped
 
         def take(sample: zenoh.Sample) -> None:
-            instance = instance_of_sample(sample)
-            if self._admit(_board_of(sample.key_expr), instance):
-                inbox.put(sample, instance)
-            else:
+            board, instance = _board_of(sample.key_expr), instance_of_sample(sample)
+            too_large = _oversized(str(sample.key_expr), len(sample.payload))
+            if not self._admit(board, instance):
                 with self._lock:
                     self.refused += _records(sample.payload.to_bytes())
+            elif too_large is not None:  # neither queued nor decoded
+                self._drop_undecodable(board, too_large)
+            else:
+                inbox.put(sample, instance)
 
         subscribers = [self.session.declare_subscriber(key, take) for key in keys]
         # samples whose every record is skipped, or that do not decode, are no frame

@@ -1,7 +1,7 @@
 """Counts over the last seconds: what /health names while it goes on and
 forgets once it stops (a sensor's dropped frames, the board's ERROR frames,
 corrupt frames, the waits for the board's INFO), where the counters since
-start only grow."""
+start only grow; and ``MostRecent``, state kept for the names used last."""
 from __future__ import annotations
 
 import math
@@ -104,3 +104,33 @@ class RecentIdentification:
         if unanswered != self._unanswered:
             self.unanswered.add(t, unanswered - self._unanswered)
             self._unanswered = unanswered
+
+
+class MostRecent(dict):
+    """A dict of at most ``limit`` keys: setting or reading one (``[]``,
+    ``get``) makes it the most recent, and beyond ``limit`` the least recent
+    is forgotten. For state per name where the names come from the network
+    (unauthenticated peers may make up any number): the names in use stay,
+    a flood of others keeps memory flat. Not thread-safe: lock around it
+    where several threads use it."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__()
+        self.limit = limit
+
+    def __getitem__(self, key):
+        value = super().pop(key)
+        super().__setitem__(key, value)
+        return value
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+    def __setitem__(self, key, value) -> None:
+        super().pop(key, None)
+        super().__setitem__(key, value)
+        while len(self) > self.limit:
+            del self[next(iter(self))]
+
+    def __reduce__(self):
+        return type(self), (self.limit,), None, None, iter(list(self.items()))  # copy, pickle: the limit first
