@@ -7,8 +7,6 @@ import logging
 
 import orjson
 import pytest
-from mcap.reader import make_reader
-from mcap.writer import Writer
 
 from firmware_sim.board import BoardConfig, capture
 from service.cli import main
@@ -18,6 +16,7 @@ from service.record.mcap_reader import read_changes, read_settings
 from service.record.recorder import Recorder
 
 from .test_record_tare import by_frame, reads, recorded_forces
+from .test_replay_holds import rewritten
 
 SET_AT = 150  # the read the list document is recorded before: mid-press
 
@@ -43,23 +42,6 @@ def record(path, data: bytes, document=None) -> dict:
     return by_frame(recorded_forces(path))
 
 
-def with_settings(path, out, edit) -> None:
-    """``path`` copied to ``out``, its /settings messages as ``edit(doc)`` makes them."""
-    with open(path, "rb") as source, open(out, "wb") as stream:
-        writer = Writer(stream)
-        writer.start()
-        schemas, channels = {}, {}
-        for schema, channel, message in make_reader(source).iter_messages(log_time_order=False):
-            data = orjson.dumps(edit(orjson.loads(message.data))) if channel.topic.endswith("/settings") else message.data
-            if schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
-                                                               schemas[schema.id])
-            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time, message.sequence)
-        writer.finish()
-
-
 def exported(path, out) -> dict:
     """``tactile replay PATH --export OUT``'s frames, by frame (exit 0 asserted)."""
     assert main(["replay", str(path), "--export", str(out)]) == 0
@@ -68,7 +50,8 @@ def exported(path, out) -> dict:
 
 def test_a_recorded_mounting_that_is_a_list_is_said_and_the_default_used(tmp_path, pressed, caplog, monkeypatch):
     live = record(tmp_path / "run.mcap", pressed)
-    with_settings(tmp_path / "run.mcap", tmp_path / "edited.mcap", lambda doc: doc | {"mounting": ["flat"]})
+    rewritten(tmp_path / "run.mcap", tmp_path / "edited.mcap", lambda doc: doc | {"mounting": ["flat"]},
+              topics=("/settings",))
     with caplog.at_level(logging.WARNING, logger="service.record.mcap_reader"):
         settings = read_settings(tmp_path / "edited.mcap")
     assert settings[None]["level"] == "full" and "mounting" not in settings[None]

@@ -87,16 +87,16 @@ def served(path, read_size: int = 4096, merge: int = 1):
     return frames
 
 
-def rewritten(path, out, edit) -> None:
+def rewritten(path, out, edit, topics: tuple[str, ...] = ("/link", "/settings", "/resume")) -> None:
     """``path`` copied to ``out``, message by message in file order, each
-    message of /link, /settings and /resume as ``edit(doc)`` makes it (None: left out)."""
+    message of ``topics`` as ``edit(doc)`` makes it (None: left out)."""
     with open(path, "rb") as source, open(out, "wb") as stream:
         writer = Writer(stream)
         writer.start()
         schemas, channels = {}, {}
         for schema, channel, message in make_reader(source).iter_messages(log_time_order=False):
             data = message.data
-            if channel.topic.endswith(("/link", "/settings", "/resume")):
+            if channel.topic.endswith(topics):
                 doc = edit(orjson.loads(data))
                 if doc is None:
                     continue

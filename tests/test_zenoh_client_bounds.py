@@ -24,6 +24,7 @@ from service.recent import MostRecent
 from service.reconstruct import ForceFrame
 from tests.conftest import free_port
 from tests.test_zenoh_client_shapes import BOARD, INSTANCE, PERIOD_S, QUAD, Service
+from tests.test_zenoh_client_undecodable import forty_good_frames_around
 
 BOUND = 1 << 20  # the gateway's MAX_SAMPLE_BYTES, 1 MiB, written out: the test's own reference
 MADE_UP = 10_000
@@ -77,43 +78,7 @@ def test_a_sample_over_the_bound_is_dropped_undecoded_counted_and_told_once_and_
     oversized = quad_sample(9_999)
     oversized += bytes(BOUND + 1 - len(oversized))
     assert len(oversized) == 1_048_577 and decode_binary(oversized)[0]["seq"] == 9_999
-    service = Service(endpoint, {0: QUAD})
-    ready, stop = threading.Event(), threading.Event()
-    first = 1000
-
-    def put(payload: bytes) -> None:
-        service.session.put(frame_key(BOARD, 0), payload, attachment=INSTANCE.encode())
-
-    def publish():
-        seq = 0
-        while not ready.wait(PERIOD_S) and not stop.is_set():
-            put(quad_sample(seq))
-            seq += 1
-        for seq in range(first, first + 40):
-            put(quad_sample(seq))
-            if seq in (first + 9, first + 24):
-                put(oversized)
-            time.sleep(PERIOD_S)
-
-    publisher = threading.Thread(target=publish, daemon=True)
-    got = []
-    try:
-        with ZenohClient([endpoint], timeout=3.0) as client:
-            publisher.start()
-            for frame in client.subscribe(board=BOARD, timeout=3.0):
-                ready.set()
-                got.append((frame["header"]["seq"], frame["force_N"]))
-                if frame["header"]["seq"] == first + 39:
-                    break
-    finally:
-        stop.set()
-        if publisher.ident is not None:
-            publisher.join(5)
-        service.session.close()
-    ours = [(seq, forces) for seq, forces in got if seq >= first]
-    assert [seq for seq, _ in ours] == list(range(first, first + 40))
-    for seq, forces in ours:
-        np.testing.assert_allclose(forces, seq + np.array([0, 0.01, 0.02]), rtol=1e-6)
+    client = forty_good_frames_around(endpoint, {9: oversized, 24: oversized})
     assert max(decoded_sizes) < 100  # a quad sample is ~60 bytes; the padded ones never reached the decoder
     assert client.undecodable == 2 and client.undecodable_by_board == {BOARD: 2}
     assert len(client.notices) == 1

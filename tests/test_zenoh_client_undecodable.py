@@ -34,6 +34,49 @@ def put(service: Service, payload: bytes) -> None:
     service.session.put(frame_key(BOARD, 0), payload, attachment=INSTANCE.encode())
 
 
+FIRST = 1000  # the good frames' first seq; those below are put until the subscription is live
+
+
+def forty_good_frames_around(endpoint: str, bad_after: dict[int, bytes]) -> ZenohClient:
+    """A subscription to BOARD while 40 good quad frames (seqs FIRST ...)
+    are put, ``bad_after[k]`` right after the k-th; asserts all 40 came, in
+    order, with their forces; the client, closed, for its counters."""
+    service = Service(endpoint, {0: QUAD})
+    ready, stop = threading.Event(), threading.Event()
+
+    def publish():
+        seq = 0
+        while not ready.wait(PERIOD_S) and not stop.is_set():
+            put(service, quad_sample(seq))
+            seq += 1
+        for k in range(40):
+            put(service, quad_sample(FIRST + k))
+            if k in bad_after:
+                put(service, bad_after[k])
+            time.sleep(PERIOD_S)
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    got = []
+    try:
+        with ZenohClient([endpoint], timeout=3.0) as client:
+            publisher.start()
+            for frame in client.subscribe(board=BOARD, timeout=3.0):
+                ready.set()
+                got.append((frame["header"]["seq"], frame["force_N"]))
+                if frame["header"]["seq"] == FIRST + 39:
+                    break
+    finally:
+        stop.set()
+        if publisher.ident is not None:
+            publisher.join(5)
+        service.session.close()
+    ours = [(seq, forces) for seq, forces in got if seq >= FIRST]
+    assert [seq for seq, _ in ours] == list(range(FIRST, FIRST + 40))
+    for seq, forces in ours:
+        np.testing.assert_allclose(forces, seq + np.array([0, 0.01, 0.02]), rtol=1e-6)
+    return client
+
+
 @pytest.fixture
 def endpoint():
     return f"tcp/127.0.0.1:{free_port()}"
@@ -46,42 +89,7 @@ def test_samples_that_do_not_decode_are_dropped_counted_and_told_once_and_the_go
     for bad in (GARBAGE, truncated):  # independently: neither is a sample decode_binary reads
         with pytest.raises(Exception):
             decode_binary(bad)
-    service = Service(endpoint, {0: QUAD})
-    ready, stop = threading.Event(), threading.Event()
-    first = 1000  # seqs below: frames put until the subscription is live
-
-    def publish():
-        seq = 0
-        while not ready.wait(PERIOD_S) and not stop.is_set():
-            put(service, quad_sample(seq))
-            seq += 1
-        for seq in range(first, first + 40):
-            put(service, quad_sample(seq))
-            if seq == first + 9:
-                put(service, GARBAGE)
-            if seq == first + 24:
-                put(service, truncated)
-            time.sleep(PERIOD_S)
-
-    publisher = threading.Thread(target=publish, daemon=True)
-    got = []
-    try:
-        with ZenohClient([endpoint], timeout=3.0) as client:
-            publisher.start()
-            for frame in client.subscribe(board=BOARD, timeout=3.0):
-                ready.set()
-                got.append((frame["header"]["seq"], frame["force_N"]))
-                if frame["header"]["seq"] == first + 39:
-                    break
-    finally:
-        stop.set()
-        if publisher.ident is not None:
-            publisher.join(5)
-        service.session.close()
-    ours = [(seq, forces) for seq, forces in got if seq >= first]
-    assert [seq for seq, _ in ours] == list(range(first, first + 40))
-    for seq, forces in ours:
-        np.testing.assert_allclose(forces, seq + np.array([0, 0.01, 0.02]), rtol=1e-6)
+    client = forty_good_frames_around(endpoint, {9: GARBAGE, 24: truncated})
     assert client.undecodable == 2 and client.undecodable_by_board == {BOARD: 2}
     assert len(client.notices) == 1
     assert client.notices[0].startswith(f"board {BOARD}: a zenoh sample on {frame_key(BOARD, 0)} does not decode (")
