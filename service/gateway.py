@@ -27,6 +27,7 @@ from .health import health_report
 from .history import DEFAULT_BUDGET_BYTES, Histories
 from .latency import LatencyMeter
 from .net.board_claims import BoardClaims
+from .recent import MostRecent
 from .remote_board import RemoteBoard
 from .sched import SliceRequest, current_slice_us
 
@@ -50,7 +51,7 @@ class GatewayService:
         self.calibrations = None
         self.zenoh = None  # the ZenohFeed, from start
         self.boards_refused = 0  # samples and tokens of boards refused for want of a place
-        self._refused: dict[str, tuple[int, float]] = {}  # board → (times refused, last time), most recent last
+        self._refused: MostRecent = MostRecent(REFUSED_NAMED)  # board → (times refused, last time), most recent last
         self.claims = BoardClaims()  # which service each board name is served from
         self._boards: dict[str, RemoteBoard] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -114,8 +115,6 @@ class GatewayService:
             self.boards_refused += 1
             count, _ = self._refused.pop(name, (0, now))
             self._refused[name] = (count + 1, now)
-            if len(self._refused) > REFUSED_NAMED:
-                del self._refused[next(iter(self._refused))]
             return None
         for _, gone in lost[:max(0, len(self._boards) - self.max_boards + 1)]:
             self._forget(gone, now)

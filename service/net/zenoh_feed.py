@@ -40,6 +40,7 @@ import zenoh
 from ..board_info import _is_int
 from ..fanout.encoding import decode_binary
 from ..readings import MAX_CHANNELS, MAX_SENSOR_ID, SensorInfo
+from ..recent import MostRecent
 from ..reconstruct import ForceFrame
 from .board_claims import BoardClaims
 from .zenoh_config import PREFIX, instance_of_alive, instance_of_sample, open_session, sensors_key
@@ -83,9 +84,9 @@ class ZenohFeed:
         self.unshaped_frames = 0  # frames of sensors whose shape the board's service did not tell
         self.shapes_refused = 0  # sensors announced with a shape no frame can have
         self.misfit_frames = 0  # records whose forces do not fill their sensor's announced shape
-        self._refusals: dict[str, tuple[float, str]] = {}  # board → (monotonic time, why), the latest
+        self._refusals: MostRecent = MostRecent(MAX_REFUSALS)  # board → (monotonic time, why), the latest
         self._refusals_lock = threading.Lock()  # written by the feed's thread, read by the event loop's
-        self._renamed: dict[tuple[str, str], float] = {}  # (old name, instance) → when its service said so
+        self._renamed: MostRecent = MostRecent(MAX_RENAMED)  # (old name, instance) → when its service said so
         self._forgotten: deque[str] = deque()  # boards the gateway forgot, for the feed's thread to forget
         self.samples_renamed = 0
         # board → (the instance whose frames were last taken, whether it took over from another, its sensors since)
@@ -135,10 +136,7 @@ class ZenohFeed:
 
     def _refuse(self, board: str, why: str) -> None:
         with self._refusals_lock:
-            self._refusals.pop(board, None)
             self._refusals[board] = (time.monotonic(), why)
-            if len(self._refusals) > MAX_REFUSALS:
-                del self._refusals[next(iter(self._refusals))]
 
     def _queue(self, kind: str, sample: zenoh.Sample) -> None:
         """On Zenoh's thread: only queue (the oldest sample goes when full, counted)."""
@@ -242,8 +240,6 @@ class ZenohFeed:
         if frames:
             self._deliver(board, frames)
         self._renamed[(board, instance)] = at
-        if len(self._renamed) > MAX_RENAMED:
-            del self._renamed[next(iter(self._renamed))]
         self._drop(board)
 
     def _sensor(self, board: str, instance: str, sensor_id: int, kind: str) -> SensorInfo | None:
